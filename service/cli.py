@@ -1,0 +1,81 @@
+"""The ``photomap`` command: a thin layer over importable functions.
+
+Each command lives in its own module, which exposes ``add_arguments(parser)`` and
+``main(args, cfg) -> int``. Errors a user can act on (:class:`PhotomapError`) are printed on one
+line and mapped to an exit code; no traceback reaches the user unless ``--debug`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from . import __version__
+from .config import load_config
+from .errors import PhotomapError
+
+# command -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("service.demo", "simulate a flight over the bundled terrain, map it, print where the map is"),
+    "run": ("service.run", "map live from a camera (V4L2) until stopped"),
+    "replay": ("service.replay", "map a logged video or a folder of images"),
+    "simulate": ("service.simulate", "fly a virtual camera over a terrain image: video, telemetry, ground truth"),
+    "evaluate": ("service.evaluate", "compare a run's trajectory with ground truth: errors, ATE, drift, plots"),
+}
+
+EXIT_INTERRUPTED = 130
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("configuration")
+    g.add_argument("--config", metavar="FILE", help="YAML file overriding config/default.yaml")
+    g.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
+                   help="override one config key, e.g. --set mosaic.blend=feather (repeatable)")
+    g.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    g.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    g.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="photomap",
+        description="Live aerial photo maps from a down-looking drone camera (iFMI registration).",
+    )
+    parser.add_argument("--version", action="version", version=f"photomap {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module, help_text) in COMMANDS.items():
+        mod = importlib.import_module(module)
+        p = sub.add_parser(name, help=help_text, description=(mod.__doc__ or help_text).strip(),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        mod.add_arguments(p)
+        _common(p)
+        p.set_defaults(_module=mod)
+    return parser
+
+
+def _setup_logging(verbose: int, quiet: bool) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose > 0 else logging.INFO)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        datefmt="%H:%M:%S", stream=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    _setup_logging(args.verbose, args.quiet)
+    try:
+        cfg = load_config(args.config, args.overrides)
+        return int(args._module.main(args, cfg) or 0)
+    except PhotomapError as exc:
+        if args.debug:
+            raise
+        print(f"photomap {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"photomap {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())
