@@ -191,13 +191,13 @@ class Registrar:
     def __init__(self, shape: tuple[int, int], *, window: str = "tukey", window_taper: float = 0.5,
                  angle_bins: int = 0, radius_bins: int = 0, band_low: float = 0.02,
                  band_high: float = 0.45, snr_weighting: bool = True, peak_sigma: float = 0.18,
-                 candidate_ratio: float = 0.6, max_candidates: int = 3, refine_iterations: int = 2,
+                 candidate_ratio: float = 0.6, max_candidates: int = 3, refine_iterations: int = 5,
                  working_size: int | None = None) -> None:
         del working_size  # a pipeline option (downscaling happens before registration)
         h, w = int(shape[0]), int(shape[1])
         if h < 16 or w < 16:
             raise ValueError(f"frames of {w}x{h} px are too small to register")
-        if window not in ("tukey", "hann"):
+        if window not in ("tukey", "hann", "circular"):
             raise ValueError(f"window must be 'tukey' or 'hann', got {window!r}")
         if not 0 < band_low < band_high <= 0.5:
             raise ValueError("need 0 < band_low < band_high <= 0.5 (cycles/pixel)")
@@ -210,6 +210,10 @@ class Registrar:
 
         taper = 1.0 if window == "hann" else window_taper
         self.window = np.outer(_tukey(h, taper), _tukey(w, taper)).astype(np.float32)
+        if window == "circular":
+            yy, xx = np.mgrid[0:h, 0:w]
+            rr = np.hypot((xx - (w - 1) / 2) / ((w - 1) / 2), (yy - (h - 1) / 2) / ((h - 1) / 2))
+            self.window = np.where(rr < 1, 0.5 * (1 + np.cos(np.pi * np.clip((rr - (1 - window_taper)) / window_taper, 0, 1))), 0).astype(np.float32)
 
         # frequency grid of an rfft2 spectrum (rows: fy in fft order, cols: fx >= 0), cycles/px
         fy = scipy.fft.fftfreq(h)[:, None]
@@ -284,7 +288,7 @@ class Registrar:
         energy = float(gray.var())
         spec = self._windowed_spectrum(gray, mean)
         mag = np.abs(np.fft.fftshift(spec, axes=0))
-        lp = cv2.remap(mag, self._lp_map_x, self._lp_map_y, cv2.INTER_LINEAR,
+        lp = cv2.remap(mag, self._lp_map_x, self._lp_map_y, cv2.INTER_CUBIC,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         # per-ring power and its noise floor (white noise is flat; take the quietest rings)
         power = (lp.astype(np.float64) ** 2).mean(axis=0)
@@ -435,9 +439,11 @@ class Registrar:
         k = math.sqrt(2.0 * math.log(h * w)) + 1.0
         for hyp_angle, spectrum in hyps:
             r = scipy.fft.irfft2(spectrum, s=(h, w), workers=1)
+            peaks = self._peaks(r, 2, exclude=4)
             if prior is not None and prior.shift is not None:
-                r = self._mask_shift(r, hyp_angle, scale, prior)
-            for iy, ix, _ in self._peaks(r, 2, exclude=4):
+                # also the best peak within the prior's tolerance (periodic ground)
+                peaks += self._peaks(self._mask_shift(r, hyp_angle, scale, prior), 1, exclude=4)
+            for iy, ix, _ in dict.fromkeys(peaks):
                 fy, fx, height = self._subpixel(r, iy, ix)
                 dy = (fy + h / 2) % h - h / 2
                 dx = (fx + w / 2) % w - w / 2
@@ -458,8 +464,7 @@ class Registrar:
         base = np.asarray(self.center) - lin @ np.asarray(self.center)
         tx = base[0] - xs - prior.shift[0]
         ty = base[1] - ys - prior.shift[1]
-        keep = tx ** 2 + ty ** 2 <= prior.shift_tol ** 2
-        return np.where(keep, r, -np.inf) if keep.any() else r
+        return np.where(tx ** 2 + ty ** 2 <= prior.shift_tol ** 2, r, -np.inf)
 
     # ------------------------------------------------------------------ refinement
     def _refine(self, a: PreparedFrame, b: PreparedFrame, m: np.ndarray) -> np.ndarray | None:
@@ -508,11 +513,12 @@ class Registrar:
             # warp increment about the centre: x -> (1+da) x - db y + tx (centred coordinates)
             d = np.array([[1 + da, -db, tx], [db, 1 + da, ty], [0, 0, 1]])
             m3 = centre @ d @ centre_inv @ m3
-            if abs(tx) < 1e-4 and abs(ty) < 1e-4 and abs(da) < 1e-6 and abs(db) < 1e-6:
+            # converged when the frame corners move less than 0.002 px
+            if max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * max(cx, cy) * 1.5 < 2e-3:
                 break
-        # reject a refinement that wandered far from the iFMI estimate
+        # reject a refinement that wandered far from the iFMI estimate (it diverged)
         corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-        if np.abs((m3 - start) @ corners)[:2].max() > 2.0:
+        if np.abs((m3 - start) @ corners)[:2].max() > max(3.0, 0.03 * max(h, w)):
             return None
         return m3[:2]
 

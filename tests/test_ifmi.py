@@ -1,0 +1,215 @@
+"""iFMI registration against exact ground truth: pairs cut from one terrain with a known similarity."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from service.ifmi import Prior, Registrar, similarity_matrix
+
+TERRAIN_PATH = Path(__file__).resolve().parents[1] / "service" / "data" / "aukerman.png"
+
+
+@pytest.fixture(scope="module")
+def terrain() -> np.ndarray:
+    img = cv2.imread(str(TERRAIN_PATH), cv2.IMREAD_COLOR)
+    assert img is not None
+    return cv2.resize(img, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
+
+
+def smooth_noise(shape, sigma, seed, contrast=1.0):
+    """Band-limited random texture with values around 128 (no repetition)."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
+    img = (img - img.mean()) / img.std()
+    return np.clip(128 + 40 * contrast * img, 0, 255).astype(np.uint8)
+
+
+def cut_pair(terrain, shape, angle, scale, shift, centre=(1000.0, 800.0)):
+    """Frames a and b cut from ``terrain`` and the exact 2x3 matrix mapping b pixels to a pixels."""
+    h, w = shape
+    c = ((w - 1) / 2, (h - 1) / 2)
+    a_to_t = similarity_matrix(0.0, 1.0, (centre[0] - c[0], centre[1] - c[1]))
+    b_to_a = similarity_matrix(angle, scale, shift, center=c)
+    b_to_t = (np.vstack([a_to_t, [0, 0, 1]]) @ np.vstack([b_to_a, [0, 0, 1]]))[:2]
+    flags = cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
+    a = cv2.warpAffine(terrain, a_to_t, (w, h), flags=flags)
+    b = cv2.warpAffine(terrain, b_to_t, (w, h), flags=flags)
+    return a, b, b_to_a
+
+
+def centre_error(m_est, m_true, shape):
+    h, w = shape
+    c = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
+    return float(np.linalg.norm((m_est - m_true) @ c))
+
+
+def angle_error(m_est, m_true):
+    a = math.degrees(math.atan2(m_est[1, 0], m_est[0, 0]) - math.atan2(m_true[1, 0], m_true[0, 0]))
+    return abs((a + 180) % 360 - 180)
+
+
+def scale_error(m_est, m_true):
+    return abs(math.sqrt(np.linalg.det(m_est[:, :2]) / np.linalg.det(m_true[:, :2])) - 1)
+
+
+@pytest.mark.parametrize("shape", [(256, 256), (240, 320), (199, 251)])
+def test_full_circle_rotation_scale_and_translation(terrain, shape):
+    reg = Registrar(shape)
+    rng = np.random.default_rng(sum(shape))
+    angles = [-179.5, -135.0, -90.0, -30.0, 0.0, 12.3, 90.0, 150.0, 179.0]
+    for angle in angles:
+        scale = float(rng.uniform(0.8, 1.25))
+        shift = tuple(rng.uniform(-0.15, 0.15, 2) * np.array(shape[::-1]))
+        a, b, truth = cut_pair(terrain, shape, angle, scale, shift)
+        r = reg.register(a, b)
+        assert angle_error(r.matrix, truth) < 0.05, (angle, r.angle_deg)
+        assert scale_error(r.matrix, truth) < 5e-4, (scale, r.scale)
+        assert centre_error(r.matrix, truth, shape) < 0.1
+        assert r.confidence > 0.4
+
+
+def test_large_translation_forty_percent(terrain):
+    shape = (240, 320)
+    reg = Registrar(shape)
+    for shift in [(128.0, 0.0), (-120.0, 40.0), (30.0, -96.0)]:
+        a, b, truth = cut_pair(terrain, shape, 3.0, 1.02, shift)
+        r = reg.register(a, b)
+        assert centre_error(r.matrix, truth, shape) < 0.1, shift
+        assert angle_error(r.matrix, truth) < 0.05
+
+
+def test_grey_and_colour_agree(terrain):
+    shape = (240, 320)
+    reg = Registrar(shape)
+    a, b, truth = cut_pair(terrain, shape, -7.0, 0.95, (12.0, -8.0))
+    r_col = reg.register(a, b)
+    r_gray = reg.register(cv2.cvtColor(a, cv2.COLOR_BGR2GRAY), cv2.cvtColor(b, cv2.COLOR_BGR2GRAY).astype(np.float32))
+    np.testing.assert_allclose(r_col.matrix, r_gray.matrix, atol=1e-6)
+    assert centre_error(r_col.matrix, truth, shape) < 0.05
+
+
+def test_prepared_frames_give_the_same_result(terrain):
+    shape = (256, 256)
+    reg = Registrar(shape)
+    a, b, _ = cut_pair(terrain, shape, 20.0, 1.1, (5.0, 9.0))
+    r1 = reg.register(a, b)
+    r2 = reg.register(reg.prepare(a), reg.prepare(b))
+    np.testing.assert_allclose(r1.matrix, r2.matrix, atol=1e-9)
+    assert r1.confidence == pytest.approx(r2.confidence)
+
+
+def test_subpixel_peak_fit_is_unbiased_without_refinement():
+    """Pure fractional translations: the Gaussian fit leaves no systematic bias."""
+    shape = (256, 256)
+    big = smooth_noise((600, 600), 1.5, seed=3)
+    reg = Registrar(shape, refine_iterations=0)
+    errors = []
+    for frac in np.linspace(0.0, 0.9, 10):
+        a, b, truth = cut_pair(big, shape, 0.0, 1.0, (7.0 + frac, -3.0 - frac / 2), centre=(300.0, 300.0))
+        r = reg.register(a, b)
+        errors.append(r.matrix[:, 2] - truth[:, 2])
+    errors = np.array(errors)
+    assert np.abs(errors.mean(axis=0)).max() < 0.02  # bias
+    assert np.abs(errors).max() < 0.06
+
+
+def test_refinement_improves_rotation_precision(terrain):
+    shape = (256, 256)
+    coarse = Registrar(shape, refine_iterations=0)
+    fine = Registrar(shape, refine_iterations=2)
+    rng = np.random.default_rng(7)
+    err_c, err_f = [], []
+    for _ in range(8):
+        angle, scale = float(rng.uniform(-10, 10)), float(rng.uniform(0.95, 1.05))
+        a, b, truth = cut_pair(terrain, shape, angle, scale, tuple(rng.uniform(-20, 20, 2)))
+        err_c.append(angle_error(coarse.register(a, b).matrix, truth))
+        r = fine.register(a, b)
+        assert r.refined
+        err_f.append(angle_error(r.matrix, truth))
+    rms_f = math.sqrt(np.mean(np.square(err_f)))
+    assert rms_f < 0.01
+    assert rms_f < math.sqrt(np.mean(np.square(err_c)))
+
+
+def test_confidence_is_low_for_noise_blank_and_no_overlap(terrain):
+    shape = (240, 320)
+    reg = Registrar(shape)
+    rng = np.random.default_rng(0)
+    a, b, _ = cut_pair(terrain, shape, 0.0, 1.0, (10.0, 5.0))
+    good = reg.register(a, b).confidence
+    assert good > 0.6
+    noise1 = rng.integers(0, 256, shape, dtype=np.uint8)
+    noise2 = rng.integers(0, 256, shape, dtype=np.uint8)
+    assert reg.register(noise1, noise2).confidence < 0.1
+    blank = np.full(shape, 90, np.uint8)
+    assert reg.register(a, blank).confidence == 0.0
+    assert reg.register(blank, blank).confidence == 0.0
+    # two views of the terrain that do not overlap at all
+    far_a, _, _ = cut_pair(terrain, shape, 0.0, 1.0, (0.0, 0.0), centre=(500.0, 500.0))
+    far_b, _, _ = cut_pair(terrain, shape, 0.0, 1.0, (0.0, 0.0), centre=(1500.0, 1100.0))
+    assert reg.register(far_a, far_b).confidence < 0.15
+    # confidence falls with overlap
+    a, b, _ = cut_pair(terrain, shape, 0.0, 1.0, (200.0, 0.0))
+    assert reg.register(a, b).confidence < good
+
+
+def test_featureless_ground_registers(terrain):
+    """Sand-like ground: 25 % contrast, smooth texture, sensor noise."""
+    shape = (256, 256)
+    sand = smooth_noise((800, 800), 4.0, seed=11, contrast=0.25)
+    reg = Registrar(shape)
+    rng = np.random.default_rng(5)
+    ok = 0
+    for _ in range(10):
+        angle, scale = float(rng.uniform(-8, 8)), float(rng.uniform(0.96, 1.04))
+        a, b, truth = cut_pair(sand, shape, angle, scale, tuple(rng.uniform(-25, 25, 2)), centre=(400.0, 400.0))
+        a = np.clip(a + rng.normal(0, 2.0, a.shape), 0, 255).astype(np.uint8)
+        b = np.clip(b + rng.normal(0, 2.0, b.shape), 0, 255).astype(np.uint8)
+        r = reg.register(a, b)
+        ok += centre_error(r.matrix, truth, shape) < 1 and angle_error(r.matrix, truth) < 0.5
+    assert ok >= 9
+
+
+def test_locked_scale_and_angle_prior(terrain):
+    shape = (240, 320)
+    reg = Registrar(shape)
+    a, b, truth = cut_pair(terrain, shape, 25.0, 1.0, (6.0, -4.0))
+    r = reg.register(a, b, Prior(scale=1.0, scale_tol=0.0))
+    assert abs(r.scale - 1.0) < 1e-4
+    assert angle_error(r.matrix, truth) < 0.05
+    r = reg.register(a, b, Prior(angle_deg=22.0, angle_tol_deg=5.0))
+    assert angle_error(r.matrix, truth) < 0.05
+    # the prior forbids the true angle: the search stays inside the tolerance
+    r = reg.register(a, b, Prior(angle_deg=-60.0, angle_tol_deg=5.0))
+    assert abs(((r.angle_deg + 60.0) + 180) % 360 - 180) <= 5.5
+
+
+def test_periodic_ground_is_ambiguous_and_the_prior_decides():
+    """Rows of crops: ground periodic in x (period 24 px) moved by half a period.
+
+    Shifts of +12 and -12 px explain the images equally well: the result must say so, and a
+    motion prior must pick the one it expects.
+    """
+    shape = (256, 256)
+    rng = np.random.default_rng(2)
+    field = np.tile(smooth_noise((600, 24), 1.2, seed=4), (1, 26))
+    reg = Registrar(shape, refine_iterations=0)
+    a, b, _ = cut_pair(field, shape, 0.0, 1.0, (12.0, 3.0), centre=(360.0, 300.0))
+    a = np.clip(a + rng.normal(0, 2.0, a.shape), 0, 255).astype(np.uint8)
+    b = np.clip(b + rng.normal(0, 2.0, b.shape), 0, 255).astype(np.uint8)
+    assert reg.register(a, b).ambiguous
+    for expect_x in (12.0, -12.0):
+        r = reg.register(a, b, Prior(angle_deg=0.0, angle_tol_deg=3.0, scale=1.0, scale_tol=0.01,
+                                     shift=(expect_x + 3.0, 2.0), shift_tol=8.0))
+        assert r.ambiguous
+        assert abs(r.shift[0] - expect_x) < 0.2, (expect_x, r.shift)
+        assert abs(r.shift[1] - 3.0) < 0.2
+    # non-periodic ground is not reported ambiguous
+    big = smooth_noise((600, 600), 1.5, seed=9)
+    a, b, _ = cut_pair(big, shape, 0.0, 1.0, (5.0, 3.0), centre=(300.0, 300.0))
+    assert not reg.register(a, b).ambiguous
