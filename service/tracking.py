@@ -1,0 +1,129 @@
+"""Poses from pairwise registrations: reference/keyframe choice, motion prior, map segments.
+
+Pure: frames (already at the working resolution) in, poses out; no I/O, no threads.
+
+Conventions: a pose is a 2x3 matrix mapping pixels of a frame at the *input* resolution to map
+pixels. The map of a segment is the first frame of that segment scaled by ``map_scale`` (map
+pixels per input pixel). Registration runs on frames downscaled by ``working_scale``; its results
+are converted back to input pixels here (OpenCV pixel centres: ``x_small = f * (x + 0.5) - 0.5``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .ifmi import PreparedFrame, Prior, Registrar, Registration
+
+REFERENCE = "reference"
+REGISTERED = "registered"
+LOW_CONFIDENCE = "low_confidence"
+
+
+def _h(m: np.ndarray) -> np.ndarray:
+    return np.vstack([m, [0.0, 0.0, 1.0]])
+
+
+def scaling(f: float) -> np.ndarray:
+    """3x3 matrix mapping input pixels to pixels of the image resized by ``f`` (cv2.resize)."""
+    o = f / 2.0 - 0.5
+    return np.array([[f, 0.0, o], [0.0, f, o], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class TrackStep:
+    """What the tracker made of one frame."""
+
+    status: str  # reference | registered | low_confidence
+    pose: np.ndarray | None  # 2x3, input pixels -> map pixels of `segment`; None if not posed
+    confidence: float
+    segment: int
+    registration: Registration | None = None
+    events: list[str] = field(default_factory=list)
+
+
+@dataclass
+class _Reference:
+    prepared: PreparedFrame
+    pose: np.ndarray  # 3x3 input pixels -> map pixels
+    index: int
+
+
+class Tracker:
+    """Chains pairwise iFMI registrations into poses.
+
+    Each frame is registered against the current reference. With ``keyframes`` the reference
+    stays while the confidence against it is at least ``keyframe_confidence`` (error then grows per
+    keyframe, not per frame); otherwise every registered frame becomes the next reference. A frame
+    below ``min_confidence`` is not posed, the reference is kept and the next frames are tried
+    against it; after ``max_lost_frames`` such frames in a row a new segment starts.
+    """
+
+    def __init__(self, registrar: Registrar, working_scale: float = 1.0, *, map_scale: float = 1.0,
+                 min_confidence: float = 0.15, max_lost_frames: int = 10, keyframes: bool = True,
+                 keyframe_confidence: float = 0.5, motion_prior: bool = True,
+                 prior_angle_tol_deg: float = 20.0, prior_scale_tol: float = 0.15) -> None:
+        self.registrar = registrar
+        self._to_small = scaling(working_scale)
+        self._from_small = np.linalg.inv(self._to_small)
+        self._map = np.diag([map_scale, map_scale, 1.0])
+        self.min_confidence = min_confidence
+        self.max_lost_frames = max_lost_frames
+        self.keyframes = keyframes
+        self.keyframe_confidence = keyframe_confidence
+        self.motion_prior = motion_prior
+        self.prior_angle_tol_deg = prior_angle_tol_deg
+        self.prior_scale_tol = prior_scale_tol
+        self.segment = -1
+        self._ref: _Reference | None = None
+        self._last: tuple[int, np.ndarray] | None = None  # (index, 3x3 pose) of the last posed frame
+        self._velocity: np.ndarray | None = None  # 3x3 motion between the last two posed frames
+        self._lost = 0
+
+    def _new_segment(self, prepared: PreparedFrame, index: int, events: list[str]) -> TrackStep:
+        self.segment += 1
+        self._ref = _Reference(prepared, self._map.copy(), index)
+        self._last, self._velocity, self._lost = (index, self._map.copy()), None, 0
+        if self.segment > 0:
+            events.append(f"link lost: map segment {self.segment} started at frame {index}")
+        return TrackStep(REFERENCE, self._map[:2].copy(), 1.0, self.segment, events=events)
+
+    def _prior(self, index: int) -> Prior | None:
+        """Expected registration against the reference, from a constant-velocity model."""
+        if not self.motion_prior or self._last is None or self._velocity is None:
+            return None
+        last_index, last_pose = self._last
+        if index - last_index != 1:
+            return None
+        predicted = last_pose @ self._velocity
+        rel = self._to_small @ np.linalg.inv(self._ref.pose) @ predicted @ self._from_small
+        angle = math.degrees(math.atan2(rel[1, 0], rel[0, 0]))
+        scale = math.sqrt(abs(np.linalg.det(rel[:2, :2])))
+        return Prior(angle_deg=angle, angle_tol_deg=self.prior_angle_tol_deg, scale=scale,
+                     scale_tol=self.prior_scale_tol)
+
+    def step(self, frame: np.ndarray, index: int) -> TrackStep:
+        """Pose frame ``index`` (at the working resolution, grey or BGR)."""
+        prepared = self.registrar.prepare(frame)
+        events: list[str] = []
+        if self._ref is None:
+            return self._new_segment(prepared, index, events)
+        reg = self.registrar.register(self._ref.prepared, prepared, self._prior(index))
+        if reg.confidence < self.min_confidence:
+            self._lost += 1
+            if self._lost > self.max_lost_frames:
+                return self._new_segment(prepared, index, events)
+            return TrackStep(LOW_CONFIDENCE, None, reg.confidence, self.segment, reg, events)
+        rel = self._from_small @ _h(reg.matrix) @ self._to_small  # input px of frame -> of reference
+        pose = self._ref.pose @ rel
+        if self._last is not None and index - self._last[0] == 1:
+            self._velocity = np.linalg.inv(self._last[1]) @ pose
+        elif self._last is not None:
+            self._velocity = None
+        self._last = (index, pose)
+        self._lost = 0
+        if not self.keyframes or reg.confidence < self.keyframe_confidence:
+            self._ref = _Reference(prepared, pose, index)
+        return TrackStep(REGISTERED, pose[:2].copy(), reg.confidence, self.segment, reg, events)

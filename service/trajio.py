@@ -1,0 +1,304 @@
+"""Trajectory files of a run (``trajectory.csv``, ``trajectory.tum``, JSON) and ``groundtruth.csv``.
+
+Every writer is atomic: it writes a temporary file in the target's folder and ``os.replace``-s it
+over the target, so a periodic checkpoint of a live run never leaves a half-written file.
+Readers accept extra columns and raise :class:`InputError` with the file and line on bad input.
+Formats: DESIGN.md section 4; conventions: :mod:`service.trajectory`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import logging
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from .errors import InputError
+from .trajectory import (STATUSES, GroundTruth, PoseRow, frame_centre, pose_angle_deg,
+                         pose_scale)
+
+log = logging.getLogger(__name__)
+
+M_COLUMNS = ("m00", "m01", "m02", "m10", "m11", "m12")
+TRAJECTORY_COLUMNS = ("frame", "t", "x", "y", "angle_deg", "scale", "confidence", "status",
+                      *M_COLUMNS, "segment")
+H_COLUMNS = tuple(f"h{i}{j}" for i in range(3) for j in range(3))
+GROUNDTRUTH_COLUMNS = ("frame", "t", "x", "y", "yaw_deg", "scale", "roll_deg", "pitch_deg",
+                       "alt_m", *H_COLUMNS)
+_GROUNDTRUTH_REQUIRED = ("frame", "t", *H_COLUMNS)
+
+
+# --- atomic writes ------------------------------------------------------------------------
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder, ``os.replace``)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write UTF-8 ``text`` to ``path`` atomically."""
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _jsonable(obj: Any) -> Any:
+    """numpy values to Python ones, NaN/inf to None, tuples to lists, Paths to str."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, np.ndarray)):
+        return [_jsonable(v) for v in (obj.tolist() if isinstance(obj, np.ndarray) else obj)]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_json(path: str | Path, obj: Any) -> None:
+    """Write ``obj`` as indented JSON, atomically (NaN/inf become ``null``; numpy is accepted)."""
+    atomic_write_text(path, json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n")
+
+
+# --- trajectory.csv -----------------------------------------------------------------------
+
+def _fmt(value: float | None, spec: str) -> str:
+    if value is None or not math.isfinite(value):
+        return ""
+    return format(float(value), spec)
+
+
+def _centre_xy(row: PoseRow, centre: tuple[float, float] | None) -> tuple[float, float] | None:
+    if row.M is None:
+        return None
+    if centre is not None:
+        M = np.asarray(row.M, dtype=float)[:2]
+        p = M[:, :2] @ np.asarray(centre) + M[:, 2]
+        return float(p[0]), float(p[1])
+    if row.xy is None:
+        raise ValueError(f"frame {row.frame}: give frame_size or the row's xy")
+    return row.xy
+
+
+def _fmt_extra(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v)) if math.isfinite(v) else ""
+    return str(v)
+
+
+def format_trajectory_csv(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None) -> str:
+    """The text of ``trajectory.csv`` (see :func:`write_trajectory_csv`)."""
+    rows = list(rows)
+    centre = frame_centre(*frame_size) if frame_size is not None else None
+    extra_cols: list[str] = []
+    for r in rows:
+        extra_cols += [k for k in r.extra if k not in extra_cols and k not in TRAJECTORY_COLUMNS]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow([*TRAJECTORY_COLUMNS, *extra_cols])
+    for r in rows:
+        if r.status not in STATUSES:
+            raise ValueError(f"frame {r.frame}: status {r.status!r} is not one of {STATUSES}")
+        if r.M is None:
+            derived, m = [""] * 4, [""] * 6
+        else:
+            M = np.asarray(r.M, dtype=float)[:2].reshape(2, 3)
+            x, y = _centre_xy(r, centre)
+            derived = [_fmt(x, ".6f"), _fmt(y, ".6f"), _fmt(pose_angle_deg(M), ".6f"),
+                       _fmt(pose_scale(M), ".8f")]
+            m = [repr(float(v)) for v in M.ravel()]
+        extras = [_fmt_extra(r.extra.get(k)) for k in extra_cols]
+        w.writerow([int(r.frame), _fmt(r.t, ".6f"), *derived, _fmt(r.confidence, ".6g"),
+                    r.status, *m, int(r.segment), *extras])
+    return buf.getvalue()
+
+
+def write_trajectory_csv(path: str | Path, rows: Iterable[PoseRow],
+                         frame_size: tuple[int, int] | None = None) -> None:
+    """Write ``trajectory.csv`` atomically: one row per input frame.
+
+    Parameters
+    ----------
+    path : path
+        Target file.
+    rows : iterable of PoseRow
+        In frame order. Rows without ``M`` get empty pose fields. Keys of ``extra`` become
+        columns after the standard ones (in order of first appearance).
+    frame_size : (width, height), optional
+        Input frame size in pixels; ``x, y`` are then ``M`` applied to ``((w-1)/2, (h-1)/2)``.
+        Without it every posed row must carry ``xy``.
+    """
+    atomic_write_text(path, format_trajectory_csv(rows, frame_size))
+
+
+def _open_csv(path: str | Path, what: str) -> tuple[list[str], list[tuple[int, dict]]]:
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{what} not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read {what} {path}: {exc}") from None
+    reader = csv.DictReader(io.StringIO(text))
+    header = [h.strip() for h in (reader.fieldnames or [])]
+    if not header:
+        raise InputError(f"{what} {path} is empty")
+    reader.fieldnames = header
+    return header, [(i + 2, row) for i, row in enumerate(reader)]
+
+
+def _check_header(path: str | Path, what: str, header: Sequence[str],
+                  required: Sequence[str]) -> None:
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise InputError(f"{what} {path} lacks column(s) {', '.join(missing)}")
+
+
+def _parse_extra(text: str | None) -> Any:
+    if text is None or text.strip() == "":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def read_trajectory_csv(path: str | Path) -> list[PoseRow]:
+    """Read a run's ``trajectory.csv`` into :class:`PoseRow` s (``xy`` filled from ``x, y``).
+
+    Extra columns go to ``extra`` (numbers as float, empty as None, else the text).
+    Raises InputError for a missing file, a missing column or a malformed row.
+    """
+    header, records = _open_csv(path, "trajectory")
+    _check_header(path, "trajectory", header, TRAJECTORY_COLUMNS)
+    extra_cols = [c for c in header if c not in TRAJECTORY_COLUMNS]
+    rows = []
+    for line, rec in records:
+        try:
+            status = (rec["status"] or "").strip()
+            if status not in STATUSES:
+                raise ValueError(f"status {status!r} is not one of {', '.join(STATUSES)}")
+            m = [(rec[c] or "").strip() for c in M_COLUMNS]
+            if all(m):
+                M = np.array([float(v) for v in m]).reshape(2, 3)
+            elif not any(m):
+                M = None
+            else:
+                raise ValueError("pose fields m00..m12 are partly empty")
+            x, y = (rec["x"] or "").strip(), (rec["y"] or "").strip()
+            conf = (rec["confidence"] or "").strip()
+            seg = (rec["segment"] or "").strip()
+            rows.append(PoseRow(
+                frame=int(rec["frame"]), t=float(rec["t"]), M=M,
+                confidence=float(conf) if conf else math.nan, status=status,
+                segment=int(seg) if seg else 0,
+                extra={c: _parse_extra(rec.get(c)) for c in extra_cols},
+                xy=(float(x), float(y)) if x and y else None))
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"trajectory {path}, line {line}: {exc}") from None
+    return rows
+
+
+# --- trajectory.tum -----------------------------------------------------------------------
+
+def largest_segment(rows: Iterable[PoseRow]) -> int | None:
+    """The segment with the most glued rows (the lowest id on a tie), None if none is glued."""
+    counts: dict[int, int] = {}
+    for r in rows:
+        if r.glued:
+            counts[r.segment] = counts.get(r.segment, 0) + 1
+    return min(counts, key=lambda s: (-counts[s], s)) if counts else None
+
+
+def format_tum(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None,
+               segment: int | None = None) -> str:
+    """The text of ``trajectory.tum`` (see :func:`write_tum`)."""
+    rows = list(rows)
+    seg = largest_segment(rows) if segment is None else segment
+    centre = frame_centre(*frame_size) if frame_size is not None else None
+    lines = [f"# t x y z qx qy qz qw | photomap segment {seg}: map pixels, x right, y down, "
+             "z = 0, yaw about z = angle_deg (scale dropped)"]
+    last_t = -math.inf
+    for r in rows:
+        if not r.glued or r.segment != seg:
+            continue
+        if not r.t > last_t:
+            log.warning("TUM: frame %d skipped, its time %.6f s does not increase", r.frame, r.t)
+            continue
+        last_t = r.t
+        x, y = _centre_xy(r, centre)
+        half = math.radians(pose_angle_deg(np.asarray(r.M, dtype=float))) / 2.0
+        lines.append(f"{r.t:.6f} {x:.6f} {y:.6f} 0.0 0.0 0.0 {math.sin(half):.9f} "
+                     f"{math.cos(half):.9f}")
+    return "\n".join(lines) + "\n"
+
+
+def write_tum(path: str | Path, rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None,
+              segment: int | None = None) -> None:
+    """Write the glued poses of one segment as a TUM trajectory (``evo`` reads it), atomically.
+
+    One line ``t x y z qx qy qz qw`` per ``reference``/``registered`` frame after a ``#`` header.
+    ``x, y`` are the frame centre in map pixels written as-is, so y points down; with z = 0 and z
+    pointing into the ground the frame is still right-handed, and ``yaw`` (about z) is
+    ``angle_deg``, positive from x towards y. The scale of the pose is not representable and is
+    dropped (use ``evo_ape --align --correct_scale``). Frames whose ``t`` does not increase are
+    skipped with a warning.
+
+    Parameters
+    ----------
+    segment : int, optional
+        Map segment to write (each has its own map frame); default: the one with the most
+        glued frames.
+    frame_size : (width, height), optional
+        As for :func:`write_trajectory_csv`.
+    """
+    atomic_write_text(path, format_tum(rows, frame_size, segment))
+
+
+# --- groundtruth.csv ----------------------------------------------------------------------
+
+def read_groundtruth(path: str | Path) -> GroundTruth:
+    """Read ``groundtruth.csv`` of ``photomap simulate``.
+
+    Needs ``frame``, ``t`` and ``h00..h22`` (the 3x3 frame -> terrain matrix); every other column
+    that holds numbers is kept in ``columns``. Raises InputError on a missing file or column or a
+    malformed row.
+    """
+    header, records = _open_csv(path, "ground truth")
+    _check_header(path, "ground truth", header, _GROUNDTRUTH_REQUIRED)
+    if not records:
+        raise InputError(f"ground truth {path} has no rows")
+    cols: dict[str, list] = {c: [] for c in header}
+    for line, rec in records:
+        for c in header:
+            v = _parse_extra(rec.get(c))
+            if c in _GROUNDTRUTH_REQUIRED and not isinstance(v, float):
+                raise InputError(f"ground truth {path}, line {line}: column {c} is not a number")
+            cols[c].append(v if isinstance(v, float) else math.nan)
+    H = np.column_stack([cols[c] for c in H_COLUMNS]).reshape(-1, 3, 3)
+    return GroundTruth(frame=np.asarray(cols["frame"]).astype(int), t=np.asarray(cols["t"]), H=H,
+                       columns={c: np.asarray(v) for c, v in cols.items()
+                                if not np.isnan(np.asarray(v)).all()})
