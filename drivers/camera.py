@@ -1,0 +1,223 @@
+"""Live V4L2 camera: a capture thread, a drop-oldest queue and reconnection with back-off."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from typing import Any, Callable, Iterator
+
+import cv2
+
+from service.errors import InputError
+
+from .capture import CaptureStats, Frame, SourceBase
+
+log = logging.getLogger(__name__)
+
+
+def open_v4l2(device: str | int) -> cv2.VideoCapture:
+    """The default capture factory: ``cv2.VideoCapture(device, cv2.CAP_V4L2)``."""
+    return cv2.VideoCapture(device, cv2.CAP_V4L2)
+
+
+def backoff_delays(initial: float, maximum: float) -> Iterator[float]:
+    """Exponential back-off: ``initial, 2*initial, 4*initial, ...`` capped at ``maximum`` (seconds)."""
+    delay = initial
+    while True:
+        yield min(delay, maximum)
+        delay = min(delay * 2.0, maximum)
+
+
+class CameraSource(SourceBase):
+    """Frames of a live camera, read by a background thread into a bounded queue.
+
+    When the consumer falls behind, the oldest queued frame is discarded (counted in
+    ``stats.dropped``), so what the consumer gets is never more than ``queue_size`` frames
+    old. ``Frame.t`` is ``clock()`` (default ``time.monotonic``) right after the read returned.
+    Every frame read gets the next ``index``, dropped ones included.
+
+    When ``read_failures`` reads in a row fail (camera unplugged), the loss is logged once,
+    the capture is released and reopened with exponential back-off between
+    ``reconnect_initial`` and ``reconnect_max`` seconds until it works again or ``close()``
+    is called; the first frame after that counts in ``stats.reconnects``. The back-off only
+    resets once a frame arrives. The consumer just sees a gap in ``t`` (no frames meanwhile).
+
+    Parameters
+    ----------
+    device : str or int
+        ``/dev/videoN`` or the index N.
+    width, height : int, optional
+        Requested frame size in pixels (None: the camera's default).
+    fps : float, optional
+        Requested frame rate (None: the camera's default).
+    fourcc : str, optional
+        Requested pixel format, e.g. ``"MJPG"`` (None: the camera's default).
+    queue_size : int
+        Frames held for the consumer before the oldest is dropped.
+    read_failures : int
+        Consecutive failed reads after which the camera counts as lost.
+    reconnect_initial, reconnect_max : float
+        First and largest delay (seconds) between reopening attempts.
+    capture_factory : callable, optional
+        ``factory(device)`` returning an object with ``isOpened()``, ``read()``, ``set()``,
+        ``release()`` like ``cv2.VideoCapture`` (default :func:`open_v4l2`; tests pass a fake).
+    clock : callable
+        Time stamp source for ``Frame.t`` (seconds).
+    join_timeout : float
+        Seconds ``close()`` waits for the capture thread (a read blocked in the driver).
+
+    Raises
+    ------
+    InputError
+        The device cannot be opened at start.
+    """
+
+    live = True
+
+    def __init__(
+        self,
+        device: str | int,
+        *,
+        width: int | None = None,
+        height: int | None = None,
+        fps: float | None = None,
+        fourcc: str | None = None,
+        queue_size: int = 4,
+        read_failures: int = 5,
+        reconnect_initial: float = 0.5,
+        reconnect_max: float = 8.0,
+        capture_factory: Callable[[str | int], Any] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        join_timeout: float = 2.0,
+    ) -> None:
+        if queue_size < 1:
+            raise InputError(f"camera queue size must be at least 1, got {queue_size}")
+        if fourcc is not None and len(fourcc) != 4:
+            raise InputError(f"camera fourcc must have 4 characters, got {fourcc!r}")
+        self.device = device
+        self.stats = CaptureStats()
+        self._props = [
+            (cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc) if fourcc else None),
+            (cv2.CAP_PROP_FRAME_WIDTH, width),
+            (cv2.CAP_PROP_FRAME_HEIGHT, height),
+            (cv2.CAP_PROP_FPS, fps),
+        ]
+        self._read_failures = max(1, read_failures)
+        self._reconnect = (reconnect_initial, reconnect_max)
+        self._factory = capture_factory or open_v4l2
+        self._clock = clock
+        self._join_timeout = join_timeout
+        self._name = str(device)
+        self._queue: deque[Frame] = deque()
+        self._queue_size = queue_size
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._error: Exception | None = None
+        self._cap = self._open()
+        if self._cap is None:
+            raise InputError(f"cannot open camera {device}: no such device, or it is busy")
+        self._thread = threading.Thread(target=self._run, name=f"capture {device}", daemon=True)
+        self._thread.start()
+
+    @property
+    def closed(self) -> bool:
+        """True once ``close()`` was called (or the capture thread ended on an error)."""
+        return self._stop.is_set()
+
+    def _open(self) -> Any | None:
+        """A new opened capture with the requested properties, or None."""
+        cap = self._factory(self.device)
+        if not cap.isOpened():
+            cap.release()
+            return None
+        for prop, value in self._props:
+            if value is not None and not cap.set(prop, value):
+                log.warning("camera %s: could not set property %d to %s", self._name, prop, value)
+        return cap
+
+    def _run(self) -> None:
+        index = 0
+        failures = 0
+        outage: Iterator[float] | None = None  # back-off delays while the camera is lost
+        try:
+            while not self._stop.is_set():
+                ok, image = self._cap.read()
+                t = self._clock()
+                if self._stop.is_set():
+                    break
+                if ok and image is not None:
+                    if outage is not None:
+                        outage = None
+                        self.stats.reconnects += 1
+                        log.warning("camera %s is back", self._name)
+                    failures = 0
+                    self._push(Frame(index=index, t=t, image=image, source=self._name))
+                    index += 1
+                    continue
+                failures += 1
+                if failures >= self._read_failures:
+                    failures = 0
+                    if outage is None:
+                        log.warning("camera %s lost after %d failed reads: reconnecting",
+                                    self._name, self._read_failures)
+                        outage = backoff_delays(*self._reconnect)
+                    self._reopen(outage)
+        except Exception as exc:  # surfaced to the consumer by __iter__
+            self._error = exc
+        finally:
+            with self._cond:
+                self._stop.set()
+                self._cond.notify_all()
+
+    def _push(self, frame: Frame) -> None:
+        with self._cond:
+            self.stats.read += 1
+            if len(self._queue) >= self._queue_size:
+                self._queue.popleft()
+                self.stats.dropped += 1
+            self._queue.append(frame)
+            self._cond.notify()
+
+    def _reopen(self, delays: Iterator[float]) -> None:
+        """Release the capture and reopen it after the next delays, until it opens or close().
+
+        The back-off continues over ``delays`` (shared by the whole outage), so a camera that
+        opens but still delivers nothing is retried less and less often.
+        """
+        self._cap.release()
+        for delay in delays:
+            if self._stop.wait(delay):
+                return
+            cap = self._open()
+            if cap is not None:
+                self._cap = cap
+                return
+            log.debug("camera %s: reopening failed", self._name)
+
+    def __iter__(self) -> Iterator[Frame]:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop.is_set():
+                    self._cond.wait()
+                if not self._queue:
+                    break
+                frame = self._queue.popleft()
+            yield frame
+        if self._error is not None:
+            raise self._error
+
+    def close(self) -> None:
+        """Stop the capture thread, release the camera; pending frames are discarded."""
+        with self._cond:
+            self._stop.set()
+            self._queue.clear()
+            self._cond.notify_all()
+        if self._thread is not threading.current_thread():
+            self._thread.join(self._join_timeout)
+        if self._thread.is_alive():
+            log.warning("camera %s: capture thread did not stop within %.1f s",
+                        self._name, self._join_timeout)
+        else:
+            self._cap.release()

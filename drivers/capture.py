@@ -1,0 +1,172 @@
+"""Frame sources: one interface for a video file, a folder of stills and a live V4L2 camera.
+
+Every source yields :class:`Frame` objects in capture order and counts what it read, dropped,
+skipped and reconnected in :class:`CaptureStats`. Replay sources (video files, stills) never
+drop a frame; a live camera drops the *oldest* queued frame when the consumer falls behind, so
+latency stays bounded.
+
+The concrete sources live in :mod:`drivers.video`, :mod:`drivers.images` and
+:mod:`drivers.camera`; :func:`open_source` picks one from a spec string.
+"""
+
+from __future__ import annotations
+
+import re
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator, Protocol, runtime_checkable
+
+import numpy as np
+
+_CAMERA_PATH = re.compile(r"^/dev/video\d+$")
+_GLOB_CHARS = re.compile(r"[*?\[]")
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One captured image.
+
+    Attributes
+    ----------
+    index : int
+        0-based position in capture order. A frame that was dropped or could not be decoded
+        still consumes its index, so gaps in ``index`` show losses.
+    t : float
+        Seconds. Video files: the frame's presentation timestamp (PTS) from the start of the
+        file. Stills: EXIF DateTimeOriginal as seconds since the Unix epoch, or
+        ``index / rate`` when the stills carry no EXIF time. Live cameras: the host's
+        monotonic clock (``time.monotonic()``) when the frame was received.
+    image : numpy.ndarray
+        uint8, ``HxW`` (gray) or ``HxWx3`` (BGR, OpenCV order).
+    source : str
+        Where the frame came from: the still's file name, the video's file name, the device.
+    """
+
+    index: int
+    t: float
+    image: np.ndarray
+    source: str
+
+
+@dataclass
+class CaptureStats:
+    """Counters of a frame source (updated by the source while it runs).
+
+    Attributes
+    ----------
+    read : int
+        Frames obtained from the input (for a live camera, including those dropped later).
+    dropped : int
+        Frames discarded because the consumer fell behind (live sources only).
+    corrupt : int
+        Frames or files skipped because they could not be decoded.
+    reconnects : int
+        Recoveries of a live camera after it was lost (frames arrive again).
+    """
+
+    read: int = 0
+    dropped: int = 0
+    corrupt: int = 0
+    reconnects: int = 0
+
+
+@runtime_checkable
+class FrameSource(Protocol):
+    """What the pipeline consumes: iterate for frames, ``close()`` when done.
+
+    Iteration ends at the end of the input or after ``close()``. ``live`` is true for sources
+    whose frames arrive in real time (and may be dropped); false for replay.
+    """
+
+    stats: CaptureStats
+    live: bool
+
+    def __iter__(self) -> Iterator[Frame]: ...
+
+    def close(self) -> None: ...
+
+
+class SourceBase(ABC):
+    """Context-manager support shared by the concrete sources."""
+
+    stats: CaptureStats
+    live: bool = False
+
+    @abstractmethod
+    def __iter__(self) -> Iterator[Frame]: ...
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _is_camera(spec: str | int | Path) -> bool:
+    if isinstance(spec, bool):
+        return False
+    if isinstance(spec, int):
+        return True
+    text = str(spec)
+    return text.isdigit() or bool(_CAMERA_PATH.match(text))
+
+
+def open_source(
+    spec: str | int | Path,
+    *,
+    width: int | None = None,
+    height: int | None = None,
+    fps: float | None = None,
+    fourcc: str | None = None,
+    queue_size: int = 4,
+    read_failures: int = 5,
+    reconnect_initial: float = 0.5,
+    reconnect_max: float = 8.0,
+    image_rate: float = 1.0,
+    capture_factory: Callable[[str | int], Any] | None = None,
+) -> FrameSource:
+    """Open the frame source that ``spec`` names.
+
+    ``/dev/videoN``, an integer or a string of digits opens a V4L2 camera
+    (:class:`~drivers.camera.CameraSource`); an existing directory or a glob pattern opens
+    the stills it holds (:class:`~drivers.images.ImageFolderSource`); anything else is a
+    video file (:class:`~drivers.video.VideoFileSource`). The keyword options are the
+    ``capture:`` config section; each source takes the ones that concern it (0 or "" for
+    width, height, fps, fourcc mean "the camera's default").
+
+    Raises
+    ------
+    InputError
+        The camera, folder or file cannot be opened.
+    """
+    if _is_camera(spec):
+        from .camera import CameraSource
+
+        device: str | int = spec if isinstance(spec, int) else str(spec)
+        if isinstance(device, str) and device.isdigit():
+            device = int(device)
+        return CameraSource(
+            device,
+            width=width or None,
+            height=height or None,
+            fps=fps or None,
+            fourcc=fourcc or None,
+            queue_size=queue_size,
+            read_failures=read_failures,
+            reconnect_initial=reconnect_initial,
+            reconnect_max=reconnect_max,
+            capture_factory=capture_factory,
+        )
+    text = str(spec)
+    if Path(text).is_dir() or (_GLOB_CHARS.search(text) and not Path(text).exists()):
+        from .images import ImageFolderSource
+
+        return ImageFolderSource(text, rate=image_rate)
+    from .video import VideoFileSource
+
+    return VideoFileSource(text)
+
