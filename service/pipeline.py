@@ -1,0 +1,358 @@
+"""The mapping pipeline: frames in, a growing photo map and a trajectory out.
+
+Threads live here (and in the drivers): a file source is decoded by a prefetch thread into a
+bounded queue (replay never drops); a live source already drops its oldest frames when the worker
+falls behind. One worker thread runs prepare -> register -> pose -> map update for each frame and
+checkpoints the outputs periodically; :meth:`MappingPipeline.stop` (SIGINT/SIGTERM) ends capture,
+lets the worker finish, and the outputs are written.
+
+Files written to the output folder (DESIGN.md section 4): ``mosaic.png`` (BGRA, transparent where
+the map is empty; the largest segment; other segments as ``mosaic_segment{N}.png``),
+``trajectory.csv``, ``trajectory.tum`` and ``run.json``. All are written atomically.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import shutil
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import cv2
+import numpy as np
+
+from drivers.capture import Frame, FrameSource
+from .ifmi import Registrar
+from .mosaic import TiledMosaic
+from .tilestore import DiskTileStore
+from .tracking import LOW_CONFIDENCE, TrackStep, Tracker
+from .trajectory import PoseRow
+from .trajio import atomic_write_bytes, write_json, write_trajectory_csv, write_tum
+
+log = logging.getLogger(__name__)
+
+_END = object()
+
+
+@dataclass
+class RunStats:
+    """Counters of a run (the body of ``run.json``)."""
+
+    frames_in: int = 0
+    registered: int = 0
+    low_confidence: int = 0
+    dropped: int = 0
+    corrupt: int = 0
+    errors: int = 0
+    segments: int = 0
+    confidence_sum: float = 0.0
+    worker_s: float = 0.0
+    register_s: float = 0.0
+    events: list[str] = field(default_factory=list)
+
+    def summary(self, wall_s: float) -> dict:
+        posed = self.registered
+        return {
+            "frames_in": self.frames_in,
+            "registered": self.registered,
+            "skipped": self.low_confidence + self.corrupt + self.errors,
+            "low_confidence": self.low_confidence,
+            "corrupt": self.corrupt,
+            "errors": self.errors,
+            "dropped": self.dropped,
+            "segments": self.segments,
+            "mean_confidence": self.confidence_sum / posed if posed else None,
+            "ms_per_frame": 1000.0 * self.worker_s / self.frames_in if self.frames_in else None,
+            "ms_register_per_frame": 1000.0 * self.register_s / self.frames_in if self.frames_in else None,
+            "wall_time_s": wall_s,
+            "fps": self.frames_in / wall_s if wall_s > 0 else None,
+            "events": self.events[-100:],
+        }
+
+
+def _prefetch(source: FrameSource, depth: int, stop: threading.Event) -> Iterator[Frame]:
+    """Decode ``source`` in a thread, ``depth`` frames ahead (blocking: never drops)."""
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    failure: list[BaseException] = []
+
+    def reader() -> None:
+        try:
+            for frame in source:
+                while not stop.is_set():
+                    try:
+                        q.put(frame, timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    break
+        except BaseException as exc:  # handed to the consumer
+            failure.append(exc)
+        finally:
+            q.put(_END)
+
+    thread = threading.Thread(target=reader, name="photomap-decode", daemon=True)
+    thread.start()
+    while True:
+        item = q.get()
+        if item is _END:
+            break
+        yield item
+    thread.join(timeout=2.0)
+    if failure:
+        raise failure[0]
+
+
+class MappingPipeline:
+    """Builds the photo map of one flight.
+
+    Parameters
+    ----------
+    source : FrameSource
+        Frames to map (live or replay).
+    cfg : dict
+        The whole config (sections ``registration``, ``mapping``, ``mosaic``, ``output``).
+    out_dir : path
+        Output folder (created).
+    on_frame : callable, optional
+        Called in the worker thread after each frame with ``(frame, step, pipeline)``; for sinks
+        such as the viewer or a progress bar. It must be quick and must not raise.
+    input_name : str
+        Recorded in ``run.json``.
+    """
+
+    def __init__(self, source: FrameSource, cfg: dict, out_dir: str | Path, *,
+                 on_frame: Callable[[Frame, TrackStep, "MappingPipeline"], None] | None = None,
+                 input_name: str = "") -> None:
+        self.source = source
+        self.cfg = cfg
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.on_frame = on_frame
+        self.input_name = input_name
+        self.stats = RunStats()
+        self.rows: list[PoseRow] = []
+        self.mosaics: dict[int, TiledMosaic] = {}
+        self.frame_size: tuple[int, int] | None = None  # (w, h) of the input
+        self.tracker: Tracker | None = None
+        self._stop = threading.Event()
+        self._next_index = 0
+        self._started = 0.0
+        self._last_checkpoint = 0.0
+        self._cache_dir: Path | None = None
+        self._own_cache = False
+        self._warned: set[str] = set()
+
+    # ------------------------------------------------------------------ control
+    def stop(self) -> None:
+        """Stop capture; the worker finishes and the outputs are written. Safe from a signal handler."""
+        self._stop.set()
+        self.source.close()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def run(self) -> dict:
+        """Map the whole source (until its end or :meth:`stop`); returns the run summary."""
+        self._started = self._last_checkpoint = time.monotonic()
+        failure: list[BaseException] = []
+
+        def work() -> None:
+            try:
+                frames = self.source if self.source.live else _prefetch(self.source, 8, self._stop)
+                for frame in frames:  # after stop(), the frames already queued are drained
+                    self._process(frame)
+            except BaseException as exc:  # reported by run(), after the outputs are written
+                failure.append(exc)
+
+        worker = threading.Thread(target=work, name="photomap-worker", daemon=True)
+        worker.start()
+        while worker.is_alive():
+            worker.join(timeout=0.2)
+        self.source.close()
+        summary = self.finish()
+        if failure:
+            raise failure[0]
+        return summary
+
+    # ------------------------------------------------------------------ worker
+    def _setup(self, image: np.ndarray) -> None:
+        h, w = image.shape[:2]
+        self.frame_size = (w, h)
+        rcfg = dict(self.cfg["registration"])
+        working = int(rcfg.pop("working_size"))
+        f = min(1.0, working / max(h, w)) if working > 0 else 1.0
+        self._small = (max(16, int(round(w * f))), max(16, int(round(h * f))))
+        f = self._small[0] / w  # exact factor of cv2.resize in x (and, to rounding, in y)
+        mcfg = self.cfg["mapping"]
+        self.tracker = Tracker(Registrar((self._small[1], self._small[0]), **rcfg), f,
+                               map_scale=float(mcfg["map_scale"]),
+                               min_confidence=mcfg["min_confidence"],
+                               max_lost_frames=mcfg["max_lost_frames"], keyframes=mcfg["keyframes"],
+                               keyframe_confidence=mcfg["keyframe_confidence"],
+                               motion_prior=mcfg["motion_prior"],
+                               prior_angle_tol_deg=mcfg["prior_angle_tol_deg"],
+                               prior_scale_tol=mcfg["prior_scale_tol"])
+
+    def _mosaic(self, segment: int) -> TiledMosaic:
+        if segment not in self.mosaics:
+            m = self.cfg["mosaic"]
+            store = None
+            if m["max_tiles_in_memory"]:
+                if self._cache_dir is None:
+                    if m["cache_dir"]:
+                        self._cache_dir = Path(m["cache_dir"])
+                    else:
+                        self._cache_dir = Path(tempfile.mkdtemp(prefix="photomap-tiles-"))
+                        self._own_cache = True
+                store = DiskTileStore(self._cache_dir / f"segment{segment}")
+            self.mosaics[segment] = TiledMosaic(
+                tile_size=m["tile_size"], channels=m["channels"], blend=m["blend"],
+                max_tiles_in_memory=m["max_tiles_in_memory"], store=store, border=m["border"],
+                max_footprint_px=m["max_footprint_px"])
+        return self.mosaics[segment]
+
+    def _warn_once(self, kind: str, message: str) -> None:
+        if kind not in self._warned:
+            self._warned.add(kind)
+            log.warning(message)
+
+    def _process(self, frame: Frame) -> None:
+        t0 = time.perf_counter()
+        for missing in range(self._next_index, frame.index):  # gaps: dropped or undecodable
+            self.rows.append(PoseRow(missing, float("nan"), None, status="dropped",
+                                     segment=max(self.stats.segments - 1, 0)))
+        self._next_index = max(self._next_index, frame.index + 1)
+        self.stats.frames_in += 1
+        image = frame.image
+        if self.tracker is None:
+            self._setup(image)
+        if image.shape[:2] != (self.frame_size[1], self.frame_size[0]):
+            self.stats.corrupt += 1
+            self._warn_once("size", f"frame {frame.index}: size {image.shape[1]}x{image.shape[0]} "
+                                    f"differs from the first frame's; skipped")
+            self.rows.append(PoseRow(frame.index, frame.t, None, status="corrupt",
+                                     segment=max(self.stats.segments - 1, 0)))
+            return
+        try:
+            small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
+            t1 = time.perf_counter()
+            step = self.tracker.step(small, frame.index)
+            self.stats.register_s += time.perf_counter() - t1
+            if step.pose is not None:
+                self._mosaic(step.segment).add(image, step.pose)
+        except Exception as exc:  # never lose the map for one bad frame
+            self.stats.errors += 1
+            self._warn_once(f"error:{type(exc).__name__}",
+                            f"frame {frame.index} skipped: {type(exc).__name__}: {exc}")
+            log.debug("frame %d failed", frame.index, exc_info=True)
+            self.rows.append(PoseRow(frame.index, frame.t, None, status="corrupt",
+                                     segment=max(self.stats.segments - 1, 0)))
+            return
+        self.stats.segments = step.segment + 1
+        for event in step.events:
+            log.warning(event)
+            self.stats.events.append(event)
+        if step.status == LOW_CONFIDENCE:
+            self.stats.low_confidence += 1
+        else:
+            self.stats.registered += 1
+            self.stats.confidence_sum += step.confidence
+        self.rows.append(PoseRow(frame.index, frame.t, step.pose, step.confidence, step.status,
+                                 step.segment))
+        self.stats.worker_s += time.perf_counter() - t0
+        if self.on_frame is not None:
+            self.on_frame(frame, step, self)
+        interval = float(self.cfg["output"]["checkpoint_interval"])
+        if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
+            self.checkpoint()
+
+    # ------------------------------------------------------------------ outputs
+    def summary(self) -> dict:
+        src = self.source.stats
+        self.stats.dropped = src.dropped
+        self.stats.corrupt = max(self.stats.corrupt, src.corrupt)
+        out = self.stats.summary(time.monotonic() - self._started)
+        out.update({"input": self.input_name, "frame_size": list(self.frame_size or ()),
+                    "working_size": list(getattr(self, "_small", ())),
+                    "reconnects": src.reconnects, "map_scale": self.cfg["mapping"]["map_scale"]})
+        return out
+
+    def _write_trajectory(self) -> None:
+        if self.frame_size is None:
+            return
+        write_trajectory_csv(self.out_dir / "trajectory.csv", self.rows, self.frame_size)
+        if any(r.glued for r in self.rows):
+            write_tum(self.out_dir / "trajectory.tum", self.rows, self.frame_size)
+
+    def checkpoint(self) -> None:
+        """Rewrite trajectory, run.json and a mosaic preview (atomically)."""
+        self._last_checkpoint = time.monotonic()
+        self._write_trajectory()
+        summary = self.summary()
+        summary["complete"] = False
+        if self.mosaics:
+            seg = max(self.mosaics, key=lambda s: sum(r.glued and r.segment == s for r in self.rows))
+            self._write_png(self.out_dir / "preview.png", self.mosaics[seg],
+                            int(self.cfg["output"]["preview_px"]))
+        write_json(self.out_dir / "run.json", summary)
+
+    @staticmethod
+    def _write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
+        bounds = mosaic.bounds()
+        if bounds is None:
+            return None
+        _, _, w, h = bounds
+        scale = min(1.0, max_px / max(w, h))
+        image, alpha, origin = mosaic.render(scale=scale)
+        if image.ndim == 2:
+            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        ok, buf = cv2.imencode(".png", np.dstack([image, alpha]))
+        if not ok:
+            raise RuntimeError(f"PNG encoding of {path.name} failed")
+        atomic_write_bytes(path, buf.tobytes())
+        return {"file": path.name, "origin_xy": list(origin), "scale": scale,
+                "size": [int(image.shape[1]), int(image.shape[0])]}
+
+    def _write_tiles(self, folder: Path, mosaic: TiledMosaic) -> None:
+        folder.mkdir(exist_ok=True)
+        for key in mosaic.tiles():
+            image, alpha = mosaic.tile_image(key)
+            if image.ndim == 2:
+                image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+            ok, buf = cv2.imencode(".png", np.dstack([image, alpha]))
+            if ok:
+                atomic_write_bytes(folder / f"tile_{key[0]}_{key[1]}.png", buf.tobytes())
+
+    def finish(self) -> dict:
+        """Write the final outputs; returns the run summary (also in ``run.json``)."""
+        self._write_trajectory()
+        summary = self.summary()
+        maps = []
+        max_px = int(self.cfg["output"]["max_mosaic_px"])
+        order = sorted(self.mosaics, key=lambda s: -sum(r.glued and r.segment == s for r in self.rows))
+        for rank, seg in enumerate(order):
+            name = "mosaic.png" if rank == 0 else f"mosaic_segment{seg}.png"
+            info = self._write_png(self.out_dir / name, self.mosaics[seg], max_px)
+            if info is None:
+                continue
+            info["segment"] = seg
+            if info["scale"] < 1.0:
+                tiles = self.out_dir / ("tiles" if rank == 0 else f"tiles_segment{seg}")
+                self._write_tiles(tiles, self.mosaics[seg])
+                info["tiles"] = tiles.name
+                info["tile_size"] = self.mosaics[seg].tile_size
+            maps.append(info)
+        (self.out_dir / "preview.png").unlink(missing_ok=True)
+        summary["mosaics"] = maps
+        summary["complete"] = True
+        write_json(self.out_dir / "run.json", summary)
+        if self._own_cache and self._cache_dir is not None:
+            shutil.rmtree(self._cache_dir, ignore_errors=True)
+        return summary

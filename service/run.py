@@ -1,0 +1,40 @@
+"""Map live from a camera until stopped (Ctrl-C / SIGTERM writes the map and exits 0).
+
+Frames that arrive while the worker is busy are dropped, oldest first, and counted, so latency
+stays bounded. Outputs go to --out, or to a time-stamped folder under output.data_dir. Outputs are
+checkpointed every output.checkpoint_interval seconds, so a power loss loses at most that much.
+
+examples:
+  photomap run --camera /dev/video0
+  photomap run --camera 0 --out /data/flights/today --set capture.width=640 --set capture.height=480
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from drivers.capture import open_source
+from .replay import map_source, print_summary
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--camera", default="/dev/video0",
+                        help="V4L2 device path or index (default /dev/video0)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="output folder (default: a time-stamped folder under output.data_dir)")
+
+
+def flight_folder(data_dir: str | Path) -> Path:
+    """A new time-stamped folder for one flight's outputs."""
+    return Path(data_dir).expanduser() / time.strftime("flight-%Y%m%d-%H%M%S")
+
+
+def main(args: argparse.Namespace, cfg: dict) -> int:
+    out = Path(args.out) if args.out else flight_folder(cfg["output"]["data_dir"])
+    source = open_source(args.camera, **cfg["capture"])
+    print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")
+    summary = map_source(source, cfg, out, input_name=str(args.camera))
+    print_summary(summary, out)
+    return 0
