@@ -1,0 +1,493 @@
+"""The photo map: an unbounded canvas of fixed-size tiles that frames are glued into.
+
+Conventions
+-----------
+- Map pixels follow OpenCV: x right, y down, integer coordinates at pixel centres. The map has
+  no fixed extent; negative coordinates are fine.
+- Map pixel ``(x, y)`` lives in tile ``key = (tx, ty) = (x // ts, y // ts)`` (floor division),
+  at row ``y - ty*ts``, column ``x - tx*ts`` of that tile. ``tile_origin(key) = (tx*ts, ty*ts)``.
+- A pose ``M`` is a 2x3 affine matrix mapping **frame pixels to map pixels**.
+- Rectangles are OpenCV's ``(x, y, w, h)`` in map pixels: the top-left pixel and the size.
+- Every map pixel carries a coverage: uncovered pixels are "empty" (alpha 0), not black.
+
+Blending
+--------
+``overwrite``
+    The newest frame is on top wherever it covers (as in the original iFMI mosaics). A map pixel
+    takes a frame's value only if all four source pixels of its bilinear interpolation lie
+    inside the frame's mask, which is eroded by ``border`` pixels: no dark interpolated edges.
+``feather``
+    Every frame pixel is weighted by its distance to the frame border, as the product of the
+    distances to the nearest vertical and horizontal border (a tent in x times a tent in y,
+    1 at the frame centre; times the normalised distance transform of ``mask`` if one is given).
+    Each tile keeps the weighted sum and the weight sum (float32) and shows their ratio, so
+    overlaps blend without seams. The product, unlike the distance transform (the minimum of
+    the two distances), also has no seam where two frames' borders run side by side: there the
+    common factor cancels. Warping the premultiplied (value * weight, weight) image makes edge
+    interpolation exact.
+
+The module is pure computation: no file I/O, no threads. Tiles beyond ``max_tiles_in_memory``
+go to a :class:`service.tilestore.TileStore` (which may write files) and come back transparently.
+An instance is not thread-safe.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import OrderedDict
+from typing import TYPE_CHECKING, Iterable
+
+import cv2
+import numpy as np
+
+from .errors import ConfigError, InputError
+
+if TYPE_CHECKING:
+    from .tilestore import TileStore
+
+log = logging.getLogger(__name__)
+
+TileKey = tuple[int, int]
+Rect = tuple[int, int, int, int]
+Tile = dict[str, np.ndarray]
+
+BLENDS = ("overwrite", "feather")
+
+
+class TiledMosaic:
+    """An unbounded photo map made of ``tile_size`` x ``tile_size`` tiles created on demand.
+
+    Parameters
+    ----------
+    tile_size : int
+        Side of a square tile, map pixels.
+    channels : int
+        3 (BGR map) or 1 (gray map). Frames are converted to this.
+    blend : {"overwrite", "feather"}
+        How overlapping frames combine (see the module docstring).
+    max_tiles_in_memory : int or None
+        Keep at most this many tiles in memory; the least recently touched ones are handed to
+        ``store`` and loaded back when touched or read. ``None``: no cap.
+    store : TileStore or None
+        Where spilled tiles go; required with ``max_tiles_in_memory``.
+    border : int
+        Frame border, pixels, kept out of the map (both blends).
+    max_footprint_px : int
+        A frame whose map footprint (its bounding box) exceeds this many map pixels is refused
+        with :class:`InputError`, so that a wild pose cannot exhaust memory.
+    """
+
+    def __init__(self, tile_size: int = 256, channels: int = 3, blend: str = "overwrite",
+                 max_tiles_in_memory: int | None = None, store: TileStore | None = None,
+                 border: int = 1, max_footprint_px: int = 1 << 24) -> None:
+        if not isinstance(tile_size, int) or tile_size < 8:
+            raise ConfigError(f"mosaic tile_size must be an integer >= 8, got {tile_size!r}")
+        if channels not in (1, 3):
+            raise ConfigError(f"mosaic channels must be 1 or 3, got {channels!r}")
+        if blend not in BLENDS:
+            raise ConfigError(f"mosaic blend must be one of {', '.join(BLENDS)}, got {blend!r}")
+        if max_tiles_in_memory is not None:
+            if not isinstance(max_tiles_in_memory, int) or max_tiles_in_memory < 1:
+                raise ConfigError("mosaic max_tiles_in_memory must be a positive integer or null, "
+                                  f"got {max_tiles_in_memory!r}")
+            if store is None:
+                raise ConfigError("mosaic max_tiles_in_memory needs a tile store to spill to")
+        if not isinstance(border, int) or border < 0:
+            raise ConfigError(f"mosaic border must be an integer >= 0, got {border!r}")
+        self.tile_size = tile_size
+        self.channels = channels
+        self.blend = blend
+        self.border = border
+        self.max_tiles_in_memory = max_tiles_in_memory
+        self.max_footprint_px = int(max_footprint_px)
+        self._store = store
+        self._tiles: OrderedDict[TileKey, Tile] = OrderedDict()  # in memory, least recent first
+        self._spilled: set[TileKey] = set()  # not in memory; current data is in the store
+        self._clean: set[TileKey] = set()  # in memory and equal to the store's copy
+        self._frame_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
+        self._extent: list[int] | None = None  # covered pixels: x0, y0, x1, y1 (exclusive)
+        self._extent_stale = False
+
+    # ------------------------------------------------------------------ adding frames
+    def add(self, frame: np.ndarray, M: np.ndarray, mask: np.ndarray | None = None) -> set[TileKey]:
+        """Glue ``frame`` into the map at pose ``M``.
+
+        Parameters
+        ----------
+        frame : uint8 array (h, w) gray, (h, w, 3) BGR or (h, w, 4) BGRA (alpha ignored)
+        M : array-like 2x3
+            Pose: frame pixel ``(u, v)`` goes to map pixel ``M @ (u, v, 1)``.
+        mask : array (h, w) or None
+            Non-zero where the frame is valid (e.g. after undistortion); eroded by ``border``.
+
+        Returns
+        -------
+        set of tile keys whose pixels changed.
+        """
+        img = self._to_channels(frame)
+        M = _check_pose(M)
+        h, w = img.shape[:2]
+        valid, weight = self._frame_mask(h, w, mask)
+
+        # Map pixels that bilinear interpolation of the frame can reach (generous by one pixel).
+        corners = np.array([[-1.0, -1.0], [w, -1.0], [-1.0, h], [w, h]])
+        mapped = corners @ M[:, :2].T + M[:, 2]
+        x0, y0 = (int(v) for v in np.floor(mapped.min(axis=0)))
+        x1, y1 = (int(v) + 1 for v in np.ceil(mapped.max(axis=0)))
+        bw, bh = x1 - x0, y1 - y0
+        if bw * bh > self.max_footprint_px:
+            raise InputError(f"frame footprint of {bw}x{bh} map pixels exceeds the limit of "
+                             f"{self.max_footprint_px} (pose scale {math.sqrt(abs(np.linalg.det(M[:, :2]))):.3g})")
+
+        # Warp the footprint's bounding box once and cut it into tiles: for 320x240 frames in
+        # 256 px tiles this measured 1.1-1.9x faster than one warpAffine per touched tile.
+        A = M.copy()
+        A[:, 2] -= (x0, y0)
+        C = self.channels
+        if self.blend == "overwrite":
+            src = np.dstack([img, valid])
+            warped = cv2.warpAffine(src, A, (bw, bh), flags=cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            cover = warped[..., C] == 255
+        else:
+            src = np.dstack([img.astype(np.float32) * weight[..., None], weight])
+            warped = cv2.warpAffine(src, A, (bw, bh), flags=cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            cover = warped[..., C] > 0
+        rows = np.flatnonzero(cover.any(axis=1))
+        if rows.size == 0:
+            log.debug("frame %dx%d covers no map pixel", w, h)
+            return set()
+        cols = np.flatnonzero(cover.any(axis=0))
+        cx0, cx1 = x0 + int(cols[0]), x0 + int(cols[-1]) + 1
+        cy0, cy1 = y0 + int(rows[0]), y0 + int(rows[-1]) + 1
+        self._grow_extent(cx0, cy0, cx1, cy1)
+
+        ts = self.tile_size
+        touched: set[TileKey] = set()
+        for ty in range(cy0 // ts, (cy1 - 1) // ts + 1):
+            my0, my1 = max(ty * ts, cy0), min((ty + 1) * ts, cy1)
+            for tx in range(cx0 // ts, (cx1 - 1) // ts + 1):
+                mx0, mx1 = max(tx * ts, cx0), min((tx + 1) * ts, cx1)
+                src_sl = (slice(my0 - y0, my1 - y0), slice(mx0 - x0, mx1 - x0))
+                sub_cover = cover[src_sl]
+                if not sub_cover.any():
+                    continue
+                key = (tx, ty)
+                tile = self._load(key)
+                dst_sl = (slice(my0 - ty * ts, my1 - ty * ts), slice(mx0 - tx * ts, mx1 - tx * ts))
+                sub = warped[src_sl]
+                if self.blend == "overwrite":
+                    np.copyto(tile["color"][dst_sl], sub[..., :C], where=sub_cover[..., None])
+                    tile["cover"][dst_sl][sub_cover] = 255
+                else:
+                    tile["sum"][dst_sl] += sub[..., :C]
+                    tile["weight"][dst_sl] += sub[..., C]
+                self._clean.discard(key)
+                touched.add(key)
+        return touched
+
+    def _to_channels(self, frame: np.ndarray) -> np.ndarray:
+        """``frame`` as uint8 (h, w, channels)."""
+        frame = np.asarray(frame)
+        if frame.dtype != np.uint8:
+            raise InputError(f"mosaic frames must be uint8, got {frame.dtype}")
+        if frame.ndim == 3 and frame.shape[2] == 1:
+            frame = frame[..., 0]
+        if frame.ndim == 2:
+            code = cv2.COLOR_GRAY2BGR if self.channels == 3 else None
+        elif frame.ndim == 3 and frame.shape[2] == 3:
+            code = None if self.channels == 3 else cv2.COLOR_BGR2GRAY
+        elif frame.ndim == 3 and frame.shape[2] == 4:
+            code = cv2.COLOR_BGRA2BGR if self.channels == 3 else cv2.COLOR_BGRA2GRAY
+        else:
+            raise InputError(f"mosaic frames must be gray, BGR or BGRA images, got shape {frame.shape}")
+        if min(frame.shape[:2]) < 1:
+            raise InputError(f"mosaic frame is empty (shape {frame.shape})")
+        if code is not None:
+            frame = cv2.cvtColor(frame, code)
+        return frame.reshape(frame.shape[0], frame.shape[1], self.channels)
+
+    def _frame_mask(self, h: int, w: int, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """(valid uint8 0/255 eroded by ``border``, feather weight float32 or None).
+
+        Without a mask both depend only on the frame size and are cached per size.
+        """
+        if mask is None:
+            cached = self._frame_cache.get((h, w))
+            if cached is not None:
+                return cached
+            valid = np.zeros((h, w), np.uint8)
+            b = self.border
+            valid[b:h - b, b:w - b] = 255
+        else:
+            mask = np.asarray(mask)
+            if mask.shape != (h, w):
+                raise InputError(f"mask shape {mask.shape} does not match frame size {(h, w)}")
+            valid = np.where(mask != 0, np.uint8(255), np.uint8(0))
+            if self.border:
+                k = 2 * self.border + 1
+                valid = cv2.erode(valid, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                                  borderValue=0)
+        weight = None
+        if self.blend == "feather":
+            # tent in x times tent in y: 1 at the centre, falling to 0 beyond the eroded border
+            b = self.border
+            weight = np.outer(_tent(h, b), _tent(w, b))
+            if mask is not None:
+                # and the distance (pixels) to the nearest invalid pixel, normalised to 1
+                dist = cv2.distanceTransform(valid, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+                top = float(dist.max())
+                weight *= dist / top if top > 0 else dist
+        if mask is None:
+            self._frame_cache[(h, w)] = (valid, weight)
+        return valid, weight
+
+    # ------------------------------------------------------------------ tiles in memory / store
+    def _new_tile(self) -> Tile:
+        ts, C = self.tile_size, self.channels
+        if self.blend == "overwrite":
+            return {"color": np.zeros((ts, ts, C), np.uint8), "cover": np.zeros((ts, ts), np.uint8)}
+        return {"sum": np.zeros((ts, ts, C), np.float32), "weight": np.zeros((ts, ts), np.float32)}
+
+    def _load(self, key: TileKey) -> Tile:
+        """The tile at ``key`` in memory (loaded or created), marked most recently used."""
+        tile = self._tiles.get(key)
+        if tile is not None:
+            self._tiles.move_to_end(key)
+            return tile
+        if key in self._spilled:
+            tile = self._store.get(key)
+            self._spilled.discard(key)
+            if tile is None:
+                log.warning("tile %s was lost by the tile store; starting it empty", key)
+            else:
+                self._clean.add(key)
+        if tile is None:
+            tile = self._new_tile()
+        self._make_room(1)
+        self._tiles[key] = tile
+        return tile
+
+    def _peek(self, key: TileKey) -> Tile | None:
+        """The tile at ``key`` for reading (None if there is none), without changing what is
+        in memory."""
+        tile = self._tiles.get(key)
+        if tile is None and key in self._spilled:
+            tile = self._store.get(key)
+            if tile is None:
+                log.warning("tile %s was lost by the tile store; reading it as empty", key)
+                tile = self._new_tile()
+        return tile
+
+    def _make_room(self, n: int) -> None:
+        """Spill least recently used tiles until ``n`` more fit under the cap."""
+        cap = self.max_tiles_in_memory
+        while cap is not None and self._tiles and len(self._tiles) + n > cap:
+            key, tile = self._tiles.popitem(last=False)
+            if key not in self._clean:
+                self._store.put(key, tile)
+            self._clean.discard(key)
+            self._spilled.add(key)
+
+    @property
+    def tiles_in_memory(self) -> int:
+        """Number of tiles currently held in memory."""
+        return len(self._tiles)
+
+    def tiles(self) -> list[TileKey]:
+        """Keys of every tile (in memory or spilled), sorted by row, then column."""
+        return sorted(set(self._tiles) | self._spilled, key=lambda k: (k[1], k[0]))
+
+    def tile_origin(self, key: TileKey) -> tuple[int, int]:
+        """Map coordinates ``(x, y)`` of the top-left pixel of tile ``key``."""
+        return key[0] * self.tile_size, key[1] * self.tile_size
+
+    def tile_image(self, key: TileKey) -> tuple[np.ndarray, np.ndarray]:
+        """One tile as ``(image uint8 (ts, ts, C) or (ts, ts), alpha uint8 (ts, ts))``.
+
+        Alpha is 255 where covered, 0 where empty (image 0 there). The arrays are copies.
+        Raises KeyError if no such tile.
+        """
+        tile = self._peek(key)
+        if tile is None:
+            raise KeyError(f"no map tile {key}")
+        image, alpha = self._tile_pixels(tile)
+        return (image[..., 0] if self.channels == 1 else image).copy(), alpha.copy()
+
+    def _tile_pixels(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
+        """(image uint8 (ts, ts, C), alpha uint8 (ts, ts)) of a tile's arrays (maybe views)."""
+        if self.blend == "overwrite":
+            return tile["color"], tile["cover"]
+        weight = tile["weight"]
+        covered = weight > 0
+        image = np.zeros(tile["sum"].shape, np.uint8)
+        ratio = tile["sum"][covered] / weight[covered][:, None]
+        image[covered] = np.clip(np.rint(ratio), 0, 255).astype(np.uint8)
+        return image, np.where(covered, np.uint8(255), np.uint8(0))
+
+    def clear_tiles(self, keys: Iterable[TileKey]) -> None:
+        """Forget the given tiles (e.g. to re-render them after a pose-graph correction)."""
+        for key in keys:
+            key = (int(key[0]), int(key[1]))
+            self._tiles.pop(key, None)
+            self._spilled.discard(key)
+            self._clean.discard(key)
+            if self._store is not None:
+                self._store.discard(key)
+        self._extent_stale = True
+
+    def reset(self) -> None:
+        """Forget every tile: an empty map."""
+        self.clear_tiles(self.tiles())
+        self._extent, self._extent_stale = None, False
+
+    # ------------------------------------------------------------------ extent and rendering
+    def _grow_extent(self, x0: int, y0: int, x1: int, y1: int) -> None:
+        e = self._extent
+        self._extent = [x0, y0, x1, y1] if e is None else [
+            min(e[0], x0), min(e[1], y0), max(e[2], x1), max(e[3], y1)]
+
+    def bounds(self) -> Rect | None:
+        """The map rectangle ``(x, y, w, h)`` holding every covered pixel, or None if empty."""
+        if self._extent_stale:
+            self._extent, self._extent_stale = None, False
+            ts = self.tile_size
+            for key in self.tiles():
+                _, alpha = self._tile_pixels(self._peek(key))
+                rows = np.flatnonzero(alpha.any(axis=1))
+                if rows.size:
+                    cols = np.flatnonzero(alpha.any(axis=0))
+                    ox, oy = key[0] * ts, key[1] * ts
+                    self._grow_extent(ox + int(cols[0]), oy + int(rows[0]),
+                                      ox + int(cols[-1]) + 1, oy + int(rows[-1]) + 1)
+        if self._extent is None:
+            return None
+        x0, y0, x1, y1 = self._extent
+        return x0, y0, x1 - x0, y1 - y0
+
+    def render(self, scale: float = 1.0, bounds: Rect | None = None
+               ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+        """The map (or the rectangle ``bounds``) as one image.
+
+        Parameters
+        ----------
+        scale : float in (0, 1]
+            Downscale factor (preview). The output has ``round(w * scale)`` x ``round(h * scale)``
+            pixels and equals ``cv2.resize(full, dsize, interpolation=cv2.INTER_AREA)`` of the
+            full-resolution render where the map is covered; at the map's edge, empty pixels do
+            not darken it (colours are alpha-weighted, alpha is the covered fraction).
+        bounds : (x, y, w, h) or None
+            Map rectangle to render; default :meth:`bounds`.
+
+        Returns
+        -------
+        image : uint8 (H, W, 3) BGR, or (H, W) for a gray map; 0 where empty
+        alpha : uint8 (H, W); 255 covered, 0 empty
+        origin_xy : (x, y)
+            Map coordinates of the top-left pixel of the rendered rectangle. At ``scale`` 1 this is
+            the output's top-left pixel; downscaled, output pixel ``(u, v)`` covers the map pixels
+            ``x + [u, u + 1) * w / W``, ``y + [v, v + 1) * h / H``.
+            An empty map gives zero-size arrays and origin ``(0, 0)``.
+        """
+        if not 0 < scale <= 1:
+            raise ValueError(f"render scale must be in (0, 1], got {scale!r}")
+        region = self.bounds() if bounds is None else tuple(int(v) for v in bounds)
+        C = self.channels
+        if region is None:
+            shape = (0, 0) if C == 1 else (0, 0, C)
+            return np.zeros(shape, np.uint8), np.zeros((0, 0), np.uint8), (0, 0)
+        x, y, w, h = region
+        if w <= 0 or h <= 0:
+            raise ValueError(f"render bounds need a positive size, got {region}")
+        if scale == 1:
+            image, alpha = self._render_full(x, y, w, h)
+        else:
+            image, alpha = self._render_area(x, y, w, h, max(1, round(w * scale)), max(1, round(h * scale)))
+        return (image[..., 0] if C == 1 else image), alpha, (x, y)
+
+    def _region_tiles(self, x: int, y: int, w: int, h: int):
+        """(key, tile, (x0, y0, x1, y1) of the tile's part inside the region, tile origin)
+        for every tile that meets the region; map coordinates, x1/y1 exclusive."""
+        ts = self.tile_size
+        tx0, tx1, ty0, ty1 = x // ts, (x + w - 1) // ts, y // ts, (y + h - 1) // ts
+        for key in self.tiles():
+            if tx0 <= key[0] <= tx1 and ty0 <= key[1] <= ty1:
+                ox, oy = key[0] * ts, key[1] * ts
+                mx0, mx1 = max(ox, x), min(ox + ts, x + w)
+                my0, my1 = max(oy, y), min(oy + ts, y + h)
+                yield key, self._peek(key), (mx0, my0, mx1, my1), (ox, oy)
+
+    def _render_full(self, x: int, y: int, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+        image = np.zeros((h, w, self.channels), np.uint8)
+        alpha = np.zeros((h, w), np.uint8)
+        for _, tile, (mx0, my0, mx1, my1), (ox, oy) in self._region_tiles(x, y, w, h):
+            t_img, t_alpha = self._tile_pixels(tile)
+            src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
+            dst = (slice(my0 - y, my1 - y), slice(mx0 - x, mx1 - x))
+            image[dst] = t_img[src]
+            alpha[dst] = t_alpha[src]
+        return image, alpha
+
+    def _render_area(self, x: int, y: int, w: int, h: int, ow: int, oh: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Area-averaged (``INTER_AREA``) render to (oh, ow), one tile at a time, alpha-weighted."""
+        C = self.channels
+        acc = np.zeros((oh, ow, C + 1), np.float32)  # sum of alpha*colour, sum of alpha
+        for _, tile, (mx0, my0, mx1, my1), (ox, oy) in self._region_tiles(x, y, w, h):
+            t_img, t_alpha = self._tile_pixels(tile)
+            src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
+            a = t_alpha[src].astype(np.float32) / 255
+            if not a.any():
+                continue
+            pre = np.dstack([t_img[src] * a[..., None], a])
+            u0, wx = _area_weights(mx0 - x, mx1 - x, w / ow, ow)
+            v0, wy = _area_weights(my0 - y, my1 - y, h / oh, oh)
+            block = np.tensordot(wy, pre, axes=(1, 0))  # (oh', cols, C+1)
+            block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)  # (oh', ow', C+1)
+            acc[v0:v0 + wy.shape[0], u0:u0 + wx.shape[0]] += block
+        cover = acc[..., C]
+        image = np.zeros((oh, ow, C), np.uint8)
+        covered = cover > 1e-6
+        image[covered] = np.clip(np.rint(acc[..., :C][covered] / cover[covered][:, None]), 0, 255)
+        alpha = np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
+        return image, alpha
+
+
+def _tent(n: int, border: int) -> np.ndarray:
+    """float32 (n,): distance of each index to the nearest index outside ``[border, n - border)``,
+    counting the first inside index as 1, normalised to a maximum of 1 (all 0 if none inside)."""
+    i = np.arange(n)
+    d = np.clip(np.minimum(i - border + 1, n - border - i), 0, None).astype(np.float32)
+    top = d.max()
+    return d / top if top > 0 else d
+
+
+def _area_weights(a: int, b: int, step: float, n_out: int) -> tuple[int, np.ndarray]:
+    """INTER_AREA weights of source pixels ``[a, b)`` for the output pixels that overlap them.
+
+    Output pixel ``j`` averages source interval ``[j*step, (j+1)*step)``. Returns the first such
+    output index ``j0`` and a float32 matrix (outputs, b - a) of overlap / step.
+    """
+    j0 = int(math.floor(a / step))
+    j1 = min(n_out, int(math.ceil(b / step)))
+    j = np.arange(j0, j1, dtype=np.float64)[:, None]
+    i = np.arange(a, b, dtype=np.float64)[None, :]
+    overlap = np.minimum(i + 1, (j + 1) * step) - np.maximum(i, j * step)
+    return j0, (np.clip(overlap, 0, None) / step).astype(np.float32)
+
+
+def _check_pose(M: np.ndarray) -> np.ndarray:
+    """``M`` as a float64 2x3 array; InputError if it is not a finite invertible affine pose."""
+    try:
+        M = np.asarray(M, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("pose M must be a 2x3 numeric matrix") from None
+    if M.shape != (2, 3):
+        raise InputError(f"pose M must be a 2x3 matrix, got shape {M.shape}")
+    if not np.all(np.isfinite(M)):
+        raise InputError("pose M holds NaN or infinity")
+    if abs(np.linalg.det(M[:, :2])) < 1e-12:
+        raise InputError("pose M is singular (zero scale)")
+    return M
