@@ -42,6 +42,7 @@ __all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar", "
 
 _EPS = 1e-12
 _REFINE_STRIDE = 2
+_WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 
 
 def similarity_matrix(angle_deg: float, scale: float, shift: tuple[float, float] = (0.0, 0.0),
@@ -538,6 +539,11 @@ class Registrar:
         cands: list[Candidate] = []
         for angle, scale, _ in self._rotation_scale(pa, pb, prior):
             cands.extend(self._translation(pa, pb, angle, scale, prior))
+        if (prior is not None and prior.angle_deg is not None and prior.scale is not None
+                and max(c.peak for c in cands) < _WEAK_PEAK):
+            # Little overlap starves the log-polar POMF first: also try the expected rotation and
+            # scale directly in the translation step (the refinement then corrects them).
+            cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior))
         cands = self._rank(cands, prior)
         best = cands[0]
         m = similarity_matrix(best.angle_deg, best.scale)

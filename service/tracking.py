@@ -21,6 +21,8 @@ REFERENCE = "reference"
 REGISTERED = "registered"
 LOW_CONFIDENCE = "low_confidence"
 
+_HINT = Prior(angle_deg=0.0, angle_tol_deg=180.0, scale=1.0, scale_tol=10.0)
+
 
 def _h(m: np.ndarray) -> np.ndarray:
     return np.vstack([m, [0.0, 0.0, 1.0]])
@@ -91,12 +93,16 @@ class Tracker:
         return TrackStep(REFERENCE, self._map[:2].copy(), 1.0, self.segment, events=events)
 
     def _prior(self, index: int) -> Prior | None:
-        """Expected registration against the reference, from a constant-velocity model."""
-        if not self.motion_prior or self._last is None or self._velocity is None:
+        """Expected registration against the reference, from a constant-velocity model.
+
+        Without a motion model (start, gaps) the expectation is "no rotation, no scale change"
+        with no restriction: it is only tried as an extra hypothesis when the search is weak.
+        """
+        if not self.motion_prior:
             return None
+        if self._last is None or self._velocity is None or index - self._last[0] != 1:
+            return _HINT
         last_index, last_pose = self._last
-        if index - last_index != 1:
-            return None
         predicted = last_pose @ self._velocity
         rel = self._to_small @ np.linalg.inv(self._ref.pose) @ predicted @ self._from_small
         angle = math.degrees(math.atan2(rel[1, 0], rel[0, 0]))
