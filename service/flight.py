@@ -313,7 +313,7 @@ def _safe_rectangle(valid: np.ndarray, radius: float) -> tuple[float, float, flo
             stack.append(c)
     if rect is None:
         raise InputError(f"the terrain ({w}x{h} px) has no room for this footprint (radius {radius:.0f} "
-                         "terrain px): fly lower, use a smaller frame or a larger terrain_zoom")
+                         "terrain px): fly lower, narrow the field of view or give the terrain a larger gsd")
     c0, r0, c1, r1 = rect
     return float(c0 * q), float(r0 * q), float(c1 * q + q - 1), float(r1 * q + q - 1)
 
@@ -321,6 +321,10 @@ def _safe_rectangle(valid: np.ndarray, radius: float) -> tuple[float, float, flo
 def _fillet(poly: np.ndarray, radius: float, n_arc: int = 24) -> np.ndarray:
     """Closed polyline with every corner replaced by a tangent circular arc (radius limited by
     half the adjacent segments). Returns dense points of the closed curve."""
+    keep = np.linalg.norm(poly - np.roll(poly, 1, axis=0), axis=1) > 1e-9
+    poly = poly[keep] if keep.any() else poly[:1]
+    if len(poly) < 2:
+        return poly
     out = []
     n = len(poly)
     for i in range(n):
@@ -375,7 +379,7 @@ def _curve(pattern: str, rect: tuple[float, float, float, float], spacing: float
     wx, wy = rng.uniform(0.5, 1.5, k), rng.uniform(0.5, 1.5, k)
     ax, ay = rng.uniform(0.3, 1.0, k), rng.uniform(0.3, 1.0, k)
     px, py = rng.uniform(0, 2 * np.pi, k), rng.uniform(0, 2 * np.pi, k)
-    while length <= length_needed or not pieces:
+    while not pieces or (length <= length_needed and max(hx, hy) > 0):
         tau = start + np.linspace(0.0, 2.0 * np.pi, 4097)[:-1]
         x = cx + hx * (ax * np.sin(wx * tau[:, None] + px)).sum(1) / ax.sum()
         y = cy + hy * (ay * np.sin(wy * tau[:, None] + py)).sum(1) / ay.sum()
@@ -596,7 +600,8 @@ def similarity_matrix(angle_deg: float, scale: float, shift: tuple[float, float]
 
 def render_pair(terrain: np.ndarray, shape: tuple[int, int], angle_deg: float, scale: float,
                 shift: tuple[float, float], seed: int = 0, *, valid: np.ndarray | None = None,
-                base_scale: float = 1.0, **effects) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                base_scale: float = 1.0, pyramid: list[np.ndarray] | None = None,
+                **effects) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Two views ``a``, ``b`` of shape ``(h, w)`` cut from the terrain with a known similarity.
 
     ``M_true`` (2x3) maps pixels of ``b`` to pixels of ``a``:
@@ -605,27 +610,34 @@ def render_pair(terrain: np.ndarray, shape: tuple[int, int], angle_deg: float, s
     ``a`` is a nadir view at ``base_scale`` terrain px per pixel with a random yaw and position
     (from ``seed``) inside ``valid``; both are rendered from the terrain, never from each other.
     ``**effects``: fields of :class:`Effects`, applied independently to each view.
+    ``pyramid``: ``build_pyramid(terrain, ...)`` reused across many calls (saves its cost).
     """
     eff = Effects(**effects)
     eff.check()
     h, w = int(shape[0]), int(shape[1])
-    if valid is None:
-        valid = np.ones(terrain.shape[:2], bool)
     rng = np.random.default_rng([seed, 4])
     m = similarity_matrix(angle_deg, scale, shift, ((w - 1) / 2.0, (h - 1) / 2.0))
     half_diag = math.hypot(w, h) / 2.0
     need = base_scale * (math.hypot(*shift) + half_diag * max(1.0, scale)) + 2.0 * base_scale * max(1.0, scale) + 4
-    ys, xs = np.nonzero(_distance_inside(valid) > need)
-    if xs.size == 0:
-        raise InputError(f"terrain {terrain.shape[1]}x{terrain.shape[0]} too small for a pair of {w}x{h} "
-                         f"views at base scale {base_scale} with this shift/scale")
-    pick = rng.integers(xs.size)
-    yaw = math.radians(rng.uniform(-180.0, 180.0))
+    th, tw = terrain.shape[:2]
+    too_small = InputError(f"terrain {tw}x{th} too small for a pair of {w}x{h} views at base scale "
+                           f"{base_scale} with this shift/scale")
+    if valid is None:
+        if min(tw, th) - 1 <= 2 * need:
+            raise too_small
+        centre = rng.uniform([need, need], [tw - 1 - need, th - 1 - need])
+    else:
+        ys, xs = np.nonzero(_distance_inside(valid) > need)
+        if xs.size == 0:
+            raise too_small
+        pick = rng.integers(xs.size)
+        centre = np.array([xs[pick], ys[pick]], float)
     ha = np.eye(3)
-    ha[:2] = similarity_matrix(math.degrees(yaw), base_scale, (0.0, 0.0), (0.0, 0.0))
-    ha[:2, 2] = np.array([xs[pick], ys[pick]], float) - ha[:2, :2] @ [(w - 1) / 2.0, (h - 1) / 2.0]
+    ha[:2] = similarity_matrix(rng.uniform(-180.0, 180.0), base_scale, (0.0, 0.0), (0.0, 0.0))
+    ha[:2, 2] = centre - ha[:2, :2] @ [(w - 1) / 2.0, (h - 1) / 2.0]
     hb = ha @ np.vstack([m, [0.0, 0.0, 1.0]])
-    pyramid = build_pyramid(terrain, base_scale * max(1.0, scale) * 1.2)
+    if pyramid is None:
+        pyramid = build_pyramid(terrain, base_scale * max(1.0, scale) * 1.2)
     a = apply_effects(render_view(pyramid, ha, (h, w)), eff, np.random.default_rng([seed, 5]))
     b = apply_effects(render_view(pyramid, hb, (h, w)), eff, np.random.default_rng([seed, 6]))
     return a, b, m
