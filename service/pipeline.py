@@ -147,6 +147,7 @@ class MappingPipeline:
         self._cache_dir: Path | None = None
         self._own_cache = False
         self._warned: set[str] = set()
+        self._pending: tuple[int, np.ndarray] | None = None  # last low-confidence frame (index, image)
 
     # ------------------------------------------------------------------ control
     def stop(self) -> None:
@@ -245,8 +246,11 @@ class MappingPipeline:
             t1 = time.perf_counter()
             step = self.tracker.step(small, frame.index)
             self.stats.register_s += time.perf_counter() - t1
+            if step.anchor is not None:
+                self._anchor(step)
             if step.pose is not None:
                 self._mosaic(step.segment).add(image, step.pose)
+            self._pending = (frame.index, image) if step.status == LOW_CONFIDENCE else None
         except Exception as exc:  # never lose the map for one bad frame
             self.stats.errors += 1
             self._warn_once(f"error:{type(exc).__name__}",
@@ -272,6 +276,19 @@ class MappingPipeline:
         interval = float(self.cfg["output"]["checkpoint_interval"])
         if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
             self.checkpoint()
+
+    def _anchor(self, step: TrackStep) -> None:
+        """A new segment was anchored at the previous, low-confidence frame: glue it, fix its row."""
+        for row in reversed(self.rows):
+            if row.frame == step.anchor:
+                row.M, row.status, row.segment = step.anchor_pose, "reference", step.segment
+                row.confidence = step.confidence
+                self.stats.low_confidence -= 1
+                self.stats.registered += 1
+                self.stats.confidence_sum += 1.0
+                break
+        if self._pending is not None and self._pending[0] == step.anchor:
+            self._mosaic(step.segment).add(self._pending[1], step.anchor_pose)
 
     # ------------------------------------------------------------------ outputs
     def summary(self) -> dict:

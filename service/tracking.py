@@ -44,6 +44,10 @@ class TrackStep:
     segment: int
     registration: Registration | None = None
     events: list[str] = field(default_factory=list)
+    # a new segment was anchored at this earlier (low-confidence) frame: it is the segment's
+    # reference, with pose ``anchor_pose``
+    anchor: int | None = None
+    anchor_pose: np.ndarray | None = None
 
 
 @dataclass
@@ -60,11 +64,14 @@ class Tracker:
     stays while the confidence against it is at least ``keyframe_confidence`` (error then grows per
     keyframe, not per frame); otherwise every registered frame becomes the next reference. A frame
     below ``min_confidence`` is not posed, the reference is kept and the next frames are tried
-    against it; after ``max_lost_frames`` such frames in a row a new segment starts.
+    against it. When a frame fails against the reference but registers with the previous
+    (failed) frame, the link to the map is lost but the camera still sees coherent ground: a new
+    segment is anchored at that previous frame. After ``max_lost_frames`` failures in a row a new
+    segment starts at the current frame.
     """
 
     def __init__(self, registrar: Registrar, working_scale: float = 1.0, *, map_scale: float = 1.0,
-                 min_confidence: float = 0.15, max_lost_frames: int = 10, keyframes: bool = True,
+                 min_confidence: float = 0.08, max_lost_frames: int = 10, keyframes: bool = True,
                  keyframe_confidence: float = 0.5, motion_prior: bool = True,
                  prior_angle_tol_deg: float = 20.0, prior_scale_tol: float = 0.15) -> None:
         self.registrar = registrar
@@ -83,11 +90,13 @@ class Tracker:
         self._last: tuple[int, np.ndarray] | None = None  # (index, 3x3 pose) of the last posed frame
         self._velocity: np.ndarray | None = None  # 3x3 motion between the last two posed frames
         self._lost = 0
+        self._pending: tuple[int, PreparedFrame] | None = None  # the last frame that failed
 
     def _new_segment(self, prepared: PreparedFrame, index: int, events: list[str]) -> TrackStep:
         self.segment += 1
         self._ref = _Reference(prepared, self._map.copy(), index)
         self._last, self._velocity, self._lost = (index, self._map.copy()), None, 0
+        self._pending = None
         if self.segment > 0:
             events.append(f"link lost: map segment {self.segment} started at frame {index}")
         return TrackStep(REFERENCE, self._map[:2].copy(), 1.0, self.segment, events=events)
@@ -117,11 +126,21 @@ class Tracker:
         if self._ref is None:
             return self._new_segment(prepared, index, events)
         reg = self.registrar.register(self._ref.prepared, prepared, self._prior(index))
+        anchor = None
+        if reg.confidence < self.min_confidence and self._pending is not None \
+                and self._pending[0] == index - 1:
+            retry = self.registrar.register(self._pending[1], prepared, _HINT)
+            if retry.confidence >= self.min_confidence:
+                anchor = self._pending[0]
+                self._new_segment(self._pending[1], anchor, events)
+                reg = retry
         if reg.confidence < self.min_confidence:
             self._lost += 1
             if self._lost > self.max_lost_frames:
                 return self._new_segment(prepared, index, events)
+            self._pending = (index, prepared)
             return TrackStep(LOW_CONFIDENCE, None, reg.confidence, self.segment, reg, events)
+        self._pending = None
         rel = self._from_small @ _h(reg.matrix) @ self._to_small  # input px of frame -> of reference
         pose = self._ref.pose @ rel
         if self._last is not None and index - self._last[0] == 1:
@@ -132,4 +151,7 @@ class Tracker:
         self._lost = 0
         if not self.keyframes or reg.confidence < self.keyframe_confidence:
             self._ref = _Reference(prepared, pose, index)
-        return TrackStep(REGISTERED, pose[:2].copy(), reg.confidence, self.segment, reg, events)
+        step = TrackStep(REGISTERED, pose[:2].copy(), reg.confidence, self.segment, reg, events)
+        if anchor is not None:
+            step.anchor, step.anchor_pose = anchor, self._map[:2].copy()
+        return step
