@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from .errors import InputError
+from .ifmi import similarity_matrix
 
 PATTERNS = ("random", "lawnmower", "figure8")
 YAW_MODES = ("random", "constant", "heading", "fixed")
@@ -589,15 +590,6 @@ def simulate_sequence(terrain: np.ndarray, n_frames: int, frame_size: tuple[int,
     return Sequence(frames=frames, truth=truth, camera=camera, gsd=gsd, fps=fps, params=params)
 
 
-def similarity_matrix(angle_deg: float, scale: float, shift: tuple[float, float],
-                      centre: tuple[float, float]) -> np.ndarray:
-    """2x3 matrix ``p -> centre + scale * R(angle) (p - centre) + shift`` (OpenCV angle sign)."""
-    a = math.radians(angle_deg)
-    r = scale * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    c = np.asarray(centre, float)
-    return np.c_[r, c + np.asarray(shift, float) - r @ c]
-
-
 def render_pair(terrain: np.ndarray, shape: tuple[int, int], angle_deg: float, scale: float,
                 shift: tuple[float, float], seed: int = 0, *, valid: np.ndarray | None = None,
                 base_scale: float = 1.0, pyramid: list[np.ndarray] | None = None,
@@ -616,7 +608,7 @@ def render_pair(terrain: np.ndarray, shape: tuple[int, int], angle_deg: float, s
     eff.check()
     h, w = int(shape[0]), int(shape[1])
     rng = np.random.default_rng([seed, 4])
-    m = similarity_matrix(angle_deg, scale, shift, ((w - 1) / 2.0, (h - 1) / 2.0))
+    m = similarity_matrix(angle_deg, scale, shift, center=((w - 1) / 2.0, (h - 1) / 2.0))
     half_diag = math.hypot(w, h) / 2.0
     need = base_scale * (math.hypot(*shift) + half_diag * max(1.0, scale)) + 2.0 * base_scale * max(1.0, scale) + 4
     th, tw = terrain.shape[:2]
@@ -633,7 +625,7 @@ def render_pair(terrain: np.ndarray, shape: tuple[int, int], angle_deg: float, s
         pick = rng.integers(xs.size)
         centre = np.array([xs[pick], ys[pick]], float)
     ha = np.eye(3)
-    ha[:2] = similarity_matrix(rng.uniform(-180.0, 180.0), base_scale, (0.0, 0.0), (0.0, 0.0))
+    ha[:2] = similarity_matrix(rng.uniform(-180.0, 180.0), base_scale)
     ha[:2, 2] = centre - ha[:2, :2] @ [(w - 1) / 2.0, (h - 1) / 2.0]
     hb = ha @ np.vstack([m, [0.0, 0.0, 1.0]])
     if pyramid is None:
