@@ -14,12 +14,13 @@ the map is empty; the largest segment; other segments as ``mosaic_segment{N}.png
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import shutil
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -27,7 +28,9 @@ import cv2
 import numpy as np
 
 from drivers.capture import Frame, FrameSource
+from .georef import aux_xml_text, compose, png_to_map, prj_text, world_file_text
 from .ifmi import Registrar
+from .join import TelemetryJoin
 from .mosaic import TiledMosaic
 from .tilestore import DiskTileStore
 from .tracking import LOW_CONFIDENCE, TrackStep, Tracker
@@ -124,17 +127,20 @@ class MappingPipeline:
         such as the viewer or a progress bar. It must be quick and must not raise.
     input_name : str
         Recorded in ``run.json``.
+    telemetry : TelemetryJoin, optional
+        MAVLink telemetry joined to the frames (priors, tilt, metric scale, georeference).
     """
 
     def __init__(self, source: FrameSource, cfg: dict, out_dir: str | Path, *,
                  on_frame: Callable[[Frame, TrackStep, "MappingPipeline"], None] | None = None,
-                 input_name: str = "") -> None:
+                 input_name: str = "", telemetry: TelemetryJoin | None = None) -> None:
         self.source = source
         self.cfg = cfg
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.on_frame = on_frame
         self.input_name = input_name
+        self.telemetry = telemetry
         self.stats = RunStats()
         self.rows: list[PoseRow] = []
         self.mosaics: dict[int, TiledMosaic] = {}
@@ -199,7 +205,8 @@ class MappingPipeline:
                                keyframe_confidence=mcfg["keyframe_confidence"],
                                motion_prior=mcfg["motion_prior"],
                                prior_angle_tol_deg=mcfg["prior_angle_tol_deg"],
-                               prior_scale_tol=mcfg["prior_scale_tol"])
+                               prior_scale_tol=mcfg["prior_scale_tol"],
+                               telemetry_prior=self.telemetry.prior if self.telemetry else None)
 
     def _mosaic(self, segment: int) -> TiledMosaic:
         if segment not in self.mosaics:
@@ -242,9 +249,12 @@ class MappingPipeline:
                                      segment=max(self.stats.segments - 1, 0)))
             return
         try:
+            sample = self.telemetry.sample(frame) if self.telemetry else None
+            if sample is not None:
+                image = self.telemetry.rectify(image, sample)
             small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
             t1 = time.perf_counter()
-            step = self.tracker.step(small, frame.index)
+            step = self.tracker.step(small, frame.index, sample)
             self.stats.register_s += time.perf_counter() - t1
             if step.anchor is not None:
                 self._anchor(step)
@@ -261,6 +271,10 @@ class MappingPipeline:
             return
         self.stats.segments = step.segment + 1
         for event in step.events:
+            if "telemetry disagrees" in event and self.telemetry is not None:
+                self.telemetry.stats.disagreements += 1
+                if self.telemetry.stats.disagreements > 3:
+                    continue  # counted in run.json; logged for the first few only
             log.warning(event)
             self.stats.events.append(event)
         if step.status == LOW_CONFIDENCE:
@@ -268,8 +282,12 @@ class MappingPipeline:
         else:
             self.stats.registered += 1
             self.stats.confidence_sum += step.confidence
-        self.rows.append(PoseRow(frame.index, frame.t, step.pose, step.confidence, step.status,
-                                 step.segment))
+        row = PoseRow(frame.index, frame.t, step.pose, step.confidence, step.status, step.segment)
+        if sample is not None:
+            row.extra["alt_m"] = sample.height_above_ground
+            if step.pose is not None:
+                self.telemetry.samples[frame.index] = sample
+        self.rows.append(row)
         self.stats.worker_s += time.perf_counter() - t0
         if self.on_frame is not None:
             self.on_frame(frame, step, self)
@@ -334,8 +352,52 @@ class MappingPipeline:
         if not ok:
             raise RuntimeError(f"PNG encoding of {path.name} failed")
         atomic_write_bytes(path, buf.tobytes())
+        # exact per-axis scale of the PNG: output size over the map rectangle's size
         return {"file": path.name, "origin_xy": list(origin), "scale": scale,
-                "size": [int(image.shape[1]), int(image.shape[0])]}
+                "pixel_scale": [image.shape[1] / w, image.shape[0] / h],
+                "bounds": [int(v) for v in bounds], "size": [int(image.shape[1]), int(image.shape[0])]}
+
+    def _georeference(self, summary: dict, maps: list[dict]) -> None:
+        """Metric scale and georeference per segment; world files beside the mosaics."""
+        join = self.telemetry
+        w, h = self.frame_size or (0, 0)
+        geo_out = {}
+        for info in maps:
+            seg = info["segment"]
+            rows = [r for r in self.rows if r.glued and r.segment == seg and r.frame in join.samples]
+            mpp, geo = join.georeference(w, h, [np.asarray(r.M) for r in rows],
+                                         [join.samples[r.frame] for r in rows])
+            entry: dict = {"metres_per_pixel": mpp}
+            if geo is not None:
+                stem = Path(info["file"]).stem
+                png = compose(geo.map_to_crs, png_to_map(info["origin_xy"], info["pixel_scale"]))
+                atomic_write_bytes(self.out_dir / f"{stem}.pgw", world_file_text(png).encode())
+                atomic_write_bytes(self.out_dir / f"{stem}.prj", prj_text(geo.epsg).encode())
+                atomic_write_bytes(self.out_dir / f"{info['file']}.aux.xml", aux_xml_text(geo.epsg).encode())
+                entry.update({"crs": f"EPSG:{geo.epsg}", "map_to_crs": geo.map_to_crs.tolist(),
+                              "origin_lat": geo.origin_lat, "origin_lon": geo.origin_lon,
+                              "gps_rms_m": geo.rms_m, "scale_source": geo.scale_source,
+                              "world_file": f"{stem}.pgw"})
+                centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+                for r in self.rows:
+                    if r.glued and r.segment == seg:
+                        lat, lon = geo.to_latlon((np.asarray(r.M) @ centre)[None, :])
+                        r.extra["lat"], r.extra["lon"] = float(lat[0]), float(lon[0])
+            info["georeference"] = entry
+            geo_out[seg] = entry
+        head = geo_out.get(maps[0]["segment"]) if maps else None
+        summary["metres_per_pixel"] = head["metres_per_pixel"] if head else None
+        summary["georeference"] = head if head and "crs" in head else None
+        posed = [r for r in self.rows if r.glued and r.segment == (maps[0]["segment"] if maps else 0)]
+        check = join.time_offset_check([r.t for r in posed],
+                                       [math.degrees(math.atan2(r.M[1][0], r.M[0][0])) for r in posed])
+        summary["telemetry"] = {**asdict(join.stats), "link": join.link_summary(),
+                                "time_offset_s": join.offset, "time_offset_check": check}
+        if check is not None and abs(check["residual_offset_s"]) > 0.2:
+            log.warning("telemetry seems %.2f s off the video (yaw-rate correlation %.2f): "
+                        "consider --time-offset %.2f", check["residual_offset_s"],
+                        check["correlation"], join.offset + check["residual_offset_s"])
+        self._write_trajectory()
 
     def _write_tiles(self, folder: Path, mosaic: TiledMosaic) -> None:
         folder.mkdir(exist_ok=True)
@@ -367,6 +429,8 @@ class MappingPipeline:
                 info["tile_size"] = self.mosaics[seg].tile_size
             maps.append(info)
         (self.out_dir / "preview.png").unlink(missing_ok=True)
+        if self.telemetry is not None:
+            self._georeference(summary, maps)
         summary["mosaics"] = maps
         summary["complete"] = True
         write_json(self.out_dir / "run.json", summary)

@@ -20,8 +20,14 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+import yaml
+
 from drivers.capture import Frame, open_source
+from drivers.mavlink import TelemetryReader, load_tlog
+from .errors import InputError
+from .join import TelemetryJoin
 from .pipeline import MappingPipeline
+from .telemetry import TelemetryBuffer
 from .tracking import TrackStep
 
 log = logging.getLogger(__name__)
@@ -33,6 +39,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--realtime", action="store_true",
                         help="replay at the frames' original pace instead of as fast as possible")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_telemetry_arguments(parser)
+    parser.add_argument("--video-start", type=float, metavar="UNIX",
+                        help="UNIX time of the video's first frame, to join a .tlog (default: "
+                             "the simulator's meta.yaml, the file's creation time, or the log's start)")
+
+
+def add_telemetry_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--mavlink", metavar="CONNECTION",
+                        help="MAVLink telemetry: a .tlog file, udpin:0.0.0.0:14550, tcp:HOST:PORT, "
+                             "/dev/ttyUSB0,57600 ... (default: telemetry.source; none = vision only)")
+    parser.add_argument("--time-offset", type=float, metavar="SECONDS",
+                        help="seconds added to frame times to get telemetry times")
 
 
 class _Pacer:
@@ -50,8 +68,66 @@ class _Pacer:
             time.sleep(delay)
 
 
+def _video_metadata(input_spec: str) -> dict:
+    """The simulator's meta.yaml beside a video (camera model, UNIX time of frame 0), if any."""
+    meta = Path(input_spec).parent / "meta.yaml"
+    if not Path(input_spec).is_file() or not meta.is_file():
+        return {}
+    try:
+        data = yaml.safe_load(meta.read_text(encoding="utf-8")) or {}
+    except (OSError, yaml.YAMLError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def open_telemetry(spec: str, cfg: dict, *, source=None, input_spec: str = "",
+                   video_start: float | None = None, realtime: bool = False,
+                   live: bool = False) -> tuple[TelemetryJoin, TelemetryReader | None]:
+    """A telemetry join for ``spec`` (a .tlog or a live link) and the reader to stop (or None)."""
+    tcfg = cfg["telemetry"]
+    offset = float(tcfg["time_offset"])
+    meta = _video_metadata(input_spec) if input_spec else {}
+    camera = meta.get("camera") or {}
+    if not cfg["camera"]["fx_px"] and not cfg["camera"]["hfov_deg"] and camera.get("fx"):
+        cfg["camera"]["fx_px"] = float(camera["fx"])  # the video's own camera model
+    if spec.lower().endswith(".tlog") and not live:
+        if not Path(spec).is_file():
+            raise InputError(f"telemetry log not found: {spec}")
+        buffer, stats = load_tlog(spec, max_gap=tcfg["max_gap"], max_hold=tcfg["max_hold"],
+                                  link_timeout=tcfg["link_timeout"])
+        if video_start is None:
+            video_start = meta.get("t0_unix") or getattr(source, "creation_time", None)
+        if video_start is None and getattr(source, "exif_times", None):
+            video_start = 0.0  # stills carry UNIX times already
+        if video_start is None:
+            span = buffer.span
+            video_start = span[0] if span else 0.0
+            log.warning("video start time unknown: assuming it starts with the telemetry log "
+                        "(use --video-start or --time-offset)")
+        join = TelemetryJoin(buffer.at, "log", cfg, video_start=float(video_start), offset=offset)
+        join.link_summary = lambda: _link_summary(spec, stats)
+        return join, None
+    buffer = TelemetryBuffer(max_gap=tcfg["max_gap"], max_hold=tcfg["max_hold"], horizon=tcfg["horizon"])
+    reader = TelemetryReader(spec, buffer, link_timeout=tcfg["link_timeout"],
+                             send_heartbeat=tcfg["send_heartbeat"] and live, baud=tcfg["baud"],
+                             source_system=tcfg["source_system"]).start()
+    if not live and not realtime:
+        log.warning("a live telemetry link with a replay as fast as possible cannot be joined in "
+                    "time: use --realtime")
+    join = TelemetryJoin(reader.at, "live" if live else "link", cfg, offset=offset)
+    join.link_summary = lambda: _link_summary(spec, reader.stats)
+    return join, reader
+
+
+def _link_summary(spec: str, stats) -> dict:
+    return {"source": spec, "messages": stats.total, "gaps": stats.gaps,
+            "link_lost": stats.link_lost, "link_regained": stats.link_regained,
+            "rejected_samples": sum(stats.rejected.values()), "parse_errors": stats.receive_errors}
+
+
 def map_source(source, cfg: dict, out_dir: str | Path, *, input_name: str = "",
-               progress: bool = False, total: int | None = None, realtime: bool = False) -> dict:
+               progress: bool = False, total: int | None = None, realtime: bool = False,
+               telemetry: TelemetryJoin | None = None) -> dict:
     """Run the mapping pipeline over ``source`` and write the outputs; returns the run summary.
 
     SIGINT/SIGTERM (when called from the main thread) stop capture, drain the queue and write
@@ -65,7 +141,8 @@ def map_source(source, cfg: dict, out_dir: str | Path, *, input_name: str = "",
         if pacer is not None:
             pacer(frame)
 
-    pipeline = MappingPipeline(source, cfg, out_dir, on_frame=on_frame, input_name=input_name)
+    pipeline = MappingPipeline(source, cfg, out_dir, on_frame=on_frame, input_name=input_name,
+                               telemetry=telemetry)
     previous = {}
     if threading.current_thread() is threading.main_thread():
         def handler(signum, _frame):
@@ -83,12 +160,25 @@ def map_source(source, cfg: dict, out_dir: str | Path, *, input_name: str = "",
 
 
 def replay(input_spec: str, out_dir: str | Path, cfg: dict, *, progress: bool = False,
-           realtime: bool = False) -> dict:
-    """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary."""
+           realtime: bool = False, mavlink: str | None = None,
+           video_start: float | None = None) -> dict:
+    """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary.
+
+    ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, or a live link (then use
+    ``realtime``).
+    """
     source = open_source(input_spec, **cfg["capture"])
     total = getattr(source, "frame_count", None) or len(getattr(source, "paths", ()) or ()) or None
-    return map_source(source, cfg, out_dir, input_name=str(input_spec), progress=progress,
-                      total=total, realtime=realtime)
+    spec = mavlink or cfg["telemetry"]["source"]
+    join, reader = (open_telemetry(spec, cfg, source=source, input_spec=str(input_spec),
+                                   video_start=video_start, realtime=realtime)
+                    if spec else (None, None))
+    try:
+        return map_source(source, cfg, out_dir, input_name=str(input_spec), progress=progress,
+                          total=total, realtime=realtime, telemetry=join)
+    finally:
+        if reader is not None:
+            reader.stop()
 
 
 def print_summary(summary: dict, out_dir: str | Path) -> None:
@@ -102,11 +192,19 @@ def print_summary(summary: dict, out_dir: str | Path) -> None:
         print(f"map: {out / mosaics[0]['file']}")
     else:
         print("map: nothing was mapped")
+    geo = summary.get("georeference")
+    if geo:
+        print(f"georeferenced: {geo['crs']}, {summary['metres_per_pixel']:.3f} m per map pixel "
+              f"(world file {out / geo['world_file']}; opens in place in QGIS)")
+    elif summary.get("metres_per_pixel"):
+        print(f"scale: {summary['metres_per_pixel']:.3f} m per map pixel")
     print(f"trajectory: {out / 'trajectory.csv'}")
 
 
 def main(args: argparse.Namespace, cfg: dict) -> int:
+    if args.time_offset is not None:
+        cfg["telemetry"]["time_offset"] = args.time_offset
     summary = replay(args.input, args.out, cfg, progress=not (args.no_progress or args.quiet),
-                     realtime=args.realtime)
+                     realtime=args.realtime, mavlink=args.mavlink, video_start=args.video_start)
     print_summary(summary, args.out)
     return 0 if summary["registered"] > 0 else 1

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from drivers.capture import open_source
-from .replay import map_source, print_summary
+from .replay import add_telemetry_arguments, map_source, open_telemetry, print_summary
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,6 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="V4L2 device path or index (default /dev/video0)")
     parser.add_argument("--out", metavar="DIR",
                         help="output folder (default: a time-stamped folder under output.data_dir)")
+    add_telemetry_arguments(parser)
 
 
 def flight_folder(data_dir: str | Path) -> Path:
@@ -33,8 +34,16 @@ def flight_folder(data_dir: str | Path) -> Path:
 
 def main(args: argparse.Namespace, cfg: dict) -> int:
     out = Path(args.out) if args.out else flight_folder(cfg["output"]["data_dir"])
-    source = open_source(args.camera, **cfg["capture"])
-    print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")
-    summary = map_source(source, cfg, out, input_name=str(args.camera))
+    if args.time_offset is not None:
+        cfg["telemetry"]["time_offset"] = args.time_offset
+    spec = args.mavlink or cfg["telemetry"]["source"]
+    join, reader = open_telemetry(spec, cfg, live=True) if spec else (None, None)
+    try:
+        source = open_source(args.camera, **cfg["capture"])
+        print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")
+        summary = map_source(source, cfg, out, input_name=str(args.camera), telemetry=join)
+    finally:
+        if reader is not None:
+            reader.stop()
     print_summary(summary, out)
     return 0

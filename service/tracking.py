@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 
@@ -55,6 +56,7 @@ class _Reference:
     prepared: PreparedFrame
     pose: np.ndarray  # 3x3 input pixels -> map pixels
     index: int
+    sample: Any = None  # its telemetry sample, if any
 
 
 class Tracker:
@@ -73,7 +75,8 @@ class Tracker:
     def __init__(self, registrar: Registrar, working_scale: float = 1.0, *, map_scale: float = 1.0,
                  min_confidence: float = 0.08, max_lost_frames: int = 10, keyframes: bool = True,
                  keyframe_confidence: float = 0.5, motion_prior: bool = True,
-                 prior_angle_tol_deg: float = 20.0, prior_scale_tol: float = 0.15) -> None:
+                 prior_angle_tol_deg: float = 20.0, prior_scale_tol: float = 0.15,
+                 telemetry_prior: Callable[[Any, Any], Prior | None] | None = None) -> None:
         self.registrar = registrar
         self._to_small = scaling(working_scale)
         self._from_small = np.linalg.inv(self._to_small)
@@ -85,16 +88,18 @@ class Tracker:
         self.motion_prior = motion_prior
         self.prior_angle_tol_deg = prior_angle_tol_deg
         self.prior_scale_tol = prior_scale_tol
+        self.telemetry_prior = telemetry_prior
         self.segment = -1
         self._ref: _Reference | None = None
         self._last: tuple[int, np.ndarray] | None = None  # (index, 3x3 pose) of the last posed frame
         self._velocity: np.ndarray | None = None  # 3x3 motion between the last two posed frames
         self._lost = 0
-        self._pending: tuple[int, PreparedFrame] | None = None  # the last frame that failed
+        self._pending: tuple[int, PreparedFrame, Any] | None = None  # the last frame that failed
 
-    def _new_segment(self, prepared: PreparedFrame, index: int, events: list[str]) -> TrackStep:
+    def _new_segment(self, prepared: PreparedFrame, index: int, events: list[str],
+                     sample: Any = None) -> TrackStep:
         self.segment += 1
-        self._ref = _Reference(prepared, self._map.copy(), index)
+        self._ref = _Reference(prepared, self._map.copy(), index, sample)
         self._last, self._velocity, self._lost = (index, self._map.copy()), None, 0
         self._pending = None
         if self.segment > 0:
@@ -119,26 +124,50 @@ class Tracker:
         return Prior(angle_deg=angle, angle_tol_deg=self.prior_angle_tol_deg, scale=scale,
                      scale_tol=self.prior_scale_tol)
 
-    def step(self, frame: np.ndarray, index: int) -> TrackStep:
-        """Pose frame ``index`` (at the working resolution, grey or BGR)."""
+    def _register(self, ref: PreparedFrame, ref_sample: Any, prepared: PreparedFrame, index: int,
+                  sample: Any, events: list[str]) -> Registration:
+        """Register with the telemetry prior when there is one; vision decides on disagreement."""
+        tprior = self.telemetry_prior(ref_sample, sample) if self.telemetry_prior else None
+        motion = self._prior(index)
+        if tprior is None:
+            return self.registrar.register(ref, prepared, motion)
+        reg = self.registrar.register(ref, prepared, tprior)
+        if reg.confidence >= self.keyframe_confidence:
+            return reg
+        free = self.registrar.register(ref, prepared, motion)
+        if free.confidence > reg.confidence + 0.05 and free.confidence >= self.min_confidence:
+            events.append(f"frame {index}: telemetry disagrees with the images (expected "
+                          f"{tprior.angle_deg if tprior.angle_deg is not None else float('nan'):.1f} deg, "
+                          f"{tprior.scale if tprior.scale is not None else float('nan'):.3f}; images say "
+                          f"{free.angle_deg:.1f} deg, {free.scale:.3f}): vision wins")
+            return free
+        return reg
+
+    def step(self, frame: np.ndarray, index: int, sample: Any = None) -> TrackStep:
+        """Pose frame ``index`` (at the working resolution, grey or BGR).
+
+        ``sample`` is the frame's telemetry (or None); with ``telemetry_prior`` it gives the
+        expected rotation and scale against the reference.
+        """
         prepared = self.registrar.prepare(frame)
         events: list[str] = []
         if self._ref is None:
-            return self._new_segment(prepared, index, events)
-        reg = self.registrar.register(self._ref.prepared, prepared, self._prior(index))
+            return self._new_segment(prepared, index, events, sample)
+        reg = self._register(self._ref.prepared, self._ref.sample, prepared, index, sample, events)
         anchor = None
         if reg.confidence < self.min_confidence and self._pending is not None \
                 and self._pending[0] == index - 1:
-            retry = self.registrar.register(self._pending[1], prepared, _HINT)
+            pending_index, pending, pending_sample = self._pending
+            retry = self.registrar.register(pending, prepared, _HINT)
             if retry.confidence >= self.min_confidence:
-                anchor = self._pending[0]
-                self._new_segment(self._pending[1], anchor, events)
+                anchor = pending_index
+                self._new_segment(pending, anchor, events, pending_sample)
                 reg = retry
         if reg.confidence < self.min_confidence:
             self._lost += 1
             if self._lost > self.max_lost_frames:
-                return self._new_segment(prepared, index, events)
-            self._pending = (index, prepared)
+                return self._new_segment(prepared, index, events, sample)
+            self._pending = (index, prepared, sample)
             return TrackStep(LOW_CONFIDENCE, None, reg.confidence, self.segment, reg, events)
         self._pending = None
         rel = self._from_small @ _h(reg.matrix) @ self._to_small  # input px of frame -> of reference
@@ -150,7 +179,7 @@ class Tracker:
         self._last = (index, pose)
         self._lost = 0
         if not self.keyframes or reg.confidence < self.keyframe_confidence:
-            self._ref = _Reference(prepared, pose, index)
+            self._ref = _Reference(prepared, pose, index, sample)
         step = TrackStep(REGISTERED, pose[:2].copy(), reg.confidence, self.segment, reg, events)
         if anchor is not None:
             step.anchor, step.anchor_pose = anchor, self._map[:2].copy()
