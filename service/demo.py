@@ -1,7 +1,8 @@
 """The bundled sample flight, end to end: simulate, map, evaluate.
 
 Flies a virtual camera over the bundled CC0 orthophoto (video.mp4, telemetry.tlog and exact ground
-truth), maps the video as `photomap replay` would, compares the trajectory with the ground truth
+truth), maps the video with its telemetry as `photomap replay --mavlink` would (a metric,
+georeferenced map: mosaic.png + world file), compares the trajectory with the ground truth
 (`photomap evaluate`) and prints where the map is. Takes well under a minute.
 
 example:
@@ -31,10 +32,11 @@ def main(args: argparse.Namespace, cfg: dict) -> int:
     flight = out / "flight"
     print(f"1/3 simulating {args.frames} frames over the bundled terrain into {flight}/")
     simulate_flight(flight, terrain="aukerman", n_frames=args.frames, size=(640, 480), seed=args.seed)
-    print("2/3 mapping the video")
+    print("2/3 mapping the video, joined with its MAVLink telemetry log")
     run_dir = out / "map"
     summary = replay(str(flight / "video.mp4"), run_dir, cfg,
-                     progress=not (args.no_progress or args.quiet))
+                     progress=not (args.no_progress or args.quiet),
+                     mavlink=str(flight / "telemetry.tlog"))
     print("3/3 comparing with the ground truth")
     result = evaluate_run(run_dir, flight / "groundtruth.csv", run_dir)
     print(format_table(result))
