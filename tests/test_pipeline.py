@@ -144,3 +144,23 @@ def test_stop_writes_the_map_built_so_far(aukerman, tmp_path):
     assert (tmp_path / "mosaic.png").is_file()
     rows = read_trajectory_csv(tmp_path / "trajectory.csv")
     assert len(rows) == result["frames_in"]
+
+
+def test_checkpoints_during_the_run(aukerman, tmp_path):
+    """A crash mid-flight loses at most one checkpoint interval: the files exist while it runs."""
+    seq = fly(*aukerman, 40, 8)
+    seen = {}
+
+    def on_frame(frame, step, pipeline):
+        if frame.index == 30:
+            seen["run"] = json.loads((tmp_path / "run.json").read_text())
+            seen["rows"] = len(read_trajectory_csv(tmp_path / "trajectory.csv"))
+            seen["preview"] = cv2.imread(str(tmp_path / "preview.png"), cv2.IMREAD_UNCHANGED)
+
+    cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
+    MappingPipeline(ListSource(seq.frames), cfg, tmp_path, on_frame=on_frame).run()
+    assert seen["run"]["complete"] is False and seen["run"]["frames_in"] >= 29
+    assert seen["rows"] >= 29
+    assert seen["preview"] is not None and seen["preview"].shape[2] == 4
+    assert json.loads((tmp_path / "run.json").read_text())["complete"] is True
+    assert not (tmp_path / "preview.png").exists()
