@@ -192,7 +192,7 @@ class Registrar:
     def __init__(self, shape: tuple[int, int], *, window: str = "tukey", window_taper: float = 0.5,
                  angle_bins: int = 0, radius_bins: int = 0, band_low: float = 0.02,
                  band_high: float = 0.45, snr_weighting: bool = True, peak_sigma: float = 0.18,
-                 candidate_ratio: float = 0.6, max_candidates: int = 3, refine_iterations: int = 5,
+                 candidate_ratio: float = 0.6, max_candidates: int = 3, refine_iterations: int = 20,
                  working_size: int | None = None) -> None:
         del working_size  # a pipeline option (downscaling happens before registration)
         h, w = int(shape[0]), int(shape[1])

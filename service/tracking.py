@@ -73,7 +73,7 @@ class Tracker:
     """
 
     def __init__(self, registrar: Registrar, working_scale: float = 1.0, *, map_scale: float = 1.0,
-                 min_confidence: float = 0.08, max_lost_frames: int = 10, keyframes: bool = True,
+                 min_confidence: float = 0.12, max_lost_frames: int = 10, keyframes: bool = True,
                  keyframe_confidence: float = 0.5, motion_prior: bool = True,
                  prior_angle_tol_deg: float = 20.0, prior_scale_tol: float = 0.15,
                  telemetry_prior: Callable[[Any, Any], Prior | None] | None = None) -> None:
