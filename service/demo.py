@@ -15,7 +15,7 @@ import argparse
 from pathlib import Path
 
 from .evaluate import evaluate_run, format_table
-from .replay import print_summary, replay
+from .replay import add_viewer_argument, print_summary, replay
 from .simulate import simulate_flight
 
 
@@ -25,6 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=300, help="frames to simulate (default 300)")
     parser.add_argument("--seed", type=int, default=1, help="seed of the simulated flight")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_viewer_argument(parser)
 
 
 def main(args: argparse.Namespace, cfg: dict) -> int:
@@ -36,7 +37,7 @@ def main(args: argparse.Namespace, cfg: dict) -> int:
     run_dir = out / "map"
     summary = replay(str(flight / "video.mp4"), run_dir, cfg,
                      progress=not (args.no_progress or args.quiet),
-                     mavlink=str(flight / "telemetry.tlog"))
+                     mavlink=str(flight / "telemetry.tlog"), viewer=args.viewer)
     print("3/3 comparing with the ground truth")
     result = evaluate_run(run_dir, flight / "groundtruth.csv", run_dir)
     print(format_table(result))

@@ -154,6 +154,7 @@ class MappingPipeline:
         self._own_cache = False
         self._warned: set[str] = set()
         self._pending: tuple[int, np.ndarray] | None = None  # last low-confidence frame (index, image)
+        self.last_touched: set = set()  # map tiles changed by the last frame (for the viewer)
 
     # ------------------------------------------------------------------ control
     def stop(self) -> None:
@@ -256,10 +257,11 @@ class MappingPipeline:
             t1 = time.perf_counter()
             step = self.tracker.step(small, frame.index, sample)
             self.stats.register_s += time.perf_counter() - t1
+            self.last_touched = set()
             if step.anchor is not None:
-                self._anchor(step)
+                self.last_touched |= self._anchor(step)
             if step.pose is not None:
-                self._mosaic(step.segment).add(image, step.pose)
+                self.last_touched |= self._mosaic(step.segment).add(image, step.pose)
             self._pending = (frame.index, image) if step.status == LOW_CONFIDENCE else None
         except Exception as exc:  # never lose the map for one bad frame
             self.stats.errors += 1
@@ -295,8 +297,11 @@ class MappingPipeline:
         if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
             self.checkpoint()
 
-    def _anchor(self, step: TrackStep) -> None:
-        """A new segment was anchored at the previous, low-confidence frame: glue it, fix its row."""
+    def _anchor(self, step: TrackStep) -> set:
+        """A new segment was anchored at the previous, low-confidence frame: glue it, fix its row.
+
+        Returns the map tiles it changed.
+        """
         for row in reversed(self.rows):
             if row.frame == step.anchor:
                 row.M, row.status, row.segment = step.anchor_pose, "reference", step.segment
@@ -306,7 +311,8 @@ class MappingPipeline:
                 self.stats.confidence_sum += 1.0
                 break
         if self._pending is not None and self._pending[0] == step.anchor:
-            self._mosaic(step.segment).add(self._pending[1], step.anchor_pose)
+            return self._mosaic(step.segment).add(self._pending[1], step.anchor_pose)
+        return set()
 
     # ------------------------------------------------------------------ outputs
     def summary(self) -> dict:

@@ -29,6 +29,7 @@ from .join import TelemetryJoin
 from .pipeline import MappingPipeline
 from .telemetry import TelemetryBuffer
 from .tracking import TrackStep
+from .viewer import Viewer
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replay at the frames' original pace instead of as fast as possible")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_telemetry_arguments(parser)
+    add_viewer_argument(parser)
     parser.add_argument("--video-start", type=float, metavar="UNIX",
                         help="UNIX time of the video's first frame, to join a .tlog (default: "
                              "the simulator's meta.yaml, the file's creation time, or the log's start)")
@@ -51,6 +53,13 @@ def add_telemetry_arguments(parser: argparse.ArgumentParser) -> None:
                              "/dev/ttyUSB0,57600 ... (default: telemetry.source; none = vision only)")
     parser.add_argument("--time-offset", type=float, metavar="SECONDS",
                         help="seconds added to frame times to get telemetry times")
+
+
+def add_viewer_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--viewer", metavar="MODE",
+                        help="live view in rerun (needs the viewer extra): none, spawn, serve[=PORT] "
+                             "(an operator runs `rerun rerun+http://HOST:PORT/proxy`), "
+                             "connect=URL, save=FILE.rrd (default: viewer.mode)")
 
 
 class _Pacer:
@@ -127,17 +136,22 @@ def _link_summary(spec: str, stats) -> dict:
 
 def map_source(source, cfg: dict, out_dir: str | Path, *, input_name: str = "",
                progress: bool = False, total: int | None = None, realtime: bool = False,
-               telemetry: TelemetryJoin | None = None) -> dict:
+               telemetry: TelemetryJoin | None = None, viewer: str | None = None) -> dict:
     """Run the mapping pipeline over ``source`` and write the outputs; returns the run summary.
 
     SIGINT/SIGTERM (when called from the main thread) stop capture, drain the queue and write
-    the outputs.
+    the outputs. ``viewer`` is a ``--viewer`` mode string (default: the ``viewer.mode`` config).
     """
+    view = Viewer.from_config(cfg["viewer"], viewer)
+    if view.url:
+        print(f"viewer: connect with `rerun {view.url}`")
     bar = tqdm(total=total, unit="frame", disable=not progress, file=sys.stderr, dynamic_ncols=True)
     pacer = _Pacer() if realtime else None
 
     def on_frame(frame: Frame, step: TrackStep, pipeline: MappingPipeline) -> None:
         bar.update(1)
+        if view.enabled:
+            view.on_frame(frame, step, pipeline)
         if pacer is not None:
             pacer(frame)
 
@@ -154,6 +168,7 @@ def map_source(source, cfg: dict, out_dir: str | Path, *, input_name: str = "",
         summary = pipeline.run()
     finally:
         bar.close()
+        view.close()
         for sig, old in previous.items():
             signal.signal(sig, old)
     return summary
@@ -161,7 +176,7 @@ def map_source(source, cfg: dict, out_dir: str | Path, *, input_name: str = "",
 
 def replay(input_spec: str, out_dir: str | Path, cfg: dict, *, progress: bool = False,
            realtime: bool = False, mavlink: str | None = None,
-           video_start: float | None = None) -> dict:
+           video_start: float | None = None, viewer: str | None = None) -> dict:
     """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary.
 
     ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, or a live link (then use
@@ -175,7 +190,7 @@ def replay(input_spec: str, out_dir: str | Path, cfg: dict, *, progress: bool = 
                     if spec else (None, None))
     try:
         return map_source(source, cfg, out_dir, input_name=str(input_spec), progress=progress,
-                          total=total, realtime=realtime, telemetry=join)
+                          total=total, realtime=realtime, telemetry=join, viewer=viewer)
     finally:
         if reader is not None:
             reader.stop()
@@ -205,6 +220,7 @@ def main(args: argparse.Namespace, cfg: dict) -> int:
     if args.time_offset is not None:
         cfg["telemetry"]["time_offset"] = args.time_offset
     summary = replay(args.input, args.out, cfg, progress=not (args.no_progress or args.quiet),
-                     realtime=args.realtime, mavlink=args.mavlink, video_start=args.video_start)
+                     realtime=args.realtime, mavlink=args.mavlink, video_start=args.video_start,
+                     viewer=args.viewer)
     print_summary(summary, args.out)
     return 0 if summary["registered"] > 0 else 1

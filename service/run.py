@@ -16,7 +16,8 @@ import time
 from pathlib import Path
 
 from drivers.capture import open_source
-from .replay import add_telemetry_arguments, map_source, open_telemetry, print_summary
+from .replay import (add_telemetry_arguments, add_viewer_argument, map_source, open_telemetry,
+                     print_summary)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,6 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="DIR",
                         help="output folder (default: a time-stamped folder under output.data_dir)")
     add_telemetry_arguments(parser)
+    add_viewer_argument(parser)
 
 
 def flight_folder(data_dir: str | Path) -> Path:
@@ -41,7 +43,8 @@ def main(args: argparse.Namespace, cfg: dict) -> int:
     try:
         source = open_source(args.camera, **cfg["capture"])
         print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")
-        summary = map_source(source, cfg, out, input_name=str(args.camera), telemetry=join)
+        summary = map_source(source, cfg, out, input_name=str(args.camera), telemetry=join,
+                             viewer=args.viewer)
     finally:
         if reader is not None:
             reader.stop()

@@ -1,0 +1,699 @@
+"""Live operator view of a mapping run in rerun (DESIGN.md section 6).
+
+:class:`Viewer` plugs into :class:`service.pipeline.MappingPipeline` as its ``on_frame``
+callback. The callback runs in the pipeline's worker thread and only copies what the view
+needs (pose, confidence, a downscaled frame and the changed map tiles when they are due) into
+a bounded queue; a viewer thread JPEG-encodes and logs. When the viewer thread falls behind
+(slow network, stuck sink) the *oldest* queued item is dropped and counted: viewer data is
+dropped, frames never are, and the worker never waits on rerun.
+
+Entities (map coordinates follow DESIGN.md section 3: OpenCV map pixels, x right, y down,
+integer coordinates at pixel centres):
+
+``map/tiles/{segment}/{ty}_{tx}``
+    JPEG of mosaic tile ``(tx, ty)``, re-logged only when it changed and at most ``tile_hz``
+    times a second. A static ``Transform3D`` places it at its origin minus half a pixel, because
+    rerun puts an image's pixel ``(0, 0)`` on the square ``[0, 1)^2`` while map pixel ``x`` is
+    centred on ``x``. Empty map pixels are black (JPEG has no alpha). When a new map segment
+    starts, the previous segment's tiles are cleared (each segment has its own map frame).
+``map/trajectory``
+    ``Points2D``: the map position of each posed frame's centre (one per posed frame; a frame
+    posed later, as the anchor of a new segment, gets its point at its own ``frame``).
+    ``LineStrips2D``: the path of the current segment every ``trajectory_every`` frames
+    (thinned to at most ``trajectory_max_points``).
+``map/footprint``
+    The current frame's outline through its pose (closed ``LineStrips2D``).
+``camera/image``
+    The input frame, downscaled to ``camera_px`` and JPEG-encoded, at most ``camera_hz``.
+``health/confidence``, ``health/latency_ms/worker``, ``health/latency_ms/end_to_end``,
+``health/dropped``, ``health/queue_depth``
+    Time series: registration confidence; worker milliseconds for registration and for the
+    whole frame (two series); capture-to-logging latency (live sources only: their ``Frame.t``
+    is the monotonic clock); frames dropped by the capture and viewer items dropped
+    (cumulative, two series); items waiting for the viewer thread.
+``events``
+    ``TextLog``: map segments started, link lost, camera reconnects, viewer overload.
+
+Timelines: ``frame`` (the frame index) and ``capture_time`` (seconds since the first frame).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import socket
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+from urllib.parse import urlsplit
+
+import cv2
+import numpy as np
+
+from .errors import ConfigError, InputError
+from .trajectory import frame_centre
+
+if TYPE_CHECKING:
+    from drivers.capture import Frame
+
+    from .mosaic import TiledMosaic
+    from .pipeline import MappingPipeline
+    from .tracking import TrackStep
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
+COLOR_BY = ("confidence", "segment")
+_URL_SCHEMES = ("rerun", "rerun+http", "rerun+https")
+_USAGE = ("expected none, spawn, serve, serve=PORT, connect, connect=rerun+http://HOST:PORT/proxy "
+          "or save=FILE.rrd")
+_SEGMENT_COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40),
+                   (148, 103, 189), (140, 86, 75), (227, 119, 194), (188, 189, 34)]
+_STOP = object()
+
+TileKey = tuple[int, int]
+
+
+def parse_viewer_mode(text: str) -> tuple[str, str | None]:
+    """Split a viewer mode string (config ``viewer.mode`` or ``--viewer MODE``).
+
+    Returns ``(mode, arg)``: ``("none", None)``, ``("spawn", None)``, ``("serve", None)`` or
+    ``("serve", "PORT")``, ``("connect", URL)`` (``connect`` alone means the local viewer,
+    ``rerun+http://127.0.0.1:9876/proxy``), ``("save", "FILE.rrd")``.
+    Raises :class:`ConfigError` for anything else.
+    """
+    raw = str(text if text is not None else "").strip()
+    mode, sep, arg = raw.partition("=")
+    mode, arg = mode.strip().lower(), arg.strip()
+    if mode in ("none", "spawn"):
+        if sep:
+            raise ConfigError(f"viewer mode '{mode}' takes no argument, got {raw!r}")
+        return mode, None
+    if mode == "serve":
+        if not sep:
+            return mode, None
+        if not arg.isdigit() or not 0 < int(arg) < 65536:
+            raise ConfigError(f"viewer mode serve=PORT needs a port 1-65535, got {raw!r}")
+        return mode, arg
+    if mode == "connect":
+        url = arg if sep else DEFAULT_CONNECT_URL
+        try:
+            parts = urlsplit(url)
+            ok = (parts.scheme in _URL_SCHEMES and bool(parts.hostname)
+                  and parts.path.rstrip("/") == "/proxy")
+            parts.port  # noqa: B018  (raises ValueError for a bad port)
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ConfigError(f"viewer mode connect needs a URL like {DEFAULT_CONNECT_URL}, got {raw!r}")
+        return mode, url
+    if mode == "save":
+        if not arg.lower().endswith(".rrd") or len(arg) <= 4:
+            raise ConfigError(f"viewer mode save needs a file name ending in .rrd, got {raw!r}")
+        return mode, arg
+    raise ConfigError(f"unknown viewer mode {raw!r}: {_USAGE}")
+
+
+def confidence_color(confidence: float) -> tuple[int, int, int]:
+    """RGB from red (confidence 0) through yellow (0.5) to green (1)."""
+    c = min(max(float(confidence), 0.0), 1.0) if math.isfinite(confidence) else 0.0
+    return int(round(255 * min(1.0, 2 * (1 - c)))), int(round(255 * min(1.0, 2 * c))), 0
+
+
+def segment_color(segment: int) -> tuple[int, int, int]:
+    """RGB of map segment ``segment`` (a fixed palette, repeating)."""
+    return _SEGMENT_COLORS[segment % len(_SEGMENT_COLORS)]
+
+
+def frame_outline(pose: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The frame's outer border through ``pose`` (frame -> map px): 5x2, closed, clockwise on screen.
+
+    The corners are the outer corners of the corner pixels, ``(-0.5, -0.5)`` ... ``(w-0.5, h-0.5)``.
+    """
+    corners = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5],
+                        [-0.5, height - 0.5], [-0.5, -0.5]])
+    return corners @ np.asarray(pose, float)[:, :2].T + np.asarray(pose, float)[:, 2]
+
+
+def footprint_tiles(pose: np.ndarray, width: int, height: int, tile_size: int) -> set[TileKey]:
+    """Keys ``(tx, ty)`` of the tiles the bounding box of the frame's footprint touches.
+
+    A superset of the tiles :meth:`TiledMosaic.add` changes (it returns the exact set).
+    """
+    outline = frame_outline(pose, width, height)
+    (x0, y0), (x1, y1) = np.floor(outline.min(axis=0)), np.ceil(outline.max(axis=0))
+    ts = tile_size
+    return {(tx, ty) for ty in range(int(y0) // ts, int(y1) // ts + 1)
+            for tx in range(int(x0) // ts, int(x1) // ts + 1)}
+
+
+def _downscale(image: np.ndarray, max_px: int) -> np.ndarray:
+    """A copy of ``image`` whose longer side is at most ``max_px`` (INTER_AREA)."""
+    h, w = image.shape[:2]
+    f = max_px / max(h, w)
+    if f >= 1.0:
+        return image.copy()
+    return cv2.resize(image, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
+
+
+def _has_display() -> bool:
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def _port_free(port: int) -> bool:
+    """True if nothing listens on TCP ``port`` on any interface (where serve_grpc binds)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("0.0.0.0", port))
+        except OSError:
+            return False
+    return True
+
+
+def _listening(url: str, timeout: float = 1.0) -> bool:
+    """True if a TCP connection to the host and port of ``url`` succeeds."""
+    parts = urlsplit(url)
+    port = parts.port or (443 if parts.scheme == "rerun+https" else 9876 if parts.scheme == "rerun" else 80)
+    try:
+        with socket.create_connection((parts.hostname, port), timeout=timeout):
+            return True
+    except OSError:
+        return False
+
+
+def _lan_address() -> str | None:
+    """This host's address on its default route (no packet is sent), or None."""
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("192.0.2.1", 9))  # TEST-NET-1: only selects the outgoing interface
+            addr = s.getsockname()[0]
+        return None if addr.startswith("127.") or addr == "0.0.0.0" else addr
+    except OSError:
+        return None
+
+
+@dataclass
+class ViewerStats:
+    """Counters of a :class:`Viewer`.
+
+    ``dropped``: viewer items (one per frame) discarded because the viewer thread fell behind.
+    ``callback_s``: time spent in :meth:`Viewer.on_frame`, i.e. in the pipeline's worker.
+    ``thread_cpu_s``: CPU time of the viewer thread (JPEG encoding and ``log`` calls; rerun's
+    own encoder/sink threads are not included). ``jpeg_bytes``: encoded image bytes logged.
+    """
+
+    frames: int = 0
+    dropped: int = 0
+    logged: int = 0
+    tiles: int = 0
+    images: int = 0
+    points: int = 0
+    jpeg_bytes: int = 0
+    errors: int = 0
+    callback_s: float = 0.0
+    thread_cpu_s: float = 0.0
+
+
+@dataclass
+class _Item:
+    """What the viewer thread logs for one frame (all arrays are private copies)."""
+
+    index: int
+    t: float  # seconds since the first frame
+    t_capture: float | None  # live sources: monotonic capture time, for the end-to-end latency
+    confidence: float
+    segment: int
+    frame_size: tuple[int, int]
+    pose: np.ndarray | None = None
+    anchor: tuple[int, np.ndarray] | None = None  # (earlier frame, its pose) posed by this step
+    color: tuple[int, int, int] = (255, 255, 255)
+    register_ms: float | None = None
+    frame_ms: float | None = None
+    dropped_capture: int = 0
+    camera: np.ndarray | None = None
+    tiles: list[tuple[int, TileKey, tuple[int, int], np.ndarray]] = field(default_factory=list)
+    clear_segments: list[int] = field(default_factory=list)  # segments whose tiles to clear
+    strips: list[tuple[np.ndarray, tuple[int, int, int]]] | None = None
+    events: list[tuple[str, str]] = field(default_factory=list)  # (level, text)
+    health: bool = True  # log the health series (false for the closing refresh)
+
+
+class _DropOldestQueue:
+    """A bounded FIFO whose ``put`` never blocks: when full, the oldest item is removed and returned."""
+
+    def __init__(self, maxsize: int) -> None:
+        self.maxsize = maxsize
+        self._items: deque = deque()
+        self._cond = threading.Condition()
+
+    def put(self, item: Any, *, drop: bool = True) -> Any | None:
+        with self._cond:
+            dropped = self._items.popleft() if drop and len(self._items) >= self.maxsize else None
+            self._items.append(item)
+            self._cond.notify()
+            return dropped
+
+    def get(self) -> Any:
+        with self._cond:
+            while not self._items:
+                self._cond.wait()
+            return self._items.popleft()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+class Viewer:
+    """Sends a mapping run to rerun; use :meth:`on_frame` as the pipeline's callback.
+
+    Parameters
+    ----------
+    mode : str
+        ``none``; ``spawn`` (a local viewer window; without a display (no ``DISPLAY`` or
+        ``WAYLAND_DISPLAY``) one warning and the run carries on without a viewer); ``serve``
+        (a gRPC server on ``port``, **all interfaces**, keeping at most ``server_memory_limit``
+        for viewers that connect late; the operator runs ``rerun rerun+http://HOST:PORT/proxy``);
+        ``connect`` (push to ``arg``, a viewer or ``rerun --serve-grpc`` proxy that must
+        **already listen**: if nothing answers, one warning and no viewer, because rerun's
+        client gives up for good after a few seconds and never reconnects); ``save`` (write
+        the recording to the ``.rrd`` file ``arg``). Strings as in :func:`parse_viewer_mode`.
+    arg : str or None
+        Port (serve), URL (connect) or file (save).
+    port, server_memory_limit : serve mode's port (``arg`` wins) and memory cap (e.g. ``"256MB"``).
+    queue_size : items (one per frame) waiting for the viewer thread before the oldest is dropped.
+    tile_hz, max_tiles : map tile refreshes per second, and changed tiles sent per refresh
+        (the rest wait for the next refresh).
+    camera_hz, camera_px : camera images per second and their longest side, pixels.
+    jpeg_quality : JPEG quality 1-100 of tiles and camera images.
+    trajectory_every, trajectory_max_points : the whole path of the current segment is sent
+        every this many frames, thinned to at most this many points.
+    color_by : ``confidence`` (red low, green high) or ``segment``: colour of trajectory points.
+    application_id : rerun application id.
+
+    Raises
+    ------
+    ConfigError
+        Bad values, rerun-sdk missing for a mode that needs it, or the serve port in use.
+    InputError
+        The save file cannot be created.
+
+    Notes
+    -----
+    Call :meth:`close` after the pipeline's ``run()`` returned: it sends the tiles still
+    pending (reading them from the finished mosaic), drains the queue and closes the
+    recording cleanly (``disconnect``), so a ``.rrd`` gets its footer.
+    """
+
+    def __init__(self, mode: str = "none", arg: str | None = None, *, port: int = 9876,
+                 server_memory_limit: str = "256MB", queue_size: int = 32, tile_hz: float = 2.0,
+                 max_tiles: int = 64, camera_hz: float = 5.0, camera_px: int = 480,
+                 jpeg_quality: int = 75, trajectory_every: int = 30,
+                 trajectory_max_points: int = 2000, color_by: str = "confidence",
+                 application_id: str = "photomap") -> None:
+        mode, arg = parse_viewer_mode(mode if arg is None else f"{mode}={arg}")
+        self._check(queue_size=queue_size, max_tiles=max_tiles, camera_px=camera_px,
+                    trajectory_every=trajectory_every, trajectory_max_points=trajectory_max_points)
+        for name, hz in (("tile_hz", tile_hz), ("camera_hz", camera_hz)):
+            if not hz > 0:
+                raise ConfigError(f"viewer {name} must be > 0, got {hz!r}")
+        if not 1 <= int(jpeg_quality) <= 100:
+            raise ConfigError(f"viewer jpeg_quality must be 1-100, got {jpeg_quality!r}")
+        if color_by not in COLOR_BY:
+            raise ConfigError(f"viewer color_by must be one of {', '.join(COLOR_BY)}, got {color_by!r}")
+        self.mode, self.arg = mode, arg
+        self.url: str | None = None
+        self.stats = ViewerStats()
+        self._tile_period, self._camera_period = 1.0 / tile_hz, 1.0 / camera_hz
+        self._max_tiles, self._camera_px = int(max_tiles), int(camera_px)
+        self._jpeg_params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
+        self._trajectory_every, self._max_points = int(trajectory_every), int(trajectory_max_points)
+        self._color_by = color_by
+        self._queue = _DropOldestQueue(int(queue_size))
+        self._warned: set[str] = set()
+        self._closed = False
+        # worker-side state (touched only by on_frame, and by close() after the run)
+        self._pipeline: MappingPipeline | None = None
+        self._t0: float | None = None
+        self._segment: int | None = None
+        self._dirty: set[TileKey] = set()
+        self._path: list[tuple[float, float, float]] = []  # x, y, confidence (thinned)
+        self._path_stride, self._path_count = 1, 0
+        self._last_point: tuple[float, float, float] | None = None
+        self._since_strip = 0
+        self._strip_due = False
+        self._last_tiles = self._last_camera = -math.inf
+        self._prev_worker_s = self._prev_register_s = 0.0
+        self._prev_reconnects = 0
+        self._carry_events: list[tuple[str, str]] = []
+        self._carry_clear: list[int] = []
+        self._last_item: _Item | None = None
+        # viewer-thread state
+        self._placed: set[tuple[int, TileKey]] = set()
+        self._rec = None
+        self._rr = None
+        self._thread: threading.Thread | None = None
+        if mode != "none":
+            self._open(mode, arg, int(port), str(server_memory_limit), application_id)
+
+    @classmethod
+    def from_config(cls, section: dict, mode: str | None = None) -> Viewer:
+        """A viewer from the ``viewer`` config section; ``mode`` (``--viewer MODE``) overrides it."""
+        kwargs = dict(section)
+        configured = kwargs.pop("mode", "none")
+        name, arg = parse_viewer_mode(configured if mode is None else mode)
+        return cls(name, arg, **kwargs)
+
+    @staticmethod
+    def _check(**values: int) -> None:
+        for name, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"viewer {name} must be a positive integer, got {value!r}")
+
+    @property
+    def enabled(self) -> bool:
+        """True when frames are being sent to rerun."""
+        return self._rec is not None
+
+    # ------------------------------------------------------------------ sinks
+    def _open(self, mode: str, arg: str | None, port: int, memory_limit: str, app_id: str) -> None:
+        if mode == "spawn" and not _has_display():
+            log.warning("viewer: no display (DISPLAY/WAYLAND_DISPLAY unset), so no local viewer is "
+                        "spawned; the run carries on without one (use --viewer serve and connect "
+                        "from another machine)")
+            return
+        if mode == "connect" and not _listening(arg):
+            log.warning("viewer: nothing listens at %s, so the run carries on without a viewer "
+                        "(start the viewer first: rerun --serve-grpc, or use --viewer serve)", arg)
+            return
+        try:
+            import rerun as rr
+        except ImportError:
+            raise ConfigError(f"viewer mode '{mode}' needs rerun-sdk: pip install 'ifmi-photomap[viewer]'"
+                              ) from None
+        from .viewer_blueprint import default_blueprint
+
+        if mode == "serve":
+            port = int(arg) if arg else port
+            if not 0 < port < 65536:
+                raise ConfigError(f"viewer port must be 1-65535, got {port}")
+            if not _port_free(port):
+                raise ConfigError(f"viewer port {port} is already in use; choose another with "
+                                  f"--viewer serve=PORT or --set viewer.port=PORT")
+        if mode == "save":
+            path = Path(arg).expanduser()
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.touch()
+            except OSError as exc:
+                raise InputError(f"cannot create the viewer recording {path}: {exc.strerror or exc}") from None
+        rec = rr.RecordingStream(app_id)
+        blueprint = default_blueprint()
+        if mode == "spawn":
+            rec.spawn(port=port, default_blueprint=blueprint)
+        elif mode == "serve":
+            try:
+                url = rec.serve_grpc(grpc_port=port, server_memory_limit=memory_limit,
+                                     default_blueprint=blueprint)
+            except RuntimeError as exc:  # e.g. "Bad server_memory_limit"
+                raise ConfigError(f"viewer serve: {exc}") from None
+            lan = _lan_address()
+            self.url = url.replace("127.0.0.1", lan) if lan else url
+            log.info("viewer: serving on port %d (all interfaces); connect with: rerun %s%s", port,
+                     self.url, f" (on this machine: rerun {url})" if lan else "")
+        elif mode == "connect":
+            rec.connect_grpc(arg, default_blueprint=blueprint)
+            self.url = arg
+        else:
+            rec.save(str(Path(arg).expanduser()), default_blueprint=blueprint)
+        self._rr, self._rec = rr, rec
+        rec.log("health/latency_ms/worker", rr.SeriesLines(names=["registration", "whole frame"]),
+                static=True)
+        rec.log("health/latency_ms/end_to_end", rr.SeriesLines(names="capture to view"), static=True)
+        rec.log("health/dropped", rr.SeriesLines(names=["frames (capture)", "viewer data"]), static=True)
+        self._thread = threading.Thread(target=self._run, name="photomap-viewer", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ worker side
+    def on_frame(self, frame: Frame, step: TrackStep, pipeline: MappingPipeline) -> None:
+        """The pipeline callback: copy what the view needs and queue it. Never raises or blocks."""
+        if self._rec is None or self._closed:
+            return
+        t0 = time.perf_counter()
+        try:
+            self._on_frame(frame, step, pipeline)
+        except Exception as exc:  # the view must never cost the map
+            self.stats.errors += 1
+            self._warn_once(f"frame:{type(exc).__name__}", f"viewer: frame {frame.index} not shown: "
+                                                            f"{type(exc).__name__}: {exc}")
+        finally:
+            self.stats.callback_s += time.perf_counter() - t0
+
+    def _on_frame(self, frame: Frame, step: TrackStep, pipeline: MappingPipeline) -> None:
+        now = time.monotonic()
+        self.stats.frames += 1
+        self._pipeline = pipeline
+        if self._t0 is None:
+            self._t0 = frame.t
+        w, h = pipeline.frame_size
+        source = pipeline.source
+        item = _Item(frame.index, frame.t - self._t0, frame.t if source.live else None,
+                     float(step.confidence), step.segment, (w, h),
+                     dropped_capture=int(source.stats.dropped),
+                     events=self._carry_events, clear_segments=self._carry_clear)
+        self._carry_events, self._carry_clear = [], []
+
+        if step.segment != self._segment:
+            if self._segment is None:
+                item.events.append(("INFO", f"map segment {step.segment} started at frame {frame.index}"))
+            else:
+                item.clear_segments.append(self._segment)
+            self._segment = step.segment
+            self._dirty.clear()
+            self._path, self._path_stride, self._path_count = [], 1, 0
+            self._strip_due = True
+        item.events.extend(("WARN", text) for text in step.events)
+        reconnects = int(source.stats.reconnects)
+        if reconnects > self._prev_reconnects:
+            item.events.append(("WARN", f"camera reconnected (reconnect {reconnects}) before frame {frame.index}"))
+            self._prev_reconnects = reconnects
+
+        stats = pipeline.stats
+        item.register_ms = 1000.0 * (stats.register_s - self._prev_register_s)
+        item.frame_ms = 1000.0 * (stats.worker_s - self._prev_worker_s)
+        self._prev_register_s, self._prev_worker_s = stats.register_s, stats.worker_s
+
+        item.color = self._color(step.confidence, step.segment)
+        anchor = getattr(step, "anchor", None)
+        if anchor is not None and step.anchor_pose is not None:  # an earlier frame became the reference
+            item.anchor = (int(anchor), np.array(step.anchor_pose, dtype=float))
+        posed = [p for p in (item.anchor[1] if item.anchor else None, step.pose) if p is not None]
+        if step.pose is not None:
+            item.pose = np.array(step.pose, dtype=float)
+        touched = getattr(pipeline, "last_touched", None)  # the exact set, if the pipeline offers it
+        mosaic = pipeline.mosaics.get(step.segment)
+        cx, cy = frame_centre(w, h)
+        for pose in posed:
+            x, y = np.asarray(pose, float) @ (cx, cy, 1.0)
+            self._append_path(float(x), float(y), float(step.confidence))
+            if touched is None and mosaic is not None:
+                self._dirty.update(footprint_tiles(pose, w, h, mosaic.tile_size))
+        if posed and touched is not None:
+            self._dirty.update(touched)
+
+        if self._dirty and now - self._last_tiles >= self._tile_period:
+            self._last_tiles = now
+            item.tiles = self._take_tiles(mosaic, step.segment, self._max_tiles)
+        if now - self._last_camera >= self._camera_period:
+            self._last_camera = now
+            item.camera = _downscale(frame.image, self._camera_px)
+        self._since_strip += 1
+        if self._path and (self._strip_due or self._since_strip >= self._trajectory_every):
+            item.strips = self._strips()
+            self._since_strip, self._strip_due = 0, False
+
+        self._last_item = item
+        dropped = self._queue.put(item)
+        if dropped is not None:
+            self._recover(dropped)
+
+    def _recover(self, dropped: _Item) -> None:
+        """Keep what must not be lost from a dropped item: events, tile updates, the path, a clear."""
+        self.stats.dropped += 1
+        if self.stats.dropped == 1:
+            dropped.events.append(("WARN", "viewer falls behind: dropping viewer data (frames are not dropped)"))
+        self._carry_events.extend(dropped.events)
+        self._carry_clear.extend(dropped.clear_segments)
+        if dropped.segment == self._segment:
+            self._dirty.update(key for _, key, _, _ in dropped.tiles)
+        if dropped.strips is not None:
+            self._strip_due = True
+
+    def _color(self, confidence: float, segment: int) -> tuple[int, int, int]:
+        return confidence_color(confidence) if self._color_by == "confidence" else segment_color(segment)
+
+    def _append_path(self, x: float, y: float, confidence: float) -> None:
+        """Keep every ``stride``-th point; halve the points (double the stride) when over the cap."""
+        if self._path_count % self._path_stride == 0:
+            self._path.append((x, y, confidence))
+            if len(self._path) > self._max_points:
+                self._path = self._path[::2]
+                self._path_stride *= 2
+        self._path_count += 1
+        self._last_point = (x, y, confidence)
+
+    def _strips(self) -> list[tuple[np.ndarray, tuple[int, int, int]]]:
+        """The current segment's path as strips: one per colour run (confidence) or one (segment)."""
+        pts = list(self._path)
+        if pts[-1] != self._last_point:
+            pts.append(self._last_point)
+        arr = np.array(pts, dtype=float)
+        if self._color_by == "segment":
+            return [(arr[:, :2], segment_color(self._segment))]
+        levels = np.clip(np.floor(arr[:, 2] * 4), 0, 3)  # 4 confidence bands
+        strips = []
+        start = 0
+        for i in range(1, len(arr) + 1):
+            if i == len(arr) or levels[i] != levels[start]:
+                # each run overlaps the next by one point so that the path stays connected
+                strips.append((arr[start:min(i + 1, len(arr)), :2],
+                               confidence_color((levels[start] + 0.5) / 4)))
+                start = i
+        return strips
+
+    def _take_tiles(self, mosaic: TiledMosaic | None, segment: int, limit: int | None
+                    ) -> list[tuple[int, TileKey, tuple[int, int], np.ndarray]]:
+        """Copies of up to ``limit`` dirty tiles (removed from the dirty set); missing tiles are skipped."""
+        out = []
+        if mosaic is None:
+            self._dirty.clear()
+            return out
+        for key in sorted(self._dirty, key=lambda k: (k[1], k[0]))[:limit]:
+            self._dirty.discard(key)
+            try:
+                image, _alpha = mosaic.tile_image(key)
+            except KeyError:  # the footprint's bounding box reaches tiles the frame did not cover
+                continue
+            out.append((segment, key, mosaic.tile_origin(key), image))
+        return out
+
+    # ------------------------------------------------------------------ viewer thread
+    def _run(self) -> None:
+        cpu0 = time.thread_time()
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                break
+            try:
+                self._log(item)
+                self.stats.logged += 1
+            except Exception as exc:
+                self.stats.errors += 1
+                self._warn_once(f"log:{type(exc).__name__}", f"viewer: logging failed: {type(exc).__name__}: {exc}")
+            self.stats.thread_cpu_s = time.thread_time() - cpu0
+
+    def _jpeg(self, image: np.ndarray) -> bytes:
+        ok, buf = cv2.imencode(".jpg", image, self._jpeg_params)
+        if not ok:
+            raise RuntimeError(f"JPEG encoding of a {image.shape} image failed")
+        self.stats.jpeg_bytes += buf.size
+        return buf.tobytes()
+
+    def _log(self, item: _Item) -> None:
+        rr, rec = self._rr, self._rec
+        rec.set_time("frame", sequence=item.index)  # set_time is thread-local: set it here
+        rec.set_time("capture_time", duration=item.t)
+        for segment in item.clear_segments:
+            rec.log(f"map/tiles/{segment}", rr.Clear(recursive=True))
+        for segment, key, (x0, y0), image in item.tiles:
+            path = f"map/tiles/{segment}/{key[1]}_{key[0]}"
+            if (segment, key) not in self._placed:
+                # rerun's pixel (0, 0) covers [0, 1)^2; map pixel x0 is centred on x0
+                rec.log(path, rr.Transform3D(translation=[x0 - 0.5, y0 - 0.5, 0.0]), static=True)
+                self._placed.add((segment, key))
+            rec.log(path, rr.EncodedImage(contents=self._jpeg(image), media_type="image/jpeg"))
+            self.stats.tiles += 1
+        cx, cy = frame_centre(*item.frame_size)
+        if item.anchor is not None:  # the point of the earlier frame, at that frame's time
+            rec.set_time("frame", sequence=item.anchor[0])
+            rec.log("map/trajectory", rr.Points2D([item.anchor[1] @ (cx, cy, 1.0)], colors=[item.color],
+                                                  radii=rr.Radius.ui_points(3.0)))
+            self.stats.points += 1
+            rec.set_time("frame", sequence=item.index)
+        if item.pose is not None:
+            xy = item.pose @ (cx, cy, 1.0)
+            rec.log("map/trajectory", rr.Points2D([xy], colors=[item.color], radii=rr.Radius.ui_points(3.0)))
+            self.stats.points += 1
+            rec.log("map/footprint", rr.LineStrips2D([frame_outline(item.pose, *item.frame_size)],
+                                                     colors=[item.color], radii=rr.Radius.ui_points(1.5)))
+        if item.strips:
+            rec.log("map/trajectory", rr.LineStrips2D([s for s, _ in item.strips],
+                                                      colors=[c for _, c in item.strips],
+                                                      radii=rr.Radius.ui_points(1.0)))
+        if item.camera is not None:
+            rec.log("camera/image", rr.EncodedImage(contents=self._jpeg(item.camera), media_type="image/jpeg"))
+            self.stats.images += 1
+        if item.health:
+            rec.log("health/confidence", rr.Scalars(item.confidence))
+            if item.register_ms is not None:
+                rec.log("health/latency_ms/worker", rr.Scalars([item.register_ms, item.frame_ms]))
+            if item.t_capture is not None:
+                rec.log("health/latency_ms/end_to_end",
+                        rr.Scalars(1000.0 * (time.monotonic() - item.t_capture)))
+            rec.log("health/dropped", rr.Scalars([item.dropped_capture, self.stats.dropped]))
+            rec.log("health/queue_depth", rr.Scalars(len(self._queue)))
+        for level, text in item.events:
+            rec.log("events", rr.TextLog(text, level=level))
+
+    # ------------------------------------------------------------------ end
+    def close(self, timeout: float = 30.0) -> None:
+        """Send the pending tiles, drain the queue (at most ``timeout`` s) and close the recording.
+
+        Call it after the pipeline's ``run()`` returned (the pending tiles are read from the
+        mosaic, which must no longer change). Idempotent.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        if self._rec is None:
+            return
+        last = self._last_item
+        if last is not None:
+            final = _Item(last.index, last.t, None, last.confidence, last.segment, last.frame_size,
+                          dropped_capture=int(self._pipeline.source.stats.dropped),
+                          events=self._carry_events, clear_segments=self._carry_clear, health=False)
+            try:
+                if self._dirty:
+                    final.tiles = self._take_tiles(self._pipeline.mosaics.get(last.segment), last.segment, None)
+                if self._path:
+                    final.strips = self._strips()
+            except Exception as exc:
+                self._warn_once("close", f"viewer: final map refresh failed: {type(exc).__name__}: {exc}")
+            self._queue.put(final, drop=False)
+        self._queue.put(_STOP, drop=False)
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            log.warning("viewer: still busy after %.0f s; closing the recording anyway (%d items lost)",
+                        timeout, len(self._queue))
+        try:
+            self._rec.flush(timeout_sec=max(1.0, timeout))
+            self._rec.disconnect()
+        except Exception as exc:
+            log.warning("viewer: closing the recording failed: %s: %s", type(exc).__name__, exc)
+        if self.stats.dropped:
+            log.info("viewer: %d of %d frames' viewer data dropped (the viewer fell behind)",
+                     self.stats.dropped, self.stats.frames)
+
+    def __enter__(self) -> Viewer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _warn_once(self, kind: str, message: str) -> None:
+        if kind not in self._warned:
+            self._warned.add(kind)
+            log.warning(message)

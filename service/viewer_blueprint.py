@@ -1,0 +1,25 @@
+"""The default layout of the operator view in rerun (declared in code, as rerun's examples do)."""
+
+from __future__ import annotations
+
+import rerun.blueprint as rrb
+
+
+def default_blueprint() -> rrb.Blueprint:
+    """Map on the left; the live camera, health plots and events stacked on the right.
+
+    The entity roots match :mod:`service.viewer`: ``/map`` (tiles, trajectory, footprint),
+    ``/camera``, ``/health`` (time series) and ``/events`` (text log).
+    """
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="/map", name="Map"),
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="/camera", name="Camera"),
+                rrb.TimeSeriesView(origin="/health", name="Health"),
+                rrb.TextLogView(origin="/events", name="Events"),
+                row_shares=[3, 3, 2],
+            ),
+            column_shares=[3, 2],
+        ),
+    )

@@ -1,0 +1,363 @@
+"""The rerun operator view: recordings read back against the run's own poses, modes, backpressure."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+import signal
+import socket
+import subprocess
+import threading
+import time
+import warnings
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (the `viewer` extra)")
+from rerun.chunk import RrdReader  # noqa: E402
+
+from drivers.capture import CaptureStats, Frame  # noqa: E402
+from service.config import load_config  # noqa: E402
+from service.errors import ConfigError  # noqa: E402
+from service.mosaic import TiledMosaic  # noqa: E402
+from service.pipeline import MappingPipeline, RunStats  # noqa: E402
+from service.trajectory import frame_centre  # noqa: E402
+from service.viewer import Viewer, footprint_tiles, frame_outline, parse_viewer_mode  # noqa: E402
+
+W, H = 160, 120
+N_FRAMES = 40
+
+
+class ListSource:
+    """A replay source over a list of frames; optionally waits for ``gate`` before frame ``pause_at``."""
+
+    live = False
+
+    def __init__(self, frames: list[Frame], pause_at: int | None = None,
+                 gate: threading.Event | None = None) -> None:
+        self.frames, self.pause_at, self.gate = frames, pause_at, gate
+        self.stats = CaptureStats()
+
+    def __iter__(self):
+        for frame in self.frames:
+            if frame.index == self.pause_at:
+                assert self.gate.wait(30.0), "test gate never opened"
+            self.stats.read += 1
+            yield frame
+
+    def close(self) -> None:
+        pass
+
+
+def _texture(h: int = 600, w: int = 800, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = cv2.GaussianBlur(rng.normal(0, 1, (h, w, 3)).astype(np.float32), (0, 0), 3)
+    return np.rint(20 + 215 * (t - t.min()) / (t.max() - t.min())).astype(np.uint8)
+
+
+def _frames(n: int = N_FRAMES) -> list[Frame]:
+    """Frames cut from a texture, the window moving by (+3, +2) px per frame."""
+    tex = _texture()
+    return [Frame(i, i / 30.0, tex[100 + 2 * i:100 + 2 * i + H, 100 + 3 * i:100 + 3 * i + W].copy(), "tex")
+            for i in range(n)]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _chunks(path: Path) -> dict[str, list]:
+    """Record batches of a recording, by entity path."""
+    out: dict[str, list] = {}
+    for chunk in RrdReader(str(path)).stream().to_chunks():
+        out.setdefault(chunk.entity_path, []).append(chunk.to_record_batch())
+    return out
+
+
+def _rows(batches: list, column: str) -> list:
+    """All values of ``column`` over the batches that have it, in frame order."""
+    rows = []
+    for rb in batches:
+        if column in rb.schema.names:
+            frames = rb.column("frame").to_pylist() if "frame" in rb.schema.names else [None] * rb.num_rows
+            rows.extend(zip(frames, rb.column(column).to_pylist()))
+    return [v for _, v in sorted(rows, key=lambda fv: -1 if fv[0] is None else fv[0])]
+
+
+def _has_entity(path: Path, entity: str) -> bool:
+    """True if the (maybe still growing, footer-less) recording holds ``entity``."""
+    if not path.exists():
+        return False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # no footer while the client runs or after it was killed
+        try:
+            return entity in _chunks(path)
+        except Exception:  # a record still being written
+            return False
+
+
+def _run(viewer: Viewer, tmp_path: Path, source: ListSource | None = None) -> MappingPipeline:
+    pipeline = MappingPipeline(source or ListSource(_frames()), load_config(), tmp_path / "out",
+                               on_frame=viewer.on_frame)
+    pipeline.run()
+    viewer.close()
+    return pipeline
+
+
+def _rerun_exe() -> Path:
+    import rerun_cli
+
+    exe = Path(rerun_cli.__file__).parent / "rerun"
+    if not exe.is_file():
+        pytest.skip(f"the rerun viewer binary is not installed at {exe}")
+    return exe
+
+
+# --------------------------------------------------------------------------- mode strings
+@pytest.mark.parametrize("text, expected", [
+    ("none", ("none", None)),
+    (" Spawn ", ("spawn", None)),
+    ("serve", ("serve", None)),
+    ("serve=9877", ("serve", "9877")),
+    ("connect", ("connect", "rerun+http://127.0.0.1:9876/proxy")),
+    ("connect=rerun+http://10.0.0.5:9876/proxy", ("connect", "rerun+http://10.0.0.5:9876/proxy")),
+    ("save=flight/run.rrd", ("save", "flight/run.rrd")),
+])
+def test_parse_viewer_mode(text, expected):
+    assert parse_viewer_mode(text) == expected
+
+
+@pytest.mark.parametrize("text", ["", "show", "spawn=1", "serve=0", "serve=99999", "serve=abc",
+                                  "connect=http://host:9876/proxy", "connect=rerun+http://host:9876/",
+                                  "connect=rerun+http://host:port/proxy", "save", "save=run.mp4"])
+def test_parse_viewer_mode_rejects_garbage(text):
+    with pytest.raises(ConfigError, match="viewer mode"):
+        parse_viewer_mode(text)
+
+
+# --------------------------------------------------------------------------- geometry
+def test_outline_and_footprint_tiles_cover_what_the_mosaic_changes():
+    a = np.radians(30.0)
+    pose = np.array([[np.cos(a), -np.sin(a), 300.0], [np.sin(a), np.cos(a), -40.0]])
+    outline = frame_outline(pose, W, H)
+    assert outline.shape == (5, 2) and np.allclose(outline[0], outline[-1])
+    assert np.allclose(outline[2], pose @ (W - 0.5, H - 0.5, 1.0))
+    mosaic = TiledMosaic(tile_size=64)
+    touched = mosaic.add(np.full((H, W, 3), 128, np.uint8), pose)
+    predicted = footprint_tiles(pose, W, H, 64)
+    assert touched <= predicted
+    assert len(predicted) <= 2 * len(touched)
+
+
+# --------------------------------------------------------------------------- save mode, read back
+def test_saved_recording_matches_the_run(tmp_path):
+    rrd = tmp_path / "run.rrd"
+    viewer = Viewer("save", str(rrd), tile_hz=4.0, jpeg_quality=95, trajectory_every=10)
+    pipeline = _run(viewer, tmp_path)
+    assert pipeline.stats.frames_in == N_FRAMES and viewer.stats.errors == 0
+    assert viewer.stats.dropped == 0
+
+    with open(tmp_path / "out" / "trajectory.csv") as f:
+        rows = [r for r in csv.DictReader(f)]
+    posed = [r for r in rows if r["x"] not in ("", "nan")]
+    assert len(posed) >= N_FRAMES - 2  # the texture registers: (almost) every frame is posed
+
+    chunks = _chunks(rrd)
+    for entity in ("/map/trajectory", "/map/footprint", "/camera/image", "/health/confidence",
+                   "/health/latency_ms/worker", "/health/dropped", "/health/queue_depth",
+                   "/events"):
+        assert entity in chunks, entity
+    assert RrdReader(str(rrd)).blueprints(), "no default blueprint in the recording"
+    RrdReader(str(rrd)).store()  # has a footer: the recording was closed cleanly
+
+    # one trajectory point per posed frame, each at the frame centre through its pose
+    points = _rows(chunks["/map/trajectory"], "Points2D:positions")
+    assert len(points) == len(posed)
+    k = len(posed) // 2
+    assert points[k][0] == pytest.approx([float(posed[k]["x"]), float(posed[k]["y"])], abs=1e-3)
+    step_pose = pipeline.rows[int(posed[k]["frame"])].M
+    assert np.allclose(points[k][0], step_pose @ (*frame_centre(W, H), 1.0), atol=1e-3)
+    assert len(_rows(chunks["/health/confidence"], "Scalars:scalars")) == N_FRAMES
+    latency = _rows(chunks["/health/latency_ms/worker"], "Scalars:scalars")  # [registration, whole frame]
+    assert len(latency) == N_FRAMES and all(0 < reg <= whole for reg, whole in latency)
+    strips = _rows(chunks["/map/trajectory"], "LineStrips2D:strips")
+    assert strips and np.allclose(strips[-1][-1][-1], points[-1][0], atol=1e-3)  # the path ends at the last point
+
+    # every tile of the map is in the recording; the latest version equals the map's tile
+    mosaic = pipeline.mosaics[0]
+    tile_entities = {e for e in chunks if e.startswith("/map/tiles/0/")}
+    assert tile_entities == {f"/map/tiles/0/{ty}_{tx}" for tx, ty in mosaic.tiles()}
+    for tx, ty in mosaic.tiles():
+        batches = chunks[f"/map/tiles/0/{ty}_{tx}"]
+        ((x0, y0, z),), = _rows(batches, "Transform3D:translation")
+        assert (x0, y0, z) == (tx * 256 - 0.5, ty * 256 - 0.5, 0.0)
+        blob = _rows(batches, "EncodedImage:blob")[-1]
+        logged = cv2.imdecode(np.frombuffer(bytes(blob[0]), np.uint8), cv2.IMREAD_COLOR)
+        image, alpha = mosaic.tile_image((tx, ty))
+        inner = cv2.erode(alpha, np.ones((17, 17), np.uint8)) > 0  # away from JPEG ringing at map edges
+        diff = np.abs(logged.astype(int) - image.astype(int))[inner]
+        assert inner.sum() > 0 and diff.mean() < 2.0, (tx, ty, diff.mean())
+    events = _rows(chunks["/events"], "TextLog:text")
+    assert events[0] == ["map segment 0 started at frame 0"]
+
+
+# --------------------------------------------------------------------------- backpressure
+def _fake_step(i: int, events: list[str] = ()) -> SimpleNamespace:
+    pose = np.array([[1.0, 0.0, 3.0 * i], [0.0, 1.0, 2.0 * i]])
+    return SimpleNamespace(status="registered", pose=pose, confidence=0.9, segment=0, events=list(events))
+
+
+def test_stuck_viewer_drops_oldest_viewer_data_and_keeps_events(tmp_path):
+    rrd = tmp_path / "stuck.rrd"
+    viewer = Viewer("save", str(rrd), queue_size=4)
+    entered, release = threading.Event(), threading.Event()
+    log_item = viewer._log
+
+    def stuck_log(item):  # the first item blocks the viewer thread, as a stalled sink would
+        entered.set()
+        release.wait(30.0)
+        log_item(item)
+
+    viewer._log = stuck_log
+    mosaic = TiledMosaic(tile_size=64)
+    pipeline = SimpleNamespace(frame_size=(W, H), source=ListSource([]), stats=RunStats(),
+                               mosaics={0: mosaic})
+    frames = _frames(20)
+    for i, frame in enumerate(frames):
+        step = _fake_step(i, ["link lost: something"] if i == 3 else ())
+        mosaic.add(frame.image, step.pose)
+        viewer.on_frame(frame, step, pipeline)
+        if i == 0:
+            assert entered.wait(10.0)
+    # item 0 is in the stuck thread, 4 wait in the queue, the 15 others were dropped
+    assert viewer.stats.dropped == 20 - 1 - 4
+    release.set()
+    viewer.close()
+    chunks = _chunks(rrd)
+    events = [e[0] for e in _rows(chunks["/events"], "TextLog:text")]
+    assert "link lost: something" in events  # carried over from a dropped item
+    assert any("viewer falls behind" in e for e in events)
+    assert _rows(chunks["/health/dropped"], "Scalars:scalars")[-1] == [0.0, 15.0]  # capture, viewer
+    # tile updates of dropped items were re-sent: every tile is there, at its final content
+    for tx, ty in mosaic.tiles():
+        assert f"/map/tiles/0/{ty}_{tx}" in chunks
+
+
+def test_new_segment_clears_the_old_map_keeps_the_anchor_and_logs_live_latency(tmp_path):
+    rrd = tmp_path / "segments.rrd"
+    viewer = Viewer("save", str(rrd), tile_hz=1000.0, color_by="segment")
+    source = ListSource([])
+    source.live = True  # Frame.t is then the monotonic capture time
+    mosaics = {0: TiledMosaic(tile_size=64), 1: TiledMosaic(tile_size=64)}
+    pipeline = SimpleNamespace(frame_size=(W, H), source=source, stats=RunStats(), mosaics=mosaics)
+    tex = _texture()
+    anchor_pose = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    for i in range(12):
+        segment = 0 if i < 6 else 1
+        step = _fake_step(i - 5 if segment else i)
+        step.segment = segment
+        if i == 5:  # lost; frame 6 starts segment 1 anchored at frame 5
+            step.status, step.pose, step.confidence = "low_confidence", None, 0.05
+        if i == 6:
+            step.events, step.anchor, step.anchor_pose = ["link lost: map segment 1 started at frame 5"], 5, anchor_pose
+            mosaics[1].add(tex[:H, :W], anchor_pose)
+        frame = Frame(i, time.monotonic(), tex[:H, :W].copy(), "tex")
+        if step.pose is not None:
+            mosaics[segment].add(frame.image, step.pose)
+        viewer.on_frame(frame, step, pipeline)
+    viewer.close()
+    chunks = _chunks(rrd)
+    clears = [rb.column("frame").to_pylist() for rb in chunks["/map/tiles/0"]]
+    assert clears == [[6]]  # segment 0's tiles cleared when segment 1 started
+    assert {e for e in chunks if e.startswith("/map/tiles/1/")} == \
+        {f"/map/tiles/1/{ty}_{tx}" for tx, ty in mosaics[1].tiles()}
+    centre = (*frame_centre(W, H), 1.0)
+    strips = _rows(chunks["/map/trajectory"], "LineStrips2D:strips")
+    assert len(strips[-1]) == 1 and len(strips[-1][0]) == 7  # one strip: segment 1's anchor and six points
+    assert np.allclose(strips[-1][0][0], anchor_pose @ centre)
+    assert np.allclose(strips[-1][0][1], _fake_step(1).pose @ centre)
+    points = _rows(chunks["/map/trajectory"], "Points2D:positions")  # in frame order
+    assert len(points) == 12 and np.allclose(points[5][0], anchor_pose @ centre)
+    colors = _rows(chunks["/map/trajectory"], "Points2D:colors")
+    assert len({c[0] for c in colors[:5]}) == 1 and colors[0] != colors[-1]  # coloured by segment
+    latency = _rows(chunks["/health/latency_ms/end_to_end"], "Scalars:scalars")
+    assert len(latency) == 12 and all(v[0] >= 0 for v in latency)
+    events = [e[0] for e in _rows(chunks["/events"], "TextLog:text")]
+    assert events == ["map segment 0 started at frame 0", "link lost: map segment 1 started at frame 5"]
+
+
+# --------------------------------------------------------------------------- modes
+def test_spawn_without_display_warns_and_carries_on(tmp_path, monkeypatch, caplog):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with caplog.at_level(logging.WARNING, logger="service.viewer"):
+        viewer = Viewer("spawn")
+    assert not viewer.enabled
+    assert [r.message for r in caplog.records if "no display" in r.message]
+    pipeline = _run(viewer, tmp_path)
+    assert pipeline.stats.frames_in == N_FRAMES and viewer.stats.frames == 0
+
+
+def test_connect_to_nothing_warns_and_carries_on(caplog):
+    port = _free_port()
+    with caplog.at_level(logging.WARNING, logger="service.viewer"):
+        viewer = Viewer(f"connect=rerun+http://127.0.0.1:{port}/proxy")
+    assert not viewer.enabled and "nothing listens" in caplog.text
+    viewer.close()
+
+
+def test_serve_refuses_a_port_in_use():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        with pytest.raises(ConfigError, match="already in use"):
+            Viewer("serve", str(s.getsockname()[1]))
+
+
+def test_serve_rejects_a_bad_memory_limit():
+    with pytest.raises(ConfigError, match="server_memory_limit"):
+        Viewer("serve", str(_free_port()), server_memory_limit="lots")
+
+
+def test_config_section_defaults_to_no_viewer():
+    viewer = Viewer.from_config(load_config()["viewer"])
+    assert viewer.mode == "none" and not viewer.enabled
+    assert Viewer.from_config(load_config()["viewer"], "serve=9999").arg == "9999"
+    with pytest.raises(ConfigError, match="jpeg_quality"):
+        Viewer.from_config({**load_config()["viewer"], "jpeg_quality": 0})
+
+
+def test_serve_client_receives_and_its_death_does_not_stop_the_run(tmp_path):
+    port = _free_port()
+    viewer = Viewer("serve", str(port), tile_hz=100.0)
+    assert viewer.url.endswith(f":{port}/proxy")
+    got = tmp_path / "got.rrd"
+    client = subprocess.Popen([str(_rerun_exe()), "--save", str(got), "--port", "auto", "--bind", "127.0.0.1",
+                               f"rerun+http://127.0.0.1:{port}/proxy"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    gate = threading.Event()
+    source = ListSource(_frames(), pause_at=N_FRAMES // 2, gate=gate)
+    result: dict = {}
+    runner = threading.Thread(target=lambda: result.update(p=_run(viewer, tmp_path, source)))
+    try:
+        runner.start()
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline and not _has_entity(got, "/map/trajectory"):
+            time.sleep(0.2)
+        assert _has_entity(got, "/map/trajectory"), "the client received no frame"
+    finally:
+        os.killpg(client.pid, signal.SIGKILL)  # the client dies mid-run
+        client.wait()
+        gate.set()
+    runner.join(60.0)
+    assert not runner.is_alive()
+    assert result["p"].stats.frames_in == N_FRAMES
+    assert viewer.stats.frames == N_FRAMES and viewer.stats.errors == 0
+    assert _has_entity(got, "/camera/image")
