@@ -49,6 +49,11 @@ class TrackStep:
     # reference, with pose ``anchor_pose``
     anchor: int | None = None
     anchor_pose: np.ndarray | None = None
+    # the frame it was registered against, and the measured 3x3 (input pixels of this frame ->
+    # input pixels of that reference); ``keyframe``: this frame is now the reference
+    reference: int | None = None
+    relative: np.ndarray | None = None
+    keyframe: bool = False
 
 
 @dataclass
@@ -104,7 +109,8 @@ class Tracker:
         self._pending = None
         if self.segment > 0:
             events.append(f"link lost: map segment {self.segment} started at frame {index}")
-        return TrackStep(REFERENCE, self._map[:2].copy(), 1.0, self.segment, events=events)
+        return TrackStep(REFERENCE, self._map[:2].copy(), 1.0, self.segment, events=events,
+                         keyframe=True)
 
     def _prior(self, index: int) -> Prior | None:
         """Expected registration against the reference, from a constant-velocity model.
@@ -178,9 +184,11 @@ class Tracker:
             self._velocity = None
         self._last = (index, pose)
         self._lost = 0
+        step = TrackStep(REGISTERED, pose[:2].copy(), reg.confidence, self.segment, reg, events,
+                         reference=self._ref.index, relative=rel)
         if not self.keyframes or reg.confidence < self.keyframe_confidence:
             self._ref = _Reference(prepared, pose, index, sample)
-        step = TrackStep(REGISTERED, pose[:2].copy(), reg.confidence, self.segment, reg, events)
+            step.keyframe = True
         if anchor is not None:
             step.anchor, step.anchor_pose = anchor, self._map[:2].copy()
         return step

@@ -11,10 +11,11 @@ Entities (map coordinates follow DESIGN.md section 3: OpenCV map pixels, x right
 integer coordinates at pixel centres):
 
 ``map/tiles/{segment}/{ty}_{tx}``
-    JPEG of mosaic tile ``(tx, ty)``, re-logged only when it changed and at most ``tile_hz``
+    Mosaic tile ``(tx, ty)`` (JPEG; PNG with alpha where it is partly empty, so the map's edge
+    is transparent), re-logged only when it changed and at most ``tile_hz``
     times a second. A static ``Transform3D`` places it at its origin minus half a pixel, because
     rerun puts an image's pixel ``(0, 0)`` on the square ``[0, 1)^2`` while map pixel ``x`` is
-    centred on ``x``. Empty map pixels are black (JPEG has no alpha). When a new map segment
+    centred on ``x``. When a new map segment
     starts, the previous segment's tiles are cleared (each segment has its own map frame).
 ``map/trajectory``
     ``Points2D``: the map position of each posed frame's centre (one per posed frame; a frame
@@ -574,9 +575,12 @@ class Viewer:
         for key in sorted(self._dirty, key=lambda k: (k[1], k[0]))[:limit]:
             self._dirty.discard(key)
             try:
-                image, _alpha = mosaic.tile_image(key)
+                image, alpha = mosaic.tile_image(key)
             except KeyError:  # the footprint's bounding box reaches tiles the frame did not cover
                 continue
+            if alpha.min() < 255:  # a partly covered tile keeps its transparency (sent as PNG)
+                image = np.dstack([image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR),
+                                   alpha])
             out.append((segment, key, mosaic.tile_origin(key), image))
         return out
 
@@ -614,7 +618,14 @@ class Viewer:
                 # rerun's pixel (0, 0) covers [0, 1)^2; map pixel x0 is centred on x0
                 rec.log(path, rr.Transform3D(translation=[x0 - 0.5, y0 - 0.5, 0.0]), static=True)
                 self._placed.add((segment, key))
-            rec.log(path, rr.EncodedImage(contents=self._jpeg(image), media_type="image/jpeg"))
+            if image.ndim == 3 and image.shape[2] == 4:
+                ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+                if not ok:
+                    raise RuntimeError("PNG encoding of a map tile failed")
+                self.stats.jpeg_bytes += buf.size
+                rec.log(path, rr.EncodedImage(contents=buf.tobytes(), media_type="image/png"))
+            else:
+                rec.log(path, rr.EncodedImage(contents=self._jpeg(image), media_type="image/jpeg"))
             self.stats.tiles += 1
         cx, cy = frame_centre(*item.frame_size)
         if item.anchor is not None:  # the point of the earlier frame, at that frame's time
