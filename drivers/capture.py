@@ -11,7 +11,9 @@ The concrete sources live in :mod:`drivers.video`, :mod:`drivers.images` and
 
 from __future__ import annotations
 
+import os
 import re
+import stat
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -112,7 +114,12 @@ def _is_camera(spec: str | int | Path) -> bool:
     if isinstance(spec, int):
         return True
     text = str(spec)
-    return text.isdigit() or bool(_CAMERA_PATH.match(text))
+    if text.isdigit() or _CAMERA_PATH.match(text):
+        return True
+    try:  # stable names such as /dev/v4l/by-id/...: any character device
+        return stat.S_ISCHR(os.stat(text).st_mode)
+    except OSError:
+        return False
 
 
 def open_source(

@@ -146,12 +146,17 @@ class TiledMosaic:
         A[:, 2] -= (x0, y0)
         C = self.channels
         if self.blend == "overwrite":
-            src = np.dstack([img, valid])
+            if C == 3:  # cvtColor + one channel write: ~10x faster than np.dstack
+                src = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA)
+                src[..., 3] = valid
+            else:
+                src = cv2.merge([img, valid])
             warped = cv2.warpAffine(src, A, (bw, bh), flags=cv2.INTER_LINEAR,
                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             cover = warped[..., C] == 255
         else:
-            src = np.dstack([img.astype(np.float32) * weight[..., None], weight])
+            src = cv2.merge([*cv2.split(img.astype(np.float32) * (weight if C == 1 else weight[..., None])),
+                             weight])
             warped = cv2.warpAffine(src, A, (bw, bh), flags=cv2.INTER_LINEAR,
                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             cover = warped[..., C] > 0

@@ -30,8 +30,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def flight_folder(data_dir: str | Path) -> Path:
-    """A new time-stamped folder for one flight's outputs."""
-    return Path(data_dir).expanduser() / time.strftime("flight-%Y%m%d-%H%M%S")
+    """A new time-stamped folder for one flight's outputs (never an existing one: a board
+    without a real-time clock can repeat a time)."""
+    base = Path(data_dir).expanduser() / time.strftime("flight-%Y%m%d-%H%M%S")
+    folder, n = base, 1
+    while folder.exists():
+        n += 1
+        folder = base.with_name(f"{base.name}-{n}")
+    return folder
 
 
 def main(args: argparse.Namespace, cfg: dict) -> int:
