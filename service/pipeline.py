@@ -31,6 +31,7 @@ from drivers.capture import Frame, FrameSource
 from .georef import aux_xml_text, compose, png_to_map, prj_text, world_file_text
 from .ifmi import Registrar
 from .join import TelemetryJoin
+from .loopclosure import LoopCloser
 from .mosaic import TiledMosaic
 from .tilestore import DiskTileStore
 from .tracking import LOW_CONFIDENCE, TrackStep, Tracker
@@ -146,6 +147,7 @@ class MappingPipeline:
         self.mosaics: dict[int, TiledMosaic] = {}
         self.frame_size: tuple[int, int] | None = None  # (w, h) of the input
         self.tracker: Tracker | None = None
+        self.loops: LoopCloser | None = None
         self._stop = threading.Event()
         self._next_index = 0
         self._started = 0.0
@@ -153,7 +155,7 @@ class MappingPipeline:
         self._cache_dir: Path | None = None
         self._own_cache = False
         self._warned: set[str] = set()
-        self._pending: tuple[int, np.ndarray] | None = None  # last low-confidence frame (index, image)
+        self._pending: tuple[int, np.ndarray, np.ndarray] | None = None  # last low-confidence frame: index, image, small
         self.last_touched: set = set()  # map tiles changed by the last frame (for the viewer)
 
     # ------------------------------------------------------------------ control
@@ -208,19 +210,26 @@ class MappingPipeline:
                                prior_angle_tol_deg=mcfg["prior_angle_tol_deg"],
                                prior_scale_tol=mcfg["prior_scale_tol"],
                                telemetry_prior=self.telemetry.prior if self.telemetry else None)
+        if mcfg["keyframes"] and mcfg["loop_closure"]:
+            self.loops = LoopCloser(self._cache() / "keyframes", self.tracker, self.frame_size, f, mcfg)
+
+    def _cache(self) -> Path:
+        """The run's cache folder (configured, or a temporary one removed at the end)."""
+        if self._cache_dir is None:
+            if self.cfg["mosaic"]["cache_dir"]:
+                self._cache_dir = Path(self.cfg["mosaic"]["cache_dir"]).expanduser()
+                self._cache_dir.mkdir(parents=True, exist_ok=True)
+            else:
+                self._cache_dir = Path(tempfile.mkdtemp(prefix="photomap-cache-"))
+                self._own_cache = True
+        return self._cache_dir
 
     def _mosaic(self, segment: int) -> TiledMosaic:
         if segment not in self.mosaics:
             m = self.cfg["mosaic"]
             store = None
             if m["max_tiles_in_memory"]:
-                if self._cache_dir is None:
-                    if m["cache_dir"]:
-                        self._cache_dir = Path(m["cache_dir"])
-                    else:
-                        self._cache_dir = Path(tempfile.mkdtemp(prefix="photomap-tiles-"))
-                        self._own_cache = True
-                store = DiskTileStore(self._cache_dir / f"segment{segment}")
+                store = DiskTileStore(self._cache() / f"segment{segment}")
             self.mosaics[segment] = TiledMosaic(
                 tile_size=m["tile_size"], channels=m["channels"], blend=m["blend"],
                 max_tiles_in_memory=m["max_tiles_in_memory"], store=store, border=m["border"],
@@ -262,7 +271,8 @@ class MappingPipeline:
                 self.last_touched |= self._anchor(step)
             if step.pose is not None:
                 self.last_touched |= self._mosaic(step.segment).add(image, step.pose)
-            self._pending = (frame.index, image) if step.status == LOW_CONFIDENCE else None
+            pending = self._pending
+            self._pending = (frame.index, image, small) if step.status == LOW_CONFIDENCE else None
         except Exception as exc:  # never lose the map for one bad frame
             self.stats.errors += 1
             self._warn_once(f"error:{type(exc).__name__}",
@@ -290,6 +300,11 @@ class MappingPipeline:
             if step.pose is not None:
                 self.telemetry.samples[frame.index] = sample
         self.rows.append(row)
+        if self.loops is not None:
+            if step.anchor is not None and pending is not None and pending[0] == step.anchor:
+                self.loops.on_anchor(step, pending[2], pending[1])
+            if self.loops.on_step(frame.index, step, small, image, self.rows):
+                self.stats.events.append(f"loop closed at frame {frame.index}: map corrected")
         self.stats.worker_s += time.perf_counter() - t0
         if self.on_frame is not None:
             self.on_frame(frame, step, self)
@@ -323,6 +338,8 @@ class MappingPipeline:
         out.update({"input": self.input_name, "frame_size": list(self.frame_size or ()),
                     "working_size": list(getattr(self, "_small", ())),
                     "reconnects": src.reconnects, "map_scale": self.cfg["mapping"]["map_scale"]})
+        if self.loops is not None:
+            out["loop_closure"] = self.loops.summary()
         return out
 
     def _write_trajectory(self) -> None:
@@ -332,9 +349,17 @@ class MappingPipeline:
         if any(r.glued for r in self.rows):
             write_tum(self.out_dir / "trajectory.tum", self.rows, self.frame_size)
 
+    def _rerender(self) -> None:
+        """Re-render the maps that a loop closure corrected."""
+        if self.loops is not None:
+            for segment in sorted(self.loops.dirty):
+                if segment in self.mosaics:
+                    self.last_touched |= self.loops.rerender(segment, self.mosaics[segment])
+
     def checkpoint(self) -> None:
         """Rewrite trajectory, run.json and a mosaic preview (atomically)."""
         self._last_checkpoint = time.monotonic()
+        self._rerender()
         self._write_trajectory()
         summary = self.summary()
         summary["complete"] = False
@@ -417,6 +442,7 @@ class MappingPipeline:
 
     def finish(self) -> dict:
         """Write the final outputs; returns the run summary (also in ``run.json``)."""
+        self._rerender()
         self._write_trajectory()
         summary = self.summary()
         maps = []

@@ -112,6 +112,13 @@ class Tracker:
         return TrackStep(REFERENCE, self._map[:2].copy(), 1.0, self.segment, events=events,
                          keyframe=True)
 
+    def correct(self, c: np.ndarray) -> None:
+        """Apply a pose-graph correction (3x3, old map px -> new map px) to the tracking state."""
+        if self._ref is not None:
+            self._ref.pose = c @ self._ref.pose
+        if self._last is not None:
+            self._last = (self._last[0], c @ self._last[1])
+
     def _prior(self, index: int) -> Prior | None:
         """Expected registration against the reference, from a constant-velocity model.
 

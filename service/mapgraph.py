@@ -1,0 +1,139 @@
+"""Keyframes of a map segment, loop closures against old keyframes, and pose-graph correction.
+
+When the predicted footprint of a new keyframe overlaps keyframes far back in the chain (a
+revisit), the new keyframe is registered against them (iFMI needs no features: candidates are
+chosen by predicted overlap, and the predicted relative pose is the prior). A confident result is
+a loop-closure edge; the pose graph (:mod:`service.posegraph`, robust loss) then corrects every
+keyframe, and the caller re-poses the frames registered against them and re-renders the map.
+
+Pure computation on frames the caller hands in; keyframe images are kept by the caller (see
+:class:`service.pipeline.MappingPipeline`), so memory stays bounded.
+
+Conventions: poses are 3x3, input-frame pixels -> map pixels of the segment; registration runs at
+the working resolution (``working_scale``) and is converted as in :mod:`service.tracking`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .ifmi import Prior, Registrar
+from .posegraph import PoseGraph, correction, optimize
+from .tracking import scaling
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Keyframe:
+    index: int  # frame index
+    pose: np.ndarray  # 3x3, current estimate
+
+
+class KeyframeGraph:
+    """The keyframes of one segment and the constraints between them.
+
+    Parameters
+    ----------
+    registrar : Registrar
+        At the working resolution.
+    frame_size : (w, h)
+        Input frame size (pixels of the poses).
+    working_scale : float
+        Working resolution / input resolution.
+    load_small : callable
+        ``frame index -> grey image at the working resolution`` of a keyframe (kept by the caller).
+    min_gap : int
+        A loop closure links keyframes at least this many keyframes apart.
+    radius : float
+        Candidates: keyframes whose centre lies within ``radius`` frame diagonals of the new one.
+    min_confidence : float
+        Registration confidence a loop-closure edge needs.
+    max_candidates : int
+        Old keyframes tried per new keyframe (nearest first).
+    """
+
+    def __init__(self, registrar: Registrar, frame_size: tuple[int, int], working_scale: float,
+                 load_small: Callable[[int], np.ndarray], *, min_gap: int = 8, radius: float = 0.35,
+                 min_confidence: float = 0.25, max_candidates: int = 2, sigma_px: float = 1.0) -> None:
+        self.registrar = registrar
+        self.frame_size = frame_size
+        self.centre = np.array([(frame_size[0] - 1) / 2.0, (frame_size[1] - 1) / 2.0, 1.0])
+        self.diagonal = math.hypot(*frame_size)
+        self._to_small = scaling(working_scale)
+        self._from_small = np.linalg.inv(self._to_small)
+        self.load_small = load_small
+        self.min_gap = min_gap
+        self.radius = radius
+        self.min_confidence = min_confidence
+        self.max_candidates = max_candidates
+        self.graph = PoseGraph(frame_size, sigma_px=sigma_px)
+        self.keyframes: list[Keyframe] = []
+        self._node: dict[int, int] = {}  # frame index -> node
+        self.loops = 0
+        self.rejected_loops = 0
+
+    def add_keyframe(self, index: int, pose: np.ndarray, edge: tuple[int, np.ndarray, float] | None) -> None:
+        """A new keyframe; ``edge`` = (reference keyframe index, measured 3x3, confidence)."""
+        node = self.graph.add_node(pose)
+        self._node[index] = node
+        self.keyframes.append(Keyframe(index, np.array(pose, dtype=np.float64)))
+        if edge is not None and edge[0] in self._node:
+            self.graph.add_edge(self._node[edge[0]], node, edge[1], edge[2], kind="sequential")
+
+    def close_loops(self, image: np.ndarray) -> int:
+        """Try the newest keyframe (``image`` at the working resolution) against old ones nearby."""
+        if len(self.keyframes) <= self.min_gap:
+            return 0
+        new = self.keyframes[-1]
+        centre = new.pose @ self.centre
+        scale = math.sqrt(abs(np.linalg.det(new.pose[:2, :2])))
+        limit = self.radius * self.diagonal * scale
+        old = self.keyframes[:-self.min_gap]
+        dist = np.array([np.hypot(*(k.pose @ self.centre - centre)[:2]) for k in old])
+        order = [i for i in np.argsort(dist) if dist[i] < limit][:self.max_candidates]
+        added = 0
+        prepared = None
+        for i in order:
+            ref = old[i]
+            predicted = np.linalg.inv(ref.pose) @ new.pose  # input px of new -> of ref
+            small = self._to_small @ predicted @ self._from_small
+            prior = Prior(angle_deg=math.degrees(math.atan2(small[1, 0], small[0, 0])), angle_tol_deg=10.0,
+                          scale=math.sqrt(abs(np.linalg.det(small[:2, :2]))), scale_tol=0.1)
+            prepared = prepared or self.registrar.prepare(image)
+            reg = self.registrar.register(self.registrar.prepare(self.load_small(ref.index)), prepared, prior)
+            if reg.confidence < self.min_confidence:
+                continue
+            measured = self._from_small @ np.vstack([reg.matrix, [0, 0, 1]]) @ self._to_small
+            # a revisit after drift: the measurement may differ from the prediction, but not wildly
+            jump = np.linalg.norm((measured - predicted) @ self.centre)
+            if jump > 0.25 * self.diagonal:
+                self.rejected_loops += 1
+                continue
+            self.graph.add_edge(self._node[ref.index], self._node[new.index], measured, reg.confidence,
+                                kind="loop")
+            added += 1
+        self.loops += added
+        return added
+
+    def optimize(self) -> dict[int, np.ndarray]:
+        """Optimise the graph; returns the 3x3 correction of every keyframe (by frame index)."""
+        result = optimize(self.graph, robust="cauchy")
+        loops = [k for k in result.outliers if self.graph.edge_kinds[k] == "loop"]
+        if loops:  # a wrong loop closure: drop it and solve again
+            log.warning("dropped %d loop closure(s) that disagree with the rest of the map", len(loops))
+            self.rejected_loops += len(loops)
+            self.loops -= len(loops)
+            self.graph.drop_edges(loops)
+            result = optimize(self.graph, robust="cauchy")
+        out = {}
+        for kf, pose in zip(self.keyframes, result.poses):
+            out[kf.index] = correction(kf.pose, pose)
+            kf.pose = pose
+        self.graph.set_poses(result.poses)
+        return out
