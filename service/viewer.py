@@ -32,8 +32,12 @@ integer coordinates at pixel centres):
     whole frame (two series); capture-to-logging latency (live sources only: their ``Frame.t``
     is the monotonic clock); frames dropped by the capture and viewer items dropped
     (cumulative, two series); items waiting for the viewer thread.
+``telemetry/altitude_m``, ``telemetry/heading_deg``
+    With MAVLink telemetry: height above ground, and the heading from vision (the pose angle,
+    tied to the autopilot's heading at the segment's first frame) beside the autopilot's yaw.
 ``events``
-    ``TextLog``: map segments started, link lost, camera reconnects, viewer overload.
+    ``TextLog``: map segments started, link to the map lost, telemetry link lost/regained,
+    camera reconnects, viewer overload.
 
 Timelines: ``frame`` (the frame index) and ``capture_time`` (seconds since the first frame).
 """
@@ -241,6 +245,8 @@ class _Item:
     strips: list[tuple[np.ndarray, tuple[int, int, int]]] | None = None
     events: list[tuple[str, str]] = field(default_factory=list)  # (level, text)
     health: bool = True  # log the health series (false for the closing refresh)
+    altitude: float | None = None  # telemetry height above ground, m
+    heading: tuple[float, float] | None = None  # (vision, autopilot), deg
 
 
 class _DropOldestQueue:
@@ -349,6 +355,8 @@ class Viewer:
         self._last_tiles = self._last_camera = -math.inf
         self._prev_worker_s = self._prev_register_s = 0.0
         self._prev_reconnects = 0
+        self._tel_lost = self._tel_back = 0  # telemetry link losses/returns already shown
+        self._heading_offset, self._heading_segment = 0.0, None
         self._carry_events: list[tuple[str, str]] = []
         self._carry_clear: list[int] = []
         self._last_item: _Item | None = None
@@ -435,6 +443,7 @@ class Viewer:
                 static=True)
         rec.log("health/latency_ms/end_to_end", rr.SeriesLines(names="capture to view"), static=True)
         rec.log("health/dropped", rr.SeriesLines(names=["frames (capture)", "viewer data"]), static=True)
+        rec.log("telemetry/heading_deg", rr.SeriesLines(names=["vision", "autopilot"]), static=True)
         self._thread = threading.Thread(target=self._run, name="photomap-viewer", daemon=True)
         self._thread.start()
 
@@ -452,6 +461,30 @@ class Viewer:
                                                             f"{type(exc).__name__}: {exc}")
         finally:
             self.stats.callback_s += time.perf_counter() - t0
+
+    def _telemetry(self, pipeline: MappingPipeline, index: int, step: TrackStep, item: _Item) -> None:
+        """Altitude, vision vs autopilot heading, and telemetry link events."""
+        tel = getattr(pipeline, "telemetry", None)
+        if tel is None:
+            return
+        link = tel.link_summary()
+        lost, back = int(link.get("link_lost", 0)), int(link.get("link_regained", 0))
+        if lost > self._tel_lost:
+            item.events.append(("WARN", f"telemetry link lost before frame {index}: mapping from vision alone"))
+        if back > self._tel_back:
+            item.events.append(("INFO", f"telemetry link regained before frame {index}"))
+        self._tel_lost, self._tel_back = lost, back
+        sample = tel.samples.get(index)
+        if sample is None:
+            return
+        item.altitude = sample.height_above_ground
+        if sample.yaw is not None and step.pose is not None:
+            angle = math.degrees(math.atan2(step.pose[1][0], step.pose[0][0]))
+            yaw = math.degrees(sample.yaw)
+            if self._heading_segment != step.segment:
+                self._heading_offset, self._heading_segment = yaw - angle, step.segment
+            item.heading = ((angle + self._heading_offset + 180.0) % 360.0 - 180.0,
+                            (yaw + 180.0) % 360.0 - 180.0)
 
     def _on_frame(self, frame: Frame, step: TrackStep, pipeline: MappingPipeline) -> None:
         now = time.monotonic()
@@ -482,6 +515,7 @@ class Viewer:
             item.events.append(("WARN", f"camera reconnected (reconnect {reconnects}) before frame {frame.index}"))
             self._prev_reconnects = reconnects
 
+        self._telemetry(pipeline, frame.index, step, item)
         stats = pipeline.stats
         item.register_ms = 1000.0 * (stats.register_s - self._prev_register_s)
         item.frame_ms = 1000.0 * (stats.worker_s - self._prev_worker_s)
@@ -656,6 +690,10 @@ class Viewer:
                         rr.Scalars(1000.0 * (time.monotonic() - item.t_capture)))
             rec.log("health/dropped", rr.Scalars([item.dropped_capture, self.stats.dropped]))
             rec.log("health/queue_depth", rr.Scalars(len(self._queue)))
+            if item.altitude is not None:
+                rec.log("telemetry/altitude_m", rr.Scalars(item.altitude))
+            if item.heading is not None:
+                rec.log("telemetry/heading_deg", rr.Scalars(list(item.heading)))
         for level, text in item.events:
             rec.log("events", rr.TextLog(text, level=level))
 

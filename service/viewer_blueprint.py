@@ -9,14 +9,15 @@ def default_blueprint() -> rrb.Blueprint:
     """Map on the left; the live camera, health plots and events stacked on the right.
 
     The entity roots match :mod:`service.viewer`: ``/map`` (tiles, trajectory, footprint),
-    ``/camera``, ``/health`` (time series) and ``/events`` (text log).
+    ``/camera``, ``/health`` and ``/telemetry`` (time series) and ``/events`` (text log).
     """
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial2DView(origin="/map", name="Map"),
             rrb.Vertical(
                 rrb.Spatial2DView(origin="/camera", name="Camera"),
-                rrb.TimeSeriesView(origin="/health", name="Health"),
+                rrb.Tabs(rrb.TimeSeriesView(origin="/health", name="Health"),
+                         rrb.TimeSeriesView(origin="/telemetry", name="Telemetry")),
                 rrb.TextLogView(origin="/events", name="Events"),
                 row_shares=[3, 3, 2],
             ),

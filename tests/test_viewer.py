@@ -361,3 +361,27 @@ def test_serve_client_receives_and_its_death_does_not_stop_the_run(tmp_path):
     assert result["p"].stats.frames_in == N_FRAMES
     assert viewer.stats.frames == N_FRAMES and viewer.stats.errors == 0
     assert _has_entity(got, "/camera/image")
+
+
+def test_telemetry_series_are_shown(tmp_path):
+    """With a .tlog joined, altitude and vision-vs-autopilot heading are logged and agree."""
+    import numpy as np
+    from rerun.chunk import RrdReader
+
+    from service.config import load_config
+    from service.replay import replay
+    from service.simulate import simulate_flight
+
+    flight = simulate_flight(tmp_path / "flight", n_frames=30, size=(320, 240), fps=15.0, seed=2)
+    rrd = tmp_path / "view.rrd"
+    replay(str(flight / "video.mp4"), tmp_path / "run", load_config(),
+           mavlink=str(flight / "telemetry.tlog"), viewer=f"save={rrd}")
+    values: dict[str, list] = {"/telemetry/altitude_m": [], "/telemetry/heading_deg": []}
+    for chunk in RrdReader(str(rrd)).stream().to_chunks():
+        if chunk.entity_path in values and not chunk.is_static:
+            values[chunk.entity_path] += chunk.to_record_batch().column("Scalars:scalars").to_pylist()
+    assert len(values["/telemetry/altitude_m"]) == 30
+    heading = np.array(values["/telemetry/heading_deg"])
+    assert heading.shape == (30, 2)
+    diff = (heading[:, 0] - heading[:, 1] + 180.0) % 360.0 - 180.0
+    assert np.abs(diff).max() < 0.2  # vision follows the autopilot's heading
