@@ -78,6 +78,8 @@ class TelemetryJoin:
         self.samples: dict[int, TelemetrySample] = {}  # frame index -> sample (posed frames only)
         # set by whoever opened the link: what the link saw (messages, gaps, link losses)
         self.link_summary: Callable[[], dict] = dict
+        # set by whoever opened the link: tell the autopilot/GCS about an event (STATUSTEXT)
+        self.notify: Callable[[str], None] = lambda text: None
 
     # ------------------------------------------------------------------ per frame
     def telemetry_time(self, frame: Frame) -> float:

@@ -251,6 +251,8 @@ class MappingPipeline:
         image = frame.image
         if self.tracker is None:
             self._setup(image)
+            if self.telemetry is not None:
+                self.telemetry.notify("mapping started")
         if image.shape[:2] != (self.frame_size[1], self.frame_size[0]):
             self.stats.corrupt += 1
             self._warn_once("size", f"frame {frame.index}: size {image.shape[1]}x{image.shape[0]} "
@@ -289,6 +291,8 @@ class MappingPipeline:
                     continue  # counted in run.json; logged for the first few only
             log.warning(event)
             self.stats.events.append(event)
+            if self.telemetry is not None and "segment" in event:
+                self.telemetry.notify(f"link to map lost, new segment at frame {frame.index}")
         if step.status == LOW_CONFIDENCE:
             self.stats.low_confidence += 1
         else:

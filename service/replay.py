@@ -125,6 +125,8 @@ def open_telemetry(spec: str, cfg: dict, *, source=None, input_spec: str = "",
                     "time: use --realtime")
     join = TelemetryJoin(reader.at, "live" if live else "link", cfg, offset=offset)
     join.link_summary = lambda: _link_summary(spec, reader.stats)
+    if live and tcfg["send_statustext"]:
+        join.notify = lambda text: reader.send_status(f"photomap: {text}")
     return join, reader
 
 

@@ -149,3 +149,28 @@ def test_truncated_tlog(flight, tmp_path):
     tel = summary["telemetry"]
     assert tel["frames_with_telemetry"] > 15 and tel["frames_without_telemetry"] > 15
     assert (tmp_path / "run" / "mosaic.png").is_file()
+
+
+def test_events_are_told_to_the_autopilot(flight, tmp_path):
+    """STATUSTEXT hook: mapping started, and a lost link to the map (a new segment)."""
+    from drivers.mavlink import load_tlog
+    from service.join import TelemetryJoin
+    from service.pipeline import MappingPipeline
+    from test_pipeline import ListSource
+    import cv2
+
+    cap = cv2.VideoCapture(str(flight / "video.mp4"))
+    frames = []
+    while (ok_frame := cap.read())[0]:
+        frames.append(ok_frame[1])
+    for k in range(20, 34):  # the camera sees nothing: the link to the map is lost
+        frames[k] = np.full_like(frames[k], 128)
+    buffer, _ = load_tlog(flight / "telemetry.tlog")
+    cfg = load_config(overrides=["mapping.max_lost_frames=5"])
+    meta = yaml.safe_load((flight / "meta.yaml").read_text())
+    join = TelemetryJoin(buffer.at, "log", cfg, video_start=meta["t0_unix"])
+    told = []
+    join.notify = told.append
+    MappingPipeline(ListSource(frames, fps=15.0), cfg, tmp_path, telemetry=join).run()
+    assert told[0] == "mapping started"
+    assert any("new segment" in text for text in told[1:])
