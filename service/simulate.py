@@ -1,6 +1,6 @@
 """Fly a virtual down-looking camera over a terrain image and write the flight with its truth.
 
-Writes into --out DIR: video.mp4 (mp4v), groundtruth.csv (the exact frame->terrain matrix of
+Writes into --out DIR: video.mp4 (mp4v; or --codec mjpg/ffv1), groundtruth.csv (the exact frame->terrain matrix of
 every frame), telemetry.tlog (MAVLink 2: HEARTBEAT, SYSTEM_TIME, ATTITUDE, GLOBAL_POSITION_INT,
 VFR_HUD, ALTITUDE, DISTANCE_SENSOR), meta.yaml (camera, terrain, georeference, parameters) and,
 with --save-frames, frames/NNNNNN.png. Defaults come from the `simulate:` config section.
@@ -60,13 +60,17 @@ def parse_range(text: str) -> tuple[float, float]:
     return parts[0], parts[1]
 
 
+# codec -> (file name, fourcc); OpenCV's FFmpeg wheel has no H.264 encoder
+VIDEO_CODECS = {"mp4v": ("video.mp4", "mp4v"), "mjpg": ("video.avi", "MJPG"), "ffv1": ("video.mkv", "FFV1")}
+
+
 def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames: int = 300,
                     size: tuple[int, int] = (640, 480), fps: float = 30.0, seed: int = 0,
                     hfov_deg: float = 60.0, gsd: float = 0.0, terrain_zoom: float = 0.0,
                     terrain_size: tuple[int, int] = (4096, 4096), save_frames: bool = False,
                     frames_format: str = "png", origin_lat: float = 41.1, origin_lon: float = -81.7,
                     origin_amsl: float = 300.0, t0_unix: float = 0.0, boot_offset_s: float = 60.0,
-                    **params) -> Path:
+                    video_codec: str = "mp4v", **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
     Parameters
@@ -78,6 +82,9 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         so the effective gsd written to meta.yaml is ``gsd / zoom``.
     origin_lat, origin_lon, origin_amsl : georeference of terrain pixel (0, 0).
     t0_unix : Unix time of frame 0 (0 = now). boot_offset_s : autopilot uptime at frame 0.
+    video_codec : ``mp4v`` (``video.mp4``: MPEG-4 part 2 at the wheel's fixed, low bitrate, a
+        strong compression that wipes low-contrast texture), ``mjpg`` (``video.avi``) or ``ffv1``
+        (``video.mkv``, lossless, like a camera recording at a high bitrate).
     **params : :class:`service.flight.Motion` and :class:`service.flight.Effects` fields.
 
     Returns the output folder.
@@ -105,10 +112,13 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     frames_dir = out / "frames"
     if save_frames:
         frames_dir.mkdir(exist_ok=True)
-    video_path = out / "video.mp4"
-    writer = cv2.VideoWriter(str(video_path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (camera.width, camera.height))
+    if video_codec not in VIDEO_CODECS:
+        raise InputError(f"video codec must be one of {', '.join(VIDEO_CODECS)}, got {video_codec!r}")
+    name_, fourcc = VIDEO_CODECS[video_codec]
+    video_path = out / name_
+    writer = cv2.VideoWriter(str(video_path), cv2.VideoWriter_fourcc(*fourcc), fps, (camera.width, camera.height))
     if not writer.isOpened():
-        raise PhotomapError(f"cannot write {video_path} (mp4v encoder unavailable or folder not writable)")
+        raise PhotomapError(f"cannot write {video_path} ({fourcc} encoder unavailable or folder not writable)")
     try:
         pyramid = build_pyramid(img, float(truth.scale.max()) * 1.2)
         for k, frame in enumerate(iter_frames(img, truth, camera, effects, seed, motion.period_s, pyramid)):
@@ -138,7 +148,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         "motion": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(motion).items()},
         "effects": asdict(effects),
         "telemetry_rates_hz": dict(RATES_HZ),
-        "files": {"video": "video.mp4", "groundtruth": "groundtruth.csv", "telemetry": "telemetry.tlog",
+        "files": {"video": video_path.name, "groundtruth": "groundtruth.csv", "telemetry": "telemetry.tlog",
                   "frames": f"frames/%06d.{frames_format}" if save_frames else None},
         "conventions": "H maps frame pixels to terrain pixels (OpenCV pixel centres); yaw_deg = MAVLink "
                        "heading of the image's up direction = angle of H; scale = terrain px per frame px "
@@ -210,6 +220,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--gain-drift", type=float, metavar="F", help="peak slow brightness gain change (fraction)")
     a("--jpeg", type=int, metavar="Q", help="JPEG round trip quality (0 = off)")
     a("--save-frames", action="store_true", default=None, help="also write frames/ as images")
+    a("--codec", choices=sorted(VIDEO_CODECS), help="video codec: mp4v (video.mp4, strong compression), "
+      "mjpg (video.avi) or ffv1 (video.mkv, lossless)")
 
 
 def main(args: argparse.Namespace, cfg: dict) -> int:
@@ -219,7 +231,7 @@ def main(args: argparse.Namespace, cfg: dict) -> int:
              "fps": "fps", "seed": "seed", "hfov": "hfov_deg", "pattern": "pattern", "speed": "speed",
              "yaw_mode": "yaw_mode", "yaw_rate": "yaw_rate", "altitude": "altitude", "scale_rate": "scale_rate",
              "tilt": "tilt", "noise": "noise", "blur": "blur", "gain_drift": "gain_drift",
-             "jpeg": "jpeg_quality", "save_frames": "save_frames"}
+             "jpeg": "jpeg_quality", "save_frames": "save_frames", "codec": "video_codec"}
     for flag, key in flags.items():
         value = getattr(args, flag, None)
         if value is not None:
@@ -235,7 +247,8 @@ def main(args: argparse.Namespace, cfg: dict) -> int:
         boot_offset_s=c["boot_offset_s"], pattern=c["pattern"], speed=c["speed"], yaw_mode=c["yaw_mode"],
         yaw_rate=c["yaw_rate"], yaw0=c["yaw0"], altitude=altitude, scale_rate=c["scale_rate"], tilt=c["tilt"],
         period_s=c["period_s"], side_overlap=c["side_overlap"], gain_drift=c["gain_drift"], blur=c["blur"],
-        noise=c["noise"], jpeg_quality=int(c["jpeg_quality"]))
-    print(f"simulated {c['frames']} frames into {out}/: video.mp4, groundtruth.csv, telemetry.tlog, meta.yaml"
+        noise=c["noise"], jpeg_quality=int(c["jpeg_quality"]), video_codec=c["video_codec"])
+    video = VIDEO_CODECS[c["video_codec"]][0]
+    print(f"simulated {c['frames']} frames into {out}/: {video}, groundtruth.csv, telemetry.tlog, meta.yaml"
           + (", frames/" if c["save_frames"] else ""))
     return 0
