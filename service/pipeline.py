@@ -32,6 +32,7 @@ from .georef import aux_xml_text, compose, png_to_map, prj_text, world_file_text
 from .ifmi import Registrar
 from .join import TelemetryJoin
 from .loopclosure import LoopCloser
+from .maprelative import map_correction
 from .mosaic import TiledMosaic
 from .tilestore import DiskTileStore
 from .tracking import LOW_CONFIDENCE, TrackStep, Tracker
@@ -54,6 +55,7 @@ class RunStats:
     corrupt: int = 0
     errors: int = 0
     segments: int = 0
+    map_fixes: int = 0
     confidence_sum: float = 0.0
     worker_s: float = 0.0
     register_s: float = 0.0
@@ -70,6 +72,7 @@ class RunStats:
             "errors": self.errors,
             "dropped": self.dropped,
             "segments": self.segments,
+            "map_relative_fixes": self.map_fixes,
             "mean_confidence": self.confidence_sum / posed if posed else None,
             "ms_per_frame": 1000.0 * self.worker_s / self.frames_in if self.frames_in else None,
             "ms_register_per_frame": 1000.0 * self.register_s / self.frames_in if self.frames_in else None,
@@ -200,6 +203,7 @@ class MappingPipeline:
         f = min(1.0, working / max(h, w)) if working > 0 else 1.0
         self._small = (max(16, int(round(w * f))), max(16, int(round(h * f))))
         f = self._small[0] / w  # exact factor of cv2.resize in x (and, to rounding, in y)
+        self._working_scale = f
         mcfg = self.cfg["mapping"]
         self.tracker = Tracker(Registrar((self._small[1], self._small[0]), **rcfg), f,
                                map_scale=float(mcfg["map_scale"]),
@@ -268,6 +272,8 @@ class MappingPipeline:
             t1 = time.perf_counter()
             step = self.tracker.step(small, frame.index, sample)
             self.stats.register_s += time.perf_counter() - t1
+            if step.keyframe and step.reference is not None and self.cfg["mapping"]["map_relative"]:
+                self._map_relative(step, small)
             self.last_touched = set()
             if step.anchor is not None:
                 self.last_touched |= self._anchor(step)
@@ -315,6 +321,20 @@ class MappingPipeline:
         interval = float(self.cfg["output"]["checkpoint_interval"])
         if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
             self.checkpoint()
+
+    def _map_relative(self, step: TrackStep, small: np.ndarray) -> None:
+        """Snap a new keyframe to the map rendered at its predicted pose (less drift)."""
+        mosaic = self.mosaics.get(step.segment)
+        if mosaic is None:
+            return
+        pose = np.vstack([step.pose, [0.0, 0.0, 1.0]])
+        fix = map_correction(self.tracker.registrar, mosaic, pose, small, self.frame_size,
+                             self._working_scale,
+                             min_confidence=self.cfg["mapping"]["loop_min_confidence"])
+        if fix is not None:
+            step.pose = (fix @ pose)[:2]
+            self.tracker.correct(fix)
+            self.stats.map_fixes += 1
 
     def _anchor(self, step: TrackStep) -> set:
         """A new segment was anchored at the previous, low-confidence frame: glue it, fix its row.

@@ -112,3 +112,12 @@ def test_the_revisit_shows_no_double_edges(terrains, tmp_path):
     single, n_single = map_residual(out, seq, terrain, far)
     assert n_seam > 1000 and n_single > 1000
     assert seam < 1.5 * single + 1.0
+
+
+def test_map_relative_keyframes_snap_to_the_map(terrains, tmp_path):
+    seq = closed_flight(*terrains["textured"], "figure8", 5)
+    summary, result = mapped(seq, KEYFRAMES + ["mapping.map_relative=true"], tmp_path / "maprel")
+    assert summary["map_relative_fixes"] > 5
+    assert result["ate"]["pct"] < 0.05
+    k, _ = revisit(seq)
+    assert anchored_error(tmp_path / "maprel", seq, k) < 1.0

@@ -6,6 +6,7 @@ without telemetry: final position error and ATE as % of the path, per mode:
 
 - frame-to-frame: every frame registered against the previous one (the original iFMI paper);
 - keyframes: registered against a keyframe while the overlap is good;
+- map-relative: keyframes, each also registered against the map rendered at its predicted pose;
 - loop closure: keyframes + revisits registered against old keyframes + pose graph.
 
     python tools/bench_drift.py [--frames 480] [--quick] [--out docs/benchmarks.md]
@@ -35,6 +36,7 @@ from tools.report import replace_section  # noqa: E402
 MODES = {
     "frame-to-frame": ["mapping.keyframes=false", "mapping.loop_closure=false"],
     "keyframes": ["mapping.keyframes=true", "mapping.loop_closure=false"],
+    "map-relative": ["mapping.keyframes=true", "mapping.loop_closure=false", "mapping.map_relative=true"],
     "loop closure": ["mapping.keyframes=true", "mapping.loop_closure=true"],
 }
 # 25-35 m above ground with a 60 deg camera: the figure-eight's lap is ~200 frames at 10 fps and
