@@ -20,7 +20,8 @@ integer coordinates at pixel centres):
 ``map/trajectory``
     ``Points2D``: the map position of each posed frame's centre (one per posed frame; a frame
     posed later, as the anchor of a new segment, gets its point at its own ``frame``).
-    ``LineStrips2D``: the path of the current segment every ``trajectory_every`` frames
+    ``LineStrips2D``: the path of the current segment every ``trajectory_every`` frames (rebuilt
+    from the corrected poses after a loop closure)
     (thinned to at most ``trajectory_max_points``).
 ``map/footprint``
     The current frame's outline through its pose (closed ``LineStrips2D``).
@@ -356,6 +357,7 @@ class Viewer:
         self._prev_worker_s = self._prev_register_s = 0.0
         self._prev_reconnects = 0
         self._tel_lost = self._tel_back = 0  # telemetry link losses/returns already shown
+        self._corrections = 0  # loop-closure corrections already shown
         self._heading_offset, self._heading_segment = 0.0, None
         self._carry_events: list[tuple[str, str]] = []
         self._carry_clear: list[int] = []
@@ -545,6 +547,11 @@ class Viewer:
         if now - self._last_camera >= self._camera_period:
             self._last_camera = now
             item.camera = _downscale(frame.image, self._camera_px)
+        loops = getattr(pipeline, "loops", None)
+        if loops is not None and loops.corrections != self._corrections:
+            self._corrections = loops.corrections
+            self._rebuild_path(pipeline, step.segment)
+            item.events.append(("INFO", f"loop closed at frame {frame.index}: trajectory and map corrected"))
         self._since_strip += 1
         if self._path and (self._strip_due or self._since_strip >= self._trajectory_every):
             item.strips = self._strips()
@@ -569,6 +576,16 @@ class Viewer:
 
     def _color(self, confidence: float, segment: int) -> tuple[int, int, int]:
         return confidence_color(confidence) if self._color_by == "confidence" else segment_color(segment)
+
+    def _rebuild_path(self, pipeline: MappingPipeline, segment: int) -> None:
+        """After a pose-graph correction: the path again, from the corrected poses."""
+        self._path, self._path_stride, self._path_count = [], 1, 0
+        cx, cy = frame_centre(*pipeline.frame_size)
+        for row in pipeline.rows:
+            if row.glued and row.segment == segment:
+                x, y = np.asarray(row.M, float) @ (cx, cy, 1.0)
+                self._append_path(float(x), float(y), float(row.confidence))
+        self._strip_due = True
 
     def _append_path(self, x: float, y: float, confidence: float) -> None:
         """Keep every ``stride``-th point; halve the points (double the stride) when over the cap."""

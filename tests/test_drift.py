@@ -121,3 +121,33 @@ def test_map_relative_keyframes_snap_to_the_map(terrains, tmp_path):
     assert result["ate"]["pct"] < 0.05
     k, _ = revisit(seq)
     assert anchored_error(tmp_path / "maprel", seq, k) < 1.0
+
+
+def test_the_viewer_shows_the_corrected_trajectory(terrains, tmp_path):
+    pytest.importorskip("rerun")
+    from rerun.chunk import RrdReader
+
+    from service.viewer import Viewer
+
+    seq = closed_flight(*terrains["textured"], "figure8", 1)
+    rrd = tmp_path / "view.rrd"
+    viewer = Viewer("save", str(rrd), trajectory_every=10)
+    pipeline = MappingPipeline(ListSource(seq.frames), load_config(overrides=LOOPS), tmp_path / "run",
+                               on_frame=viewer.on_frame)
+    summary = pipeline.run()
+    viewer.close()
+    assert summary["loop_closure"]["corrections"] >= 1
+    texts, strips = [], []
+    for chunk in RrdReader(str(rrd)).stream().to_chunks():
+        batch = chunk.to_record_batch()
+        if chunk.entity_path == "/events":
+            texts += [t for row in batch.column("TextLog:text").to_pylist() for t in row]
+        if chunk.entity_path == "/map/trajectory" and "LineStrips2D:strips" in batch.schema.names:
+            frames = batch.column("frame").to_pylist()
+            strips += [(f, s) for f, s in zip(frames, batch.column("LineStrips2D:strips").to_pylist()) if s]
+    assert any("loop closed" in t for t in texts)
+    # the last path sent ends at the last frame's corrected position in trajectory.csv
+    last = max(strips, key=lambda fs: fs[0])[1]
+    end = np.array(last[-1][-1])
+    rows = read_trajectory_csv(tmp_path / "run" / "trajectory.csv")
+    assert np.hypot(*(end - np.array(rows[-1].xy))) < 0.5
