@@ -7,11 +7,14 @@ segment's pose graph is optimised (:mod:`service.mapgraph`), every posed frame o
 re-posed through its keyframe (a frame keeps its measured pose relative to the keyframe it was
 registered against), the tracker continues from the corrected pose, and the segment's map is
 marked for re-rendering from its keyframes (done at checkpoints and at the end of the run).
+The optimisation runs on a snapshot of the graph in a background thread (one at a time), so the
+worker never waits for it; its result is applied at the next frame.
 """
 
 from __future__ import annotations
 
 import logging
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -26,7 +29,8 @@ log = logging.getLogger(__name__)
 
 
 class LoopCloser:
-    """Keyframe graphs of all segments of a run (used from the worker thread only)."""
+    """Keyframe graphs of all segments of a run (used from the worker thread; the optimiser runs
+    on snapshots in its own thread)."""
 
     def __init__(self, folder: Path, tracker: Tracker, frame_size: tuple[int, int],
                  working_scale: float, cfg: dict) -> None:
@@ -40,6 +44,10 @@ class LoopCloser:
         self.relative: dict[int, tuple[int, np.ndarray]] = {}  # frame -> (keyframe, 3x3 measured)
         self.dirty: set[int] = set()  # segments whose map must be re-rendered
         self.corrections = 0
+        # optimisation in a background thread: one at a time, on a snapshot of the graph
+        self._executor = ThreadPoolExecutor(1, "photomap-posegraph") if cfg["optimize_in_background"] else None
+        self._running: tuple[int, Future] | None = None  # (segment, solve of its snapshot)
+        self._wanted: set[int] = set()  # segments with loop edges not optimised yet
 
     def _graph(self, segment: int) -> KeyframeGraph:
         if segment not in self.graphs:
@@ -72,28 +80,64 @@ class LoopCloser:
 
     def on_step(self, index: int, step: TrackStep, small: np.ndarray, image: np.ndarray,
                 rows: list[PoseRow]) -> bool:
-        """Record a tracked frame; returns True when a loop closure corrected the segment."""
+        """Record a tracked frame; returns True when a loop closure corrected the map."""
+        corrected = self._collect(rows, wait=False)
         if step.pose is None:
-            return False
+            return corrected
         if step.reference is not None:
             self.relative[index] = (step.reference, step.relative)
         if not step.keyframe:
-            return False
+            return corrected
         self._store(index, small, image)
         graph = self._graph(step.segment)
         edge = None
         if step.reference is not None:
             edge = (step.reference, step.relative, step.confidence)
         graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge)
-        if not graph.close_loops(small):
+        if graph.close_loops(small):
+            log.info("loop closed at frame %d (segment %d): %d loop edges", index, step.segment, graph.loops)
+            self._wanted.add(step.segment)
+        return self._start(rows) or corrected
+
+    def _start(self, rows: list[PoseRow]) -> bool:
+        """Optimise a segment that needs it: in the background, or here and now."""
+        if self._running is not None or not self._wanted:
             return False
-        fixes = graph.optimize()
-        self._apply(step.segment, fixes, rows)
-        self.corrections += 1
-        self.dirty.add(step.segment)
-        log.info("loop closed at frame %d (segment %d): %d loop edges, map corrected",
-                 index, step.segment, graph.loops)
+        segment = min(self._wanted)
+        self._wanted.discard(segment)
+        graph = self.graphs[segment]
+        if self._executor is None:
+            self._finish(segment, graph.optimize(), rows)
+            return True
+        self._running = (segment, self._executor.submit(KeyframeGraph.solve, graph.snapshot()))
+        return False
+
+    def _collect(self, rows: list[PoseRow], wait: bool) -> bool:
+        """Apply a finished background optimisation (``wait``: block until it finishes)."""
+        if self._running is None or not (wait or self._running[1].done()):
+            return False
+        segment, future = self._running
+        self._running = None
+        self._finish(segment, self.graphs[segment].apply(*future.result()), rows)
+        self._start(rows)
         return True
+
+    def _finish(self, segment: int, fixes: dict[int, np.ndarray], rows: list[PoseRow]) -> None:
+        self._apply(segment, fixes, rows)
+        self.corrections += 1
+        self.dirty.add(segment)
+
+    def collect(self, rows: list[PoseRow]) -> bool:
+        """Apply a background optimisation if it has finished (never waits)."""
+        return self._collect(rows, wait=False)
+
+    def flush(self, rows: list[PoseRow]) -> None:
+        """Finish every pending optimisation (at the end of the run)."""
+        while self._running is not None or self._wanted:
+            if not self._collect(rows, wait=True):
+                self._start(rows)
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
 
     def _apply(self, segment: int, fixes: dict[int, np.ndarray], rows: list[PoseRow]) -> None:
         poses = {kf.index: kf.pose for kf in self.graphs[segment].keyframes}
@@ -108,8 +152,9 @@ class LoopCloser:
             else:
                 continue
             row.M = new[:2].copy()
-        latest = self.graphs[segment].keyframes[-1]
-        self.tracker.correct(fixes[latest.index])
+        if segment == self.tracker.segment:  # the tracker goes on from the corrected pose
+            latest = self.graphs[segment].keyframes[-1]
+            self.tracker.correct(fixes[latest.index])
 
     def rerender(self, segment: int, mosaic: TiledMosaic) -> set:
         """Re-render a corrected segment's map from its keyframes; returns the tiles now in it."""

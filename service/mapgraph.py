@@ -15,6 +15,7 @@ the working resolution (``working_scale``) and is converted as in :mod:`service.
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from dataclasses import dataclass
@@ -121,19 +122,46 @@ class KeyframeGraph:
         self.loops += added
         return added
 
-    def optimize(self) -> dict[int, np.ndarray]:
-        """Optimise the graph; returns the 3x3 correction of every keyframe (by frame index)."""
-        result = optimize(self.graph, robust="cauchy")
-        loops = [k for k in result.outliers if self.graph.edge_kinds[k] == "loop"]
-        if loops:  # a wrong loop closure: drop it and solve again
-            log.warning("dropped %d loop closure(s) that disagree with the rest of the map", len(loops))
-            self.rejected_loops += len(loops)
-            self.loops -= len(loops)
-            self.graph.drop_edges(loops)
-            result = optimize(self.graph, robust="cauchy")
+    def snapshot(self) -> PoseGraph:
+        """A copy of the graph to optimise elsewhere (another thread) while this one grows."""
+        return copy.deepcopy(self.graph)
+
+    @staticmethod
+    def solve(graph: PoseGraph) -> tuple[np.ndarray, list[int]]:
+        """Optimise ``graph`` (a snapshot); returns its poses and the loop edges it dropped.
+
+        A loop closure that the robust solution flags as an outlier is dropped and the graph
+        solved again without it.
+        """
+        result = optimize(graph, robust="cauchy")
+        dropped = [int(k) for k in result.outliers if graph.edge_kinds[k] == "loop"]
+        if dropped:
+            graph.drop_edges(dropped)
+            result = optimize(graph, robust="cauchy")
+        return result.poses, dropped
+
+    def apply(self, poses: np.ndarray, dropped: list[int]) -> dict[int, np.ndarray]:
+        """Take a solution of a snapshot; returns the 3x3 correction of every keyframe.
+
+        Keyframes added after the snapshot follow the correction of its last keyframe (they are
+        chained from it). Edge indices of the snapshot are still valid here: edges are only
+        appended between a snapshot and its solution.
+        """
+        if dropped:
+            log.warning("dropped %d loop closure(s) that disagree with the rest of the map", len(dropped))
+            self.rejected_loops += len(dropped)
+            self.loops -= len(dropped)
+            self.graph.drop_edges(dropped)
+        n = len(poses)
+        last = correction(self.keyframes[n - 1].pose, poses[n - 1])
         out = {}
-        for kf, pose in zip(self.keyframes, result.poses):
-            out[kf.index] = correction(kf.pose, pose)
-            kf.pose = pose
-        self.graph.set_poses(result.poses)
+        for k, kf in enumerate(self.keyframes):
+            new = poses[k] if k < n else last @ kf.pose
+            out[kf.index] = correction(kf.pose, new)
+            kf.pose = new
+        self.graph.set_poses(np.array([kf.pose for kf in self.keyframes]))
         return out
+
+    def optimize(self) -> dict[int, np.ndarray]:
+        """Optimise the graph now; returns the 3x3 correction of every keyframe (by frame index)."""
+        return self.apply(*self.solve(self.snapshot()))

@@ -376,6 +376,7 @@ class MappingPipeline:
     def _rerender(self) -> None:
         """Re-render the maps that a loop closure corrected."""
         if self.loops is not None:
+            self.loops.collect(self.rows)
             for segment in sorted(self.loops.dirty):
                 if segment in self.mosaics:
                     self.last_touched |= self.loops.rerender(segment, self.mosaics[segment])
@@ -466,6 +467,8 @@ class MappingPipeline:
 
     def finish(self) -> dict:
         """Write the final outputs; returns the run summary (also in ``run.json``)."""
+        if self.loops is not None:
+            self.loops.flush(self.rows)
         self._rerender()
         self._write_trajectory()
         summary = self.summary()
