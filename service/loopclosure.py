@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -33,13 +34,14 @@ class LoopCloser:
     on snapshots in its own thread)."""
 
     def __init__(self, folder: Path, tracker: Tracker, frame_size: tuple[int, int],
-                 working_scale: float, cfg: dict) -> None:
+                 working_scale: float, cfg: dict, priors: dict | None = None) -> None:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.tracker = tracker
         self.frame_size = frame_size
         self.working_scale = working_scale
         self.cfg = cfg
+        self.priors = priors  # the posegraph config: telemetry prior sigmas (None: no priors)
         self.graphs: dict[int, KeyframeGraph] = {}
         self.relative: dict[int, tuple[int, np.ndarray]] = {}  # frame -> (keyframe, 3x3 measured)
         self.dirty: set[int] = set()  # segments whose map must be re-rendered
@@ -79,7 +81,7 @@ class LoopCloser:
             self._graph(step.segment).add_keyframe(step.anchor, np.vstack([step.anchor_pose, [0, 0, 1]]), None)
 
     def on_step(self, index: int, step: TrackStep, small: np.ndarray, image: np.ndarray,
-                rows: list[PoseRow]) -> bool:
+                rows: list[PoseRow], sample: Any = None) -> bool:
         """Record a tracked frame; returns True when a loop closure corrected the map."""
         corrected = self._collect(rows, wait=False)
         if step.pose is None:
@@ -93,7 +95,7 @@ class LoopCloser:
         edge = None
         if step.reference is not None:
             edge = (step.reference, step.relative, step.confidence)
-        graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge)
+        graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge, sample, self.priors)
         if graph.close_loops(small):
             log.info("loop closed at frame %d (segment %d): %d loop edges", index, step.segment, graph.loops)
             self._wanted.add(step.segment)

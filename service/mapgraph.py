@@ -19,10 +19,11 @@ import copy
 import logging
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
+from .georef import enu_from_latlon
 from .ifmi import Prior, Registrar
 from .posegraph import PoseGraph, correction, optimize
 from .tracking import scaling
@@ -78,14 +79,31 @@ class KeyframeGraph:
         self._node: dict[int, int] = {}  # frame index -> node
         self.loops = 0
         self.rejected_loops = 0
+        self._enu_origin: tuple[float, float] | None = None  # first GPS fix (local metres)
 
-    def add_keyframe(self, index: int, pose: np.ndarray, edge: tuple[int, np.ndarray, float] | None) -> None:
-        """A new keyframe; ``edge`` = (reference keyframe index, measured 3x3, confidence)."""
+    def add_keyframe(self, index: int, pose: np.ndarray, edge: tuple[int, np.ndarray, float] | None,
+                     sample: Any = None, sigmas: dict | None = None) -> None:
+        """A new keyframe; ``edge`` = (reference keyframe index, measured 3x3, confidence).
+
+        With a telemetry ``sample`` (:class:`service.telemetry.TelemetrySample`) and ``sigmas``
+        (the ``posegraph`` config), its heading, height and GPS fix become priors of the node.
+        """
         node = self.graph.add_node(pose)
         self._node[index] = node
         self.keyframes.append(Keyframe(index, np.array(pose, dtype=np.float64)))
         if edge is not None and edge[0] in self._node:
             self.graph.add_edge(self._node[edge[0]], node, edge[1], edge[2], kind="sequential")
+        if sample is None or sigmas is None:
+            return
+        if sample.yaw is not None:
+            self.graph.add_heading_prior(node, sample.yaw, math.radians(sigmas["heading_sigma_deg"]))
+        if sample.height_above_ground is not None and sample.height_above_ground > 0:
+            self.graph.add_scale_prior(node, sample.height_above_ground, sigmas["altitude_sigma"])
+        if sample.lat is not None and sample.lon is not None:
+            if self._enu_origin is None:
+                self._enu_origin = (sample.lat, sample.lon)
+            east, north = enu_from_latlon(np.array([sample.lat]), np.array([sample.lon]), *self._enu_origin)
+            self.graph.add_gps_prior(node, (float(east[0]), float(north[0])), sigmas["gps_sigma_m"])
 
     def close_loops(self, image: np.ndarray) -> int:
         """Try the newest keyframe (``image`` at the working resolution) against old ones nearby."""

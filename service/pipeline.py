@@ -215,7 +215,8 @@ class MappingPipeline:
                                prior_scale_tol=mcfg["prior_scale_tol"],
                                telemetry_prior=self.telemetry.prior if self.telemetry else None)
         if mcfg["keyframes"] and mcfg["loop_closure"]:
-            self.loops = LoopCloser(self._cache() / "keyframes", self.tracker, self.frame_size, f, mcfg)
+            self.loops = LoopCloser(self._cache() / "keyframes", self.tracker, self.frame_size, f, mcfg,
+                                    priors=self.cfg["posegraph"] if self.telemetry else None)
 
     def _cache(self) -> Path:
         """The run's cache folder (configured, or a temporary one removed at the end)."""
@@ -313,7 +314,7 @@ class MappingPipeline:
         if self.loops is not None:
             if step.anchor is not None and pending is not None and pending[0] == step.anchor:
                 self.loops.on_anchor(step, pending[2], pending[1])
-            if self.loops.on_step(frame.index, step, small, image, self.rows):
+            if self.loops.on_step(frame.index, step, small, image, self.rows, sample):
                 self.stats.events.append(f"loop closed at frame {frame.index}: map corrected")
         self.stats.worker_s += time.perf_counter() - t0
         if self.on_frame is not None:
