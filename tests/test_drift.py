@@ -153,3 +153,22 @@ def test_the_viewer_shows_the_corrected_trajectory(terrains, tmp_path):
     end = np.array(last[-1][-1])
     rows = read_trajectory_csv(tmp_path / "run" / "trajectory.csv")
     assert np.hypot(*(end - np.array(rows[-1].xy))) < 0.5
+
+
+def test_loop_closure_with_telemetry_priors(tmp_path):
+    """Heading, height and GPS of the keyframes enter the pose graph; the loop still closes."""
+    from service.replay import replay
+    from service.simulate import simulate_flight
+    from service.trajectory import evaluate_trajectory, frame_centre
+    from service.trajio import read_groundtruth
+
+    flight = simulate_flight(tmp_path / "flight", n_frames=220, size=(320, 240), fps=10.0, seed=2,
+                             pattern="figure8", yaw_mode="heading", speed=6.0, terrain="aukerman",
+                             terrain_zoom=3.0, gsd=0.1, altitude=(25.0, 35.0), noise=1.0, video_codec="ffv1")
+    summary = replay(str(flight / "video.mkv"), tmp_path / "run", load_config(overrides=LOOPS),
+                     mavlink=str(flight / "telemetry.tlog"))
+    assert summary["loop_closure"]["corrections"] >= 1
+    assert summary["georeference"] is not None
+    head = evaluate_trajectory(read_trajectory_csv(tmp_path / "run" / "trajectory.csv"),
+                               read_groundtruth(flight / "groundtruth.csv"), frame_centre(320, 240))["headline"]
+    assert head["ate"]["pct"] < 0.05
