@@ -233,7 +233,7 @@ class Registrar:
 
         # log-polar grid over the half plane fx >= 0: rows = angle, cols = log radius
         n = min(h, w)
-        na = angle_bins or 2 * int(round(0.75 * n))
+        na = angle_bins or 2 * int(round(0.5 * n))
         nr = radius_bins or max(32, na // 2)
         self.angle_bins, self.radius_bins = na, nr
         self._log_step = math.log(band_high / band_low) / (nr - 1)
@@ -289,7 +289,7 @@ class Registrar:
         energy = float(gray.var())
         spec = self._windowed_spectrum(gray, mean)
         mag = np.abs(np.fft.fftshift(spec, axes=0))
-        lp = cv2.remap(mag, self._lp_map_x, self._lp_map_y, cv2.INTER_CUBIC,
+        lp = cv2.remap(mag, self._lp_map_x, self._lp_map_y, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         # per-ring power and its noise floor (white noise is flat; take the quietest rings)
         power = (lp.astype(np.float64) ** 2).mean(axis=0)
