@@ -288,11 +288,11 @@ class Registrar:
         mean = float(gray.mean())
         energy = float(gray.var())
         spec = self._windowed_spectrum(gray, mean)
-        mag = np.abs(np.fft.fftshift(spec, axes=0))
+        mag = np.fft.fftshift(np.abs(spec), axes=0)
         lp = cv2.remap(mag, self._lp_map_x, self._lp_map_y, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         # per-ring power and its noise floor (white noise is flat; take the quietest rings)
-        power = (lp.astype(np.float64) ** 2).mean(axis=0)
+        power = np.einsum("ij,ij->j", lp, lp) / lp.shape[0]
         noise = float(np.percentile(power, 5)) if power.size else 0.0
         if self.snr_weighting and noise > 0:
             signal = np.maximum(power - noise, 0.0)
@@ -304,7 +304,8 @@ class Registrar:
         lp = lp * weight[None, :]
         lp -= lp.mean()
         lps = scipy.fft.rfft2(lp, workers=1)
-        lps /= np.abs(lps) + _EPS * (np.abs(lps).max() + _EPS)
+        amp = np.abs(lps)
+        lps /= amp + _EPS * (float(amp.max()) + _EPS)
         grads = smooth = None
         if self.refine_iterations:
             smooth = cv2.GaussianBlur(gray, (0, 0), 0.7)
