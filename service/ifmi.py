@@ -41,7 +41,7 @@ import scipy.fft
 __all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar", "similarity_matrix"]
 
 _EPS = 1e-12
-_REFINE_STRIDE = 2
+_REFINE_SAMPLES = 16384  # the refinement samples about this many pixels on a regular grid
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 
 
@@ -252,12 +252,13 @@ class Registrar:
             lmult[-1] = 1.0
         self._lp_ref = float((self._lp_gauss * lmult[None, :]).sum() / (na * nr))
 
-        # the refinement runs on every other pixel in both directions (4x fewer samples)
-        ys, xs = np.mgrid[0:h:_REFINE_STRIDE, 0:w:_REFINE_STRIDE].astype(np.float32)
+        # the refinement runs on a regular grid of about _REFINE_SAMPLES pixels
+        self._stride = max(1, int(round(math.sqrt(h * w / _REFINE_SAMPLES))))
+        ys, xs = np.mgrid[0:h:self._stride, 0:w:self._stride].astype(np.float32)
         self._xc = (xs - self.center[0]).ravel()
         self._yc = (ys - self.center[1]).ravel()
         self._refine_shape = xs.shape
-        self._refine_window = self.window[::_REFINE_STRIDE, ::_REFINE_STRIDE].ravel()
+        self._refine_window = self.window[::self._stride, ::self._stride].ravel()
         # nearest log-polar ring of each rfft2 bin, to spread per-ring SNR weights over a spectrum
         ring = np.searchsorted(self._lp_radius, self._radius)
         self._ring_index = np.clip(ring, 0, nr - 1)
@@ -311,8 +312,8 @@ class Registrar:
             smooth = cv2.GaussianBlur(gray, (0, 0), 0.7)
             gx = cv2.Scharr(smooth, cv2.CV_32F, 1, 0, scale=1 / 32)
             gy = cv2.Scharr(smooth, cv2.CV_32F, 0, 1, scale=1 / 32)
-            gx = gx[::_REFINE_STRIDE, ::_REFINE_STRIDE].ravel()
-            gy = gy[::_REFINE_STRIDE, ::_REFINE_STRIDE].ravel()
+            gx = gx[::self._stride, ::self._stride].ravel()
+            gy = gy[::self._stride, ::self._stride].ravel()
             grads = np.stack([gx, gy, self._xc * gx + self._yc * gy, self._xc * gy - self._yc * gx],
                              axis=1)
         return PreparedFrame(gray=gray, spectrum=spec, logpolar=lps, ring_snr=snr.astype(np.float32),
@@ -477,8 +478,8 @@ class Registrar:
         h, w = self.shape
         cx, cy = self.center
         rh, rw = self._refine_shape
-        stride = np.diag([_REFINE_STRIDE, _REFINE_STRIDE, 1.0])  # refinement grid -> pixels
-        tmpl = a.smooth[::_REFINE_STRIDE, ::_REFINE_STRIDE].ravel()
+        stride = np.diag([self._stride, self._stride, 1.0])  # refinement grid -> pixels
+        tmpl = a.smooth[::self._stride, ::self._stride].ravel()
         sd = a.gradients
         centre = np.array([[1, 0, cx], [0, 1, cy], [0, 0, 1.0]])
         centre_inv = np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1.0]])
