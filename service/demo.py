@@ -42,5 +42,8 @@ def main(args: argparse.Namespace, cfg: dict) -> int:
     result = evaluate_run(run_dir, flight / "groundtruth.csv", run_dir)
     print(format_table(result))
     print_summary(summary, run_dir)
-    print(f"evaluation: {run_dir / 'evaluation.json'} and plots {run_dir}/evaluation_*.png")
+    plots = result.get("plots") or []
+    print(f"evaluation: {run_dir / 'evaluation.json'}"
+          + (f" and plots {', '.join(str(run_dir / Path(p).name) for p in plots)}" if plots
+             else " (pip install 'ifmi-photomap[plots]' for the figures)"))
     return 0
