@@ -210,6 +210,7 @@ class MappingPipeline:
                                min_confidence=mcfg["min_confidence"],
                                max_lost_frames=mcfg["max_lost_frames"], keyframes=mcfg["keyframes"],
                                keyframe_confidence=mcfg["keyframe_confidence"],
+                               keyframe_max_shift=mcfg["keyframe_max_shift"],
                                motion_prior=mcfg["motion_prior"],
                                prior_angle_tol_deg=mcfg["prior_angle_tol_deg"],
                                prior_scale_tol=mcfg["prior_scale_tol"],

@@ -62,13 +62,16 @@ class _Reference:
     pose: np.ndarray  # 3x3 input pixels -> map pixels
     index: int
     sample: Any = None  # its telemetry sample, if any
+    best: float = 0.0  # the best confidence of a frame registered against it
 
 
 class Tracker:
     """Chains pairwise iFMI registrations into poses.
 
     Each frame is registered against the current reference. With ``keyframes`` the reference
-    stays while the confidence against it is at least ``keyframe_confidence`` (error then grows per
+    stays while the confidence against it is at least ``keyframe_confidence`` times the best
+    confidence seen against it (so the rule adapts to the ground's texture), and while the next
+    frame is predicted to be less than ``keyframe_max_shift`` frame sizes away (error then grows per
     keyframe, not per frame); otherwise every registered frame becomes the next reference. A frame
     below ``min_confidence`` is not posed, the reference is kept and the next frames are tried
     against it. When a frame fails against the reference but registers with the previous
@@ -79,7 +82,8 @@ class Tracker:
 
     def __init__(self, registrar: Registrar, working_scale: float = 1.0, *, map_scale: float = 1.0,
                  min_confidence: float = 0.12, max_lost_frames: int = 10, keyframes: bool = True,
-                 keyframe_confidence: float = 0.5, motion_prior: bool = True,
+                 keyframe_confidence: float = 0.5, keyframe_max_shift: float = 0.5,
+                 motion_prior: bool = True,
                  prior_angle_tol_deg: float = 20.0, prior_scale_tol: float = 0.15,
                  telemetry_prior: Callable[[Any, Any], Prior | None] | None = None) -> None:
         self.registrar = registrar
@@ -90,6 +94,7 @@ class Tracker:
         self.max_lost_frames = max_lost_frames
         self.keyframes = keyframes
         self.keyframe_confidence = keyframe_confidence
+        self.keyframe_max_shift = keyframe_max_shift
         self.motion_prior = motion_prior
         self.prior_angle_tol_deg = prior_angle_tol_deg
         self.prior_scale_tol = prior_scale_tol
@@ -111,6 +116,21 @@ class Tracker:
             events.append(f"link lost: map segment {self.segment} started at frame {index}")
         return TrackStep(REFERENCE, self._map[:2].copy(), 1.0, self.segment, events=events,
                          keyframe=True)
+
+    def _next_shift(self, matrix: np.ndarray) -> float:
+        """Predicted displacement of the next frame from the reference, in frame sizes.
+
+        The current frame's centre offset in the reference plus one more step of the
+        constant-velocity model: when it gets large, the overlap with the reference would be too
+        small for the next frame, so the current frame becomes the keyframe (sparse stills).
+        """
+        h, w = self.registrar.shape
+        c = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+        shift = np.hypot(*(matrix @ c - c[:2]))
+        if self._velocity is not None:
+            v = self._to_small @ self._velocity @ self._from_small
+            shift += np.hypot(*(v @ c - c)[:2])
+        return float(shift / min(h, w))
 
     def correct(self, c: np.ndarray) -> None:
         """Apply a pose-graph correction (3x3, old map px -> new map px) to the tracking state."""
@@ -193,7 +213,9 @@ class Tracker:
         self._lost = 0
         step = TrackStep(REGISTERED, pose[:2].copy(), reg.confidence, self.segment, reg, events,
                          reference=self._ref.index, relative=rel)
-        if not self.keyframes or reg.confidence < self.keyframe_confidence:
+        self._ref.best = max(self._ref.best, reg.confidence)
+        if not self.keyframes or reg.confidence < self.keyframe_confidence * self._ref.best \
+                or self._next_shift(reg.matrix) > self.keyframe_max_shift:
             self._ref = _Reference(prepared, pose, index, sample)
             step.keyframe = True
         if anchor is not None:
