@@ -480,6 +480,7 @@ class Registrar:
         rh, rw = self._refine_shape
         stride = np.diag([self._stride, self._stride, 1.0])  # refinement grid -> pixels
         tmpl = a.smooth[::self._stride, ::self._stride].ravel()
+        tmpl_sq = tmpl.astype(np.float64) ** 2  # second moments in float64 (no cancellation)
         sd = a.gradients
         centre = np.array([[1, 0, cx], [0, 1, cy], [0, 0, 1.0]])
         centre_inv = np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1.0]])
@@ -490,17 +491,16 @@ class Registrar:
             inv = (np.linalg.inv(m3) @ stride)[:2]
             warped = cv2.warpAffine(b.smooth, inv, (rw, rh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                     borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
-            valid = np.isfinite(warped)
-            wgt = np.where(valid, self._refine_window, 0.0).astype(np.float32)
-            warped = np.where(valid, warped, 0.0)
+            wgt = self._refine_window * np.isfinite(warped)
+            np.nan_to_num(warped, copy=False)
             wsum = float(wgt.sum())
             if wsum < 0.05 * wgt.size:
                 return None
             # brightness gain/offset of the warped image against the template
             mt = float(wgt @ tmpl) / wsum
             mw = float(wgt @ warped) / wsum
-            vt = float(wgt @ (tmpl - mt) ** 2) / wsum
-            vw = float(wgt @ (warped - mw) ** 2) / wsum
+            vt = float(wgt @ tmpl_sq) / wsum - mt * mt
+            vw = float(wgt @ warped.astype(np.float64) ** 2) / wsum - mw * mw
             if vt <= _EPS or vw <= _EPS:
                 return None
             gain = math.sqrt(vw / vt)
