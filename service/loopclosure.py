@@ -82,14 +82,17 @@ class LoopCloser:
 
     def on_step(self, index: int, step: TrackStep, small: np.ndarray, image: np.ndarray,
                 rows: list[PoseRow], sample: Any = None) -> bool:
-        """Record a tracked frame; returns True when a loop closure corrected the map."""
-        corrected = self._collect(rows, wait=False)
+        """Record a tracked frame (its row already in ``rows``); True when a correction was applied.
+
+        A finished background optimisation is applied after the frame is recorded, so that the
+        frame itself is corrected too.
+        """
         if step.pose is None:
-            return corrected
+            return self._collect(rows, wait=False)
         if step.reference is not None:
             self.relative[index] = (step.reference, step.relative)
         if not step.keyframe:
-            return corrected
+            return self._collect(rows, wait=False)
         self._store(index, small, image)
         graph = self._graph(step.segment)
         edge = None
@@ -99,6 +102,7 @@ class LoopCloser:
         if graph.close_loops(small):
             log.info("loop closed at frame %d (segment %d): %d loop edges", index, step.segment, graph.loops)
             self._wanted.add(step.segment)
+        corrected = self._collect(rows, wait=False)
         return self._start(rows) or corrected
 
     def _start(self, rows: list[PoseRow]) -> bool:
