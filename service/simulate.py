@@ -21,7 +21,6 @@ from dataclasses import asdict
 from pathlib import Path
 
 import cv2
-import numpy as np
 import yaml
 
 from drivers.tlog_writer import RATES_HZ, write_tlog
@@ -29,12 +28,9 @@ from drivers.tlog_writer import RATES_HZ, write_tlog
 from .errors import InputError, PhotomapError
 from .flight import PATTERNS, YAW_MODES, Camera, build_pyramid, iter_frames, pixel_to_latlon, plan_flight, split_params
 from .terrain import DEFAULT_GSD, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
+from .trajio import GROUNDTRUTH_COLUMNS
 
 log = logging.getLogger(__name__)
-
-GROUNDTRUTH_COLUMNS = ("frame", "t", "x", "y", "yaw_deg", "scale", "roll_deg", "pitch_deg", "alt_m",
-                       "h00", "h01", "h02", "h10", "h11", "h12", "h20", "h21", "h22")
-
 
 def parse_size(text: str) -> tuple[int, int]:
     """``"WxH"`` -> ``(w, h)``."""
@@ -168,32 +164,6 @@ def write_groundtruth(path: str | Path, truth) -> None:
             row = [truth.t[k], truth.x[k], truth.y[k], truth.yaw_deg[k], truth.scale[k], truth.roll_deg[k],
                    truth.pitch_deg[k], truth.alt_m[k], *truth.H[k].ravel()]
             w.writerow([k, *(f"{v:.12g}" for v in row)])
-
-
-def read_groundtruth(path: str | Path) -> dict[str, np.ndarray]:
-    """Read ``groundtruth.csv`` (or the simulation folder holding it).
-
-    Returns a dict of arrays keyed by column name (``frame`` as int) plus ``H``: ``(n, 3, 3)``
-    frame -> terrain matrices.
-    """
-    path = Path(path)
-    if path.is_dir():
-        path = path / "groundtruth.csv"
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.reader(f))
-    except OSError as exc:
-        raise InputError(f"cannot read ground truth {path}: {exc.strerror}") from None
-    if not rows or tuple(rows[0]) != GROUNDTRUTH_COLUMNS:
-        raise InputError(f"{path} is not a photomap groundtruth.csv (unexpected header)")
-    try:
-        data = np.array([[float(v) for v in r] for r in rows[1:]], float).reshape(-1, len(GROUNDTRUTH_COLUMNS))
-    except ValueError:
-        raise InputError(f"{path} holds a non-numeric value") from None
-    out = {name: data[:, i] for i, name in enumerate(GROUNDTRUTH_COLUMNS)}
-    out["frame"] = out["frame"].astype(int)
-    out["H"] = data[:, 9:].reshape(-1, 3, 3)
-    return out
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -13,6 +13,7 @@ import yaml
 
 from service import simulate
 from service.config import load_config
+from service.trajio import read_groundtruth
 from service.errors import InputError
 from service.flight import (Camera, apply_homography, latlon_to_pixel, pixel_to_latlon, pose_homography,
                             relative_matrix, render_pair, simulate_sequence)
@@ -174,11 +175,11 @@ def test_simulate_flight_files(tmp_path):
                                    speed=4.0, save_frames=True)
     meta = yaml.safe_load((out / "meta.yaml").read_text())
     assert meta["camera"]["width"] == 160 and meta["camera"]["cx"] == 79.5 and meta["gsd"] == 0.1
-    gt = simulate.read_groundtruth(out)
-    assert list(gt["frame"]) == list(range(30))
-    np.testing.assert_allclose(gt["t"], np.arange(30) / 10.0)
-    centre = np.einsum("nij,j->ni", gt["H"], [79.5, 59.5, 1.0])
-    np.testing.assert_allclose(centre[:, :2] / centre[:, 2:], np.c_[gt["x"], gt["y"]], atol=1e-6)
+    gt = read_groundtruth(out / "groundtruth.csv")
+    assert list(gt.frame) == list(range(30))
+    np.testing.assert_allclose(gt.t, np.arange(30) / 10.0)
+    centre = np.einsum("nij,j->ni", gt.H, [79.5, 59.5, 1.0])
+    np.testing.assert_allclose(centre[:, :2] / centre[:, 2:], np.c_[gt.columns["x"], gt.columns["y"]], atol=1e-6)
 
     cap = cv2.VideoCapture(str(out / "video.mp4"))
     frames = []
@@ -215,14 +216,14 @@ def test_simulate_flight_files(tmp_path):
         ms = 100_000 + 100 * k
         a = att[ms]
         assert abs(a._timestamp - (1_700_000_000.0 + k / 10.0)) < 1e-5
-        assert (math.degrees(a.yaw) - gt["yaw_deg"][k] + 180) % 360 - 180 == pytest.approx(0.0, abs=1e-4)
-        assert math.degrees(a.roll) == pytest.approx(gt["roll_deg"][k], abs=1e-4)
+        assert (math.degrees(a.yaw) - gt.columns["yaw_deg"][k] + 180) % 360 - 180 == pytest.approx(0.0, abs=1e-4)
+        assert math.degrees(a.roll) == pytest.approx(gt.columns["roll_deg"][k], abs=1e-4)
         g = gpi[ms]
-        assert g.relative_alt == round(gt["alt_m"][k] * 1000)
+        assert g.relative_alt == round(gt.columns["alt_m"][k] * 1000)
         # GPS = the camera's nadir point; without roll/pitch it would be the frame centre
         px, py = latlon_to_pixel(g.lat / 1e7, g.lon / 1e7, 0.1, meta["origin"]["lat"], meta["origin"]["lon"])
-        nadir = apply_homography(gt["H"][k], np.array([[79.5, 59.5]]))[0]
-        tilt_offset = gt["alt_m"][k] / 0.1 * math.tan(math.radians(2.0))
+        nadir = apply_homography(gt.H[k], np.array([[79.5, 59.5]]))[0]
+        tilt_offset = gt.columns["alt_m"][k] / 0.1 * math.tan(math.radians(2.0))
         assert math.hypot(px - nadir[0], py - nadir[1]) < tilt_offset
 
 
@@ -240,7 +241,7 @@ def test_cli(tmp_path, capsys):
     meta = yaml.safe_load((out / "meta.yaml").read_text())
     assert meta["terrain"]["name"] == "sand" and meta["effects"]["noise"] == 2.0 and meta["t0_unix"] == 1000.0
     assert meta["motion"]["altitude"] == [5.0, 6.0]
-    assert len(simulate.read_groundtruth(out / "groundtruth.csv")["t"]) == 6
+    assert len(read_groundtruth(out / "groundtruth.csv").t) == 6
     for bad in (["--altitude", "6:5"], ["--size", "big"], ["--terrain", str(tmp_path / "missing.png")]):
         with pytest.raises(InputError):
             _cli(["--out", str(out), "--frames", "2", *bad], ["simulate.terrain_size=256x256"])
