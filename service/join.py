@@ -2,7 +2,8 @@
 
 Telemetry is never required: every use falls back to vision alone when a sample (or one of its
 fields) is unknown. Times: telemetry samples are on the UNIX clock (host time at receipt live,
-recorded time from a ``.tlog``); :meth:`TelemetryJoin.telemetry_time` maps a frame to that clock:
+recorded time from a ``.tlog``); :meth:`TelemetryJoin.telemetry_time` maps a frame time to that
+clock:
 
 - live camera: the frame's host monotonic time, converted to UNIX time;
 - a log replay with a ``.tlog``: ``video_start + frame.t + offset``;
@@ -82,17 +83,18 @@ class TelemetryJoin:
         self.notify: Callable[[str], None] = lambda text: None
 
     # ------------------------------------------------------------------ per frame
-    def telemetry_time(self, frame: Frame) -> float:
+    def telemetry_time(self, t: float) -> float:
+        """The telemetry-clock time of a frame at time ``t`` (``Frame.t``)."""
         if self.mode == "live":
-            return frame.t + self._mono_to_unix + self.offset
+            return t + self._mono_to_unix + self.offset
         if self.mode == "link":
             if self._link_start is None:
-                self._link_start = time.time() - frame.t
-            return self._link_start + frame.t + self.offset
-        return self.video_start + frame.t + self.offset
+                self._link_start = time.time() - t
+            return self._link_start + t + self.offset
+        return self.video_start + t + self.offset
 
     def sample(self, frame: Frame) -> TelemetrySample | None:
-        s = self.sample_at(self.telemetry_time(frame))
+        s = self.sample_at(self.telemetry_time(frame.t))
         known = s is not None and (s.yaw is not None or s.height_above_ground is not None
                                    or s.lat is not None)
         if known:
@@ -137,7 +139,7 @@ class TelemetryJoin:
         """Estimate the video/telemetry offset from yaw rates; None when it cannot be told."""
         if not frame_t:
             return None
-        tel_t = [self.telemetry_time(Frame(0, t, np.empty(0), "")) for t in frame_t]
+        tel_t = [self.telemetry_time(t) for t in frame_t]
         ts, yaws = [], []
         for t in np.arange(tel_t[0] - self.gcfg["timesync_window_s"],
                            tel_t[-1] + self.gcfg["timesync_window_s"], 0.05):
