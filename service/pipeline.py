@@ -291,16 +291,18 @@ class MappingPipeline:
             self.rows.append(PoseRow(frame.index, frame.t, None, status="corrupt",
                                      segment=max(self.stats.segments - 1, 0)))
             return
+        new_segment = step.segment > 0 and step.segment >= self.stats.segments
         self.stats.segments = step.segment + 1
         for event in step.events:
-            if "telemetry disagrees" in event and self.telemetry is not None:
-                self.telemetry.stats.disagreements += 1
-                if self.telemetry.stats.disagreements > 3:
-                    continue  # counted in run.json; logged for the first few only
             log.warning(event)
             self.stats.events.append(event)
-            if self.telemetry is not None and "segment" in event:
-                self.telemetry.notify(f"link to map lost, new segment at frame {frame.index}")
+        if new_segment and self.telemetry is not None:
+            self.telemetry.notify(f"link to map lost, new segment at frame {frame.index}")
+        if step.disagreement is not None and self.telemetry is not None:
+            self.telemetry.stats.disagreements += 1
+            if self.telemetry.stats.disagreements <= 3:  # counted in run.json; logged for the first few
+                log.warning(step.disagreement)
+                self.stats.events.append(step.disagreement)
         if step.status == LOW_CONFIDENCE:
             self.stats.low_confidence += 1
         else:

@@ -54,6 +54,8 @@ class TrackStep:
     reference: int | None = None
     relative: np.ndarray | None = None
     keyframe: bool = False
+    # telemetry expected another motion than the images show (vision won): what was seen
+    disagreement: str | None = None
 
 
 @dataclass
@@ -158,23 +160,25 @@ class Tracker:
                      scale_tol=self.prior_scale_tol)
 
     def _register(self, ref: PreparedFrame, ref_sample: Any, prepared: PreparedFrame, index: int,
-                  sample: Any, events: list[str]) -> Registration:
-        """Register with the telemetry prior when there is one; vision decides on disagreement."""
+                  sample: Any) -> tuple[Registration, str | None]:
+        """Register with the telemetry prior when there is one; vision decides on disagreement.
+
+        Returns the registration and, when telemetry was overruled, what it disagreed about.
+        """
         tprior = self.telemetry_prior(ref_sample, sample) if self.telemetry_prior else None
         motion = self._prior(index)
         if tprior is None:
-            return self.registrar.register(ref, prepared, motion)
+            return self.registrar.register(ref, prepared, motion), None
         reg = self.registrar.register(ref, prepared, tprior)
         if reg.confidence >= self.keyframe_confidence:
-            return reg
+            return reg, None
         free = self.registrar.register(ref, prepared, motion)
         if free.confidence > reg.confidence + 0.05 and free.confidence >= self.min_confidence:
-            events.append(f"frame {index}: telemetry disagrees with the images (expected "
+            return free, (f"frame {index}: telemetry disagrees with the images (expected "
                           f"{tprior.angle_deg if tprior.angle_deg is not None else float('nan'):.1f} deg, "
                           f"{tprior.scale if tprior.scale is not None else float('nan'):.3f}; images say "
                           f"{free.angle_deg:.1f} deg, {free.scale:.3f}): vision wins")
-            return free
-        return reg
+        return reg, None
 
     def step(self, frame: np.ndarray, index: int, sample: Any = None) -> TrackStep:
         """Pose frame ``index`` (at the working resolution, grey or BGR).
@@ -186,7 +190,7 @@ class Tracker:
         events: list[str] = []
         if self._ref is None:
             return self._new_segment(prepared, index, events, sample)
-        reg = self._register(self._ref.prepared, self._ref.sample, prepared, index, sample, events)
+        reg, disagreement = self._register(self._ref.prepared, self._ref.sample, prepared, index, sample)
         anchor = None
         if reg.confidence < self.min_confidence and self._pending is not None \
                 and self._pending[0] == index - 1:
@@ -201,7 +205,8 @@ class Tracker:
             if self._lost > self.max_lost_frames:
                 return self._new_segment(prepared, index, events, sample)
             self._pending = (index, prepared, sample)
-            return TrackStep(LOW_CONFIDENCE, None, reg.confidence, self.segment, reg, events)
+            return TrackStep(LOW_CONFIDENCE, None, reg.confidence, self.segment, reg, events,
+                             disagreement=disagreement)
         self._pending = None
         rel = self._from_small @ _h(reg.matrix) @ self._to_small  # input px of frame -> of reference
         pose = self._ref.pose @ rel
@@ -212,7 +217,7 @@ class Tracker:
         self._last = (index, pose)
         self._lost = 0
         step = TrackStep(REGISTERED, pose[:2].copy(), reg.confidence, self.segment, reg, events,
-                         reference=self._ref.index, relative=rel)
+                         reference=self._ref.index, relative=rel, disagreement=disagreement)
         self._ref.best = max(self._ref.best, reg.confidence)
         if not self.keyframes or reg.confidence < self.keyframe_confidence * self._ref.best \
                 or self._next_shift(reg.matrix) > self.keyframe_max_shift:

@@ -512,6 +512,8 @@ class Viewer:
             self._path, self._path_stride, self._path_count = [], 1, 0
             self._strip_due = True
         item.events.extend(("WARN", text) for text in step.events)
+        if getattr(step, "disagreement", None):
+            item.events.append(("WARN", step.disagreement))
         reconnects = int(source.stats.reconnects)
         if reconnects > self._prev_reconnects:
             item.events.append(("WARN", f"camera reconnected (reconnect {reconnects}) before frame {frame.index}"))
