@@ -10,9 +10,9 @@ from typing import Any, Callable, Iterator
 
 import cv2
 
-from service.errors import InputError
+from photomap.errors import InputError
 
-from .capture import CaptureStats, Frame, SourceBase
+from photomap.drivers.capture import CaptureStats, Frame, SourceBase
 
 log = logging.getLogger(__name__)
 

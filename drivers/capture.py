@@ -5,8 +5,8 @@ skipped and reconnected in :class:`CaptureStats`. Replay sources (video files, s
 drop a frame; a live camera drops the *oldest* queued frame when the consumer falls behind, so
 latency stays bounded.
 
-The concrete sources live in :mod:`drivers.video`, :mod:`drivers.images` and
-:mod:`drivers.camera`; :func:`open_source` picks one from a spec string.
+The concrete sources live in :mod:`photomap.drivers.video`, :mod:`photomap.drivers.images` and
+:mod:`photomap.drivers.camera`; :func:`open_source` picks one from a spec string.
 """
 
 from __future__ import annotations
@@ -139,9 +139,9 @@ def open_source(
     """Open the frame source that ``spec`` names.
 
     ``/dev/videoN``, an integer or a string of digits opens a V4L2 camera
-    (:class:`~drivers.camera.CameraSource`); an existing directory or a glob pattern opens
-    the stills it holds (:class:`~drivers.images.ImageFolderSource`); anything else is a
-    video file (:class:`~drivers.video.VideoFileSource`). The keyword options are the
+    (:class:`~photomap.drivers.camera.CameraSource`); an existing directory or a glob pattern opens
+    the stills it holds (:class:`~photomap.drivers.images.ImageFolderSource`); anything else is a
+    video file (:class:`~photomap.drivers.video.VideoFileSource`). The keyword options are the
     ``capture:`` config section; each source takes the ones that concern it (0 or "" for
     width, height, fps, fourcc mean "the camera's default").
 
@@ -151,7 +151,7 @@ def open_source(
         The camera, folder or file cannot be opened.
     """
     if _is_camera(spec):
-        from .camera import CameraSource
+        from photomap.drivers.camera import CameraSource
 
         device: str | int = spec if isinstance(spec, int) else str(spec)
         if isinstance(device, str) and device.isdigit():
@@ -170,10 +170,10 @@ def open_source(
         )
     text = str(spec)
     if Path(text).is_dir() or (_GLOB_CHARS.search(text) and not Path(text).exists()):
-        from .images import ImageFolderSource
+        from photomap.drivers.images import ImageFolderSource
 
         return ImageFolderSource(text, rate=image_rate)
-    from .video import VideoFileSource
+    from photomap.drivers.video import VideoFileSource
 
     return VideoFileSource(text)
 

@@ -31,8 +31,8 @@ from pymavlink import mavutil  # noqa: E402  (needs MAVLINK20 set first)
 if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # pymavlink was imported before us
     mavutil.set_dialect(mavutil.current_dialect)
 
-from service.errors import InputError  # noqa: E402
-from service.telemetry import MESSAGE_TYPES, TelemetryBuffer, TelemetrySample  # noqa: E402
+from photomap.errors import InputError  # noqa: E402
+from photomap.telemetry.samples import MESSAGE_TYPES, TelemetryBuffer, TelemetrySample  # noqa: E402
 
 log = logging.getLogger(__name__)
 

@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import Iterator
 
 import cv2
-from service.errors import InputError
+from photomap.errors import InputError
 
-from .capture import CaptureStats, Frame, SourceBase
+from photomap.drivers.capture import CaptureStats, Frame, SourceBase
 
 log = logging.getLogger(__name__)
 

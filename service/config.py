@@ -12,7 +12,7 @@ from typing import Any, Iterable
 
 import yaml
 
-from .errors import ConfigError
+from photomap.errors import ConfigError
 
 _CANDIDATES = (
     Path(__file__).resolve().parents[1] / "config" / "default.yaml",  # source checkout / editable

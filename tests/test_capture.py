@@ -14,11 +14,11 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.camera import CameraSource, backoff_delays
-from drivers.capture import Frame, FrameSource, open_source
-from drivers.images import ImageFolderSource, exif_time, parse_exif_datetime
-from drivers.video import VideoFileSource, mp4_creation_time
-from service.errors import InputError
+from photomap.drivers.camera import CameraSource, backoff_delays
+from photomap.drivers.capture import Frame, FrameSource, open_source
+from photomap.drivers.images import ImageFolderSource, exif_time, parse_exif_datetime
+from photomap.drivers.video import VideoFileSource, mp4_creation_time
+from photomap.errors import InputError
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 FPS = 10.0
@@ -78,7 +78,7 @@ def test_video_skips_and_counts_a_frame_that_does_not_decode(videos, tmp_path, c
     data[starts[10]:starts[10] + 200] = bytes(200)  # frame 10 loses its JPEG header
     broken = tmp_path / "broken.avi"
     broken.write_bytes(data)
-    with caplog.at_level(logging.WARNING, logger="drivers.video"):
+    with caplog.at_level(logging.WARNING, logger="photomap.drivers.video"):
         with VideoFileSource(broken) as src:
             frames = list(src)
     expected = [i for i in range(N_FRAMES) if i != 10]
@@ -217,7 +217,7 @@ def test_folder_skips_a_corrupt_image_and_times_by_rate(tmp_path, caplog):
     (tmp_path / "f02.jpg").write_bytes(b"\xff\xd8\xff\xe0 definitely not a jpeg " * 10)  # corrupt
     (tmp_path / "readme.txt").write_text("not an image")
     _jpeg_with_exif(tmp_path / "f04.jpg", _gray(4, (64, 48)), "<", {0x9003: "2020:01:01 00:00:00"})
-    with caplog.at_level(logging.WARNING, logger="drivers.images"):
+    with caplog.at_level(logging.WARNING, logger="photomap.drivers.images"):
         src = open_source(tmp_path, image_rate=2.0)
         assert isinstance(src, ImageFolderSource)
         frames = list(src)
@@ -403,7 +403,7 @@ def test_camera_that_opens_but_stays_dark_is_one_outage(caplog):
     first = FakeCapture([0], then="fail")
     dark = FakeCapture([], then="fail")  # reopens fine, still delivers nothing
     back = FakeCapture([5], until=lambda: src.closed)
-    with caplog.at_level(logging.WARNING, logger="drivers.camera"):
+    with caplog.at_level(logging.WARNING, logger="photomap.drivers.camera"):
         src = CameraSource(4, read_failures=2, reconnect_initial=0.001, reconnect_max=0.001,
                            capture_factory=_factory(first, dark, back))
         got = []

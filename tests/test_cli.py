@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import main
-from service.simulate import simulate_flight
+from photomap.cli.main import main
+from photomap.sim.simulate import simulate_flight
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +24,7 @@ def flight(tmp_path_factory):
 
 
 def photomap(*args: str) -> list[str]:
-    return [sys.executable, "-m", "service.cli", *args]
+    return [sys.executable, "-m", "photomap", *args]
 
 
 def test_simulate_replay_evaluate(flight, tmp_path):
@@ -38,7 +38,7 @@ def test_simulate_replay_evaluate(flight, tmp_path):
 
 def test_sigint_writes_the_map_and_exits_0(flight, tmp_path):
     run = tmp_path / "run"
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = dict(os.environ)
     proc = subprocess.Popen(photomap("replay", str(flight / "video.mp4"), "--out", str(run), "--realtime",
                                      "--no-progress", "--set", "output.checkpoint_interval=0.5"),
                             env=env, stdout=subprocess.PIPE,

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import build_parser, main
-from service.config import load_config
-from service.run import flight_folder
+from photomap.cli.main import build_parser, main
+from photomap.config import load_config
+from photomap.cli.run import flight_folder
 
 REPO = Path(__file__).resolve().parents[1]
 UNIT = REPO / "config" / "photomap.service"
@@ -60,7 +60,7 @@ def test_unit_runs_unprivileged_with_camera_and_serial_groups(unit):
 def test_unit_restarts_on_failure_and_stops_with_a_signal_the_service_handles(unit):
     service = unit["Service"]
     assert service["Restart"] == "on-failure"
-    assert service["KillSignal"] in ("SIGINT", "SIGTERM")  # both write the map (service.replay)
+    assert service["KillSignal"] in ("SIGINT", "SIGTERM")  # both write the map (photomap.cli.replay)
     assert int(service["TimeoutStopSec"]) >= 60
 
 

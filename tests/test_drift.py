@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from service.config import load_config
-from service.flight import simulate_sequence
-from service.pipeline import MappingPipeline
-from service.terrain import load_terrain, procedural_terrain, valid_mask
-from service.trajio import read_trajectory_csv
+from photomap.config import load_config
+from photomap.sim.flight import simulate_sequence
+from photomap.mapping.pipeline import MappingPipeline
+from photomap.sim.terrain import load_terrain, procedural_terrain, valid_mask
+from photomap.io.trajectory_files import read_trajectory_csv
 from test_pipeline import SIZE, ListSource, evaluate
 
 F2F = ["mapping.keyframes=false", "mapping.loop_closure=false"]
@@ -129,7 +129,7 @@ def test_the_viewer_shows_the_corrected_trajectory(terrains, tmp_path):
     pytest.importorskip("rerun")
     from rerun.chunk import RrdReader
 
-    from service.viewer import Viewer
+    from photomap.live.viewer import Viewer
 
     seq = closed_flight(*terrains["textured"], "figure8", 1)
     rrd = tmp_path / "view.rrd"
@@ -157,10 +157,10 @@ def test_the_viewer_shows_the_corrected_trajectory(terrains, tmp_path):
 
 def test_loop_closure_with_telemetry_priors(tmp_path):
     """Heading, height and GPS of the keyframes enter the pose graph; the loop still closes."""
-    from service.replay import replay
-    from service.simulate import simulate_flight
-    from service.trajectory import evaluate_trajectory, frame_centre
-    from service.trajio import read_groundtruth
+    from photomap.cli.replay import replay
+    from photomap.sim.simulate import simulate_flight
+    from photomap.eval.metrics import evaluate_trajectory, frame_centre
+    from photomap.io.trajectory_files import read_groundtruth
 
     flight = simulate_flight(tmp_path / "flight", n_frames=220, size=(320, 240), fps=10.0, seed=2,
                              pattern="figure8", yaw_mode="heading", speed=6.0, terrain="aukerman",

@@ -13,18 +13,18 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.mavlink import load_tlog
-from drivers.tlog_writer import write_tlog
-from service.errors import InputError
-from service.flight import (Camera, Motion, Truth, apply_homography, build_pyramid, pixel_to_latlon, plan_flight,
+from photomap.drivers.mavlink import load_tlog
+from photomap.sim.tlog_writer import write_tlog
+from photomap.errors import InputError
+from photomap.sim.flight import (Camera, Motion, Truth, apply_homography, build_pyramid, pixel_to_latlon, plan_flight,
                             pose_homography, relative_matrix, render_view)
-from service.georef import (aux_xml_text, compose, enu_from_latlon, epsg_zone, fit_georeference, focal_px,
+from photomap.geo.georef import (aux_xml_text, compose, enu_from_latlon, epsg_zone, fit_georeference, focal_px,
                             latlon_from_enu, map_heading_deg, metres_per_pixel, nadir_homography, nadir_pixel,
                             parse_world_file, png_to_map, pose_angle_deg, pose_scale, prj_text, telemetry_prior,
                             utm_epsg, utm_forward, utm_inverse, utm_zone, world_file_text)
-from service.mosaic import TiledMosaic
-from service.telemetry import TelemetrySample
-from service.timesync import estimate_time_offset
+from photomap.core.mosaic import TiledMosaic
+from photomap.telemetry.samples import TelemetrySample
+from photomap.telemetry.timesync import estimate_time_offset
 
 ORIGIN = (41.1, -81.7)   # the simulator's default geodetic origin of terrain pixel (0, 0)
 GSD = 0.3                # metres per terrain pixel

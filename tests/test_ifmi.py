@@ -9,9 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from service.ifmi import Prior, Registrar, similarity_matrix
+from photomap.core.ifmi import Prior, Registrar, similarity_matrix
+from photomap.sim.terrain import BUNDLED
 
-TERRAIN_PATH = Path(__file__).resolve().parents[1] / "service" / "data" / "aukerman.png"
+TERRAIN_PATH = BUNDLED["aukerman"]
 
 
 @pytest.fixture(scope="module")

@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.mavlink import Link, TelemetryReader, load_tlog, mavlink, open_link
+from photomap.drivers.mavlink import Link, TelemetryReader, load_tlog, mavlink, open_link
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
-from service.config import load_config
-from service.errors import InputError
-from service.telemetry import TelemetryBuffer
+from photomap.config import load_config
+from photomap.errors import InputError
+from photomap.telemetry.samples import TelemetryBuffer
 from tools.mavlink_replay import main as replay_main
 from tools.mavlink_replay import replay
 
@@ -176,7 +176,7 @@ def test_corrupt_values_are_rejected_and_logged_once(tmp_path, caplog):
     faults = {0.0: "no_fix", 0.2: "no_fix", 0.4: "absurd_alt", 0.8: "absurd_alt",
               1.0: "nan_yaw", 1.1: "nan_yaw"}
     written = write_log(path, segments=((0.0, 2.0),), bad=faults)
-    with caplog.at_level(logging.INFO, logger="drivers.mavlink"):
+    with caplog.at_level(logging.INFO, logger="photomap.drivers.mavlink"):
         buf, stats = load_tlog(path, max_gap=1.0, max_hold=0.05)
     assert stats.messages == written
     assert stats.rejected == {"GLOBAL_POSITION_INT: lat/lon no GPS fix (0/0)": 2,

@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from service.config import defaults
-from service.errors import ConfigError, InputError
-from service.mosaic import TiledMosaic
-from service.tilestore import DiskTileStore, MemoryTileStore
+from photomap.config import defaults
+from photomap.errors import ConfigError, InputError
+from photomap.core.mosaic import TiledMosaic
+from photomap.io.tilestore import DiskTileStore, MemoryTileStore
 
 
 def noise(h: int, w: int, channels: int = 3, seed: int = 0) -> np.ndarray:

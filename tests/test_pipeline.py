@@ -9,13 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.capture import CaptureStats, Frame
-from service.config import load_config
-from service.flight import simulate_sequence
-from service.pipeline import MappingPipeline
-from service.terrain import load_terrain, procedural_terrain, valid_mask
-from service.trajectory import GroundTruth, evaluate_trajectory, frame_centre
-from service.trajio import read_trajectory_csv
+from photomap.drivers.capture import CaptureStats, Frame
+from photomap.config import load_config
+from photomap.sim.flight import simulate_sequence
+from photomap.mapping.pipeline import MappingPipeline
+from photomap.sim.terrain import load_terrain, procedural_terrain, valid_mask
+from photomap.eval.metrics import GroundTruth, evaluate_trajectory, frame_centre
+from photomap.io.trajectory_files import read_trajectory_csv
 
 SIZE = (240, 320)  # (h, w)
 

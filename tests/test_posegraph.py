@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from service.posegraph import (PoseGraph, _Problem, correction, interpolate_corrections, optimize,
+from photomap.core.posegraph import (PoseGraph, _Problem, correction, interpolate_corrections, optimize,
                                pose_matrix, pose_params)
 
 W, H = 640, 480

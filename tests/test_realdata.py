@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.config import load_config
-from service.replay import replay
-from service.trajio import read_trajectory_csv
+from photomap.config import load_config
+from photomap.cli.replay import replay
+from photomap.io.trajectory_files import read_trajectory_csv
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 BRIGHTON = DATA / "brighton_beach"

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 import yaml
 
-from service import simulate
-from service.config import load_config
-from service.trajio import read_groundtruth
-from service.errors import InputError
-from service.flight import (Camera, apply_homography, latlon_to_pixel, pixel_to_latlon, pose_homography,
+from photomap.sim import simulate
+from photomap.config import load_config
+from photomap.io.trajectory_files import read_groundtruth
+from photomap.errors import InputError
+from photomap.sim.flight import (Camera, apply_homography, latlon_to_pixel, pixel_to_latlon, pose_homography,
                             relative_matrix, render_pair, simulate_sequence)
-from service.terrain import load_terrain, procedural_terrain, valid_mask
+from photomap.sim.terrain import load_terrain, procedural_terrain, valid_mask
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from service.telemetry import TelemetryBuffer, decode_message, wrap_angle
+from photomap.telemetry.samples import TelemetryBuffer, decode_message, wrap_angle
 
 
 def attitude(roll=0.0, pitch=0.0, yaw=0.0, rates=(0.0, 0.0, 0.0)) -> dict:

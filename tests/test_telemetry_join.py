@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 import yaml
 
-from drivers.mavlink import TelemetryReader
-from service.config import load_config
-from service.flight import pixel_to_latlon
-from service.replay import replay
-from service.simulate import simulate_flight
-from service.trajio import read_groundtruth, read_trajectory_csv
+from photomap.drivers.mavlink import TelemetryReader
+from photomap.config import load_config
+from photomap.sim.flight import pixel_to_latlon
+from photomap.cli.replay import replay
+from photomap.sim.simulate import simulate_flight
+from photomap.io.trajectory_files import read_groundtruth, read_trajectory_csv
 from tools.mavlink_replay import replay as stream_tlog
 
 W, H = 320, 240
@@ -153,9 +153,9 @@ def test_truncated_tlog(flight, tmp_path):
 
 def test_events_are_told_to_the_autopilot(flight, tmp_path):
     """STATUSTEXT hook: mapping started, and a lost link to the map (a new segment)."""
-    from drivers.mavlink import load_tlog
-    from service.join import TelemetryJoin
-    from service.pipeline import MappingPipeline
+    from photomap.drivers.mavlink import load_tlog
+    from photomap.mapping.telemetry_join import TelemetryJoin
+    from photomap.mapping.pipeline import MappingPipeline
     from test_pipeline import ListSource
     import cv2
 

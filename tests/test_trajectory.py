@@ -13,11 +13,12 @@ import cv2
 import numpy as np
 import pytest
 
-from service import cli, evaluate
-from service.errors import InputError
-from service.trajectory import (GroundTruth, PoseRow, angle_scale, evaluate_trajectory,
+from photomap.cli import main as cli
+from photomap.eval import evaluate
+from photomap.errors import InputError
+from photomap.eval.metrics import (GroundTruth, PoseRow, angle_scale, evaluate_trajectory,
                                 frame_centre, local_linear, segment_metrics, umeyama)
-from service.trajio import (GROUNDTRUTH_COLUMNS, TRAJECTORY_COLUMNS, read_groundtruth,
+from photomap.io.trajectory_files import (GROUNDTRUTH_COLUMNS, TRAJECTORY_COLUMNS, read_groundtruth,
                             read_trajectory_csv, write_json, write_trajectory_csv, write_tum)
 
 W, H = 64, 48

@@ -21,13 +21,13 @@ import pytest
 rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (the `viewer` extra)")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from drivers.capture import CaptureStats, Frame  # noqa: E402
-from service.config import load_config  # noqa: E402
-from service.errors import ConfigError  # noqa: E402
-from service.mosaic import TiledMosaic  # noqa: E402
-from service.pipeline import MappingPipeline, RunStats  # noqa: E402
-from service.trajectory import frame_centre  # noqa: E402
-from service.viewer import Viewer, footprint_tiles, frame_outline, parse_viewer_mode  # noqa: E402
+from photomap.drivers.capture import CaptureStats, Frame  # noqa: E402
+from photomap.config import load_config  # noqa: E402
+from photomap.errors import ConfigError  # noqa: E402
+from photomap.core.mosaic import TiledMosaic  # noqa: E402
+from photomap.mapping.pipeline import MappingPipeline, RunStats  # noqa: E402
+from photomap.eval.metrics import frame_centre  # noqa: E402
+from photomap.live.viewer import Viewer, footprint_tiles, frame_outline, parse_viewer_mode  # noqa: E402
 
 W, H = 160, 120
 N_FRAMES = 40
@@ -297,7 +297,7 @@ def test_new_segment_clears_the_old_map_keeps_the_anchor_and_logs_live_latency(t
 def test_spawn_without_display_warns_and_carries_on(tmp_path, monkeypatch, caplog):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    with caplog.at_level(logging.WARNING, logger="service.viewer"):
+    with caplog.at_level(logging.WARNING, logger="photomap.live.viewer"):
         viewer = Viewer("spawn")
     assert not viewer.enabled
     assert [r.message for r in caplog.records if "no display" in r.message]
@@ -307,7 +307,7 @@ def test_spawn_without_display_warns_and_carries_on(tmp_path, monkeypatch, caplo
 
 def test_connect_to_nothing_warns_and_carries_on(caplog):
     port = _free_port()
-    with caplog.at_level(logging.WARNING, logger="service.viewer"):
+    with caplog.at_level(logging.WARNING, logger="photomap.live.viewer"):
         viewer = Viewer(f"connect=rerun+http://127.0.0.1:{port}/proxy")
     assert not viewer.enabled and "nothing listens" in caplog.text
     viewer.close()
@@ -368,9 +368,9 @@ def test_telemetry_series_are_shown(tmp_path):
     import numpy as np
     from rerun.chunk import RrdReader
 
-    from service.config import load_config
-    from service.replay import replay
-    from service.simulate import simulate_flight
+    from photomap.config import load_config
+    from photomap.cli.replay import replay
+    from photomap.sim.simulate import simulate_flight
 
     flight = simulate_flight(tmp_path / "flight", n_frames=30, size=(320, 240), fps=15.0, seed=2)
     rrd = tmp_path / "view.rrd"

@@ -23,15 +23,12 @@ import tempfile
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from service.config import load_config  # noqa: E402
-from service.replay import replay  # noqa: E402
-from service.simulate import simulate_flight  # noqa: E402
-from service.trajectory import evaluate_trajectory, frame_centre  # noqa: E402
-from service.trajio import read_groundtruth, read_trajectory_csv  # noqa: E402
-from tools.report import replace_section  # noqa: E402
+from photomap.config import load_config
+from photomap.cli.replay import replay
+from photomap.sim.simulate import simulate_flight
+from photomap.eval.metrics import evaluate_trajectory, frame_centre
+from photomap.io.trajectory_files import read_groundtruth, read_trajectory_csv
+from tools.report import replace_section
 
 MODES = {
     "frame-to-frame": ["mapping.keyframes=false", "mapping.loop_closure=false"],

@@ -1,15 +1,15 @@
 """Pipeline benchmark: replay throughput (where the worker's time goes) and peak memory of long flights.
 
 Part (a), in one process: a 640x480 flight is simulated into a temporary folder (``video.mp4``),
-then the same file is decoded alone (:class:`drivers.video.VideoFileSource`, the upper bound) and
-mapped by ``photomap replay`` (:func:`service.replay.replay`) with the default config and with
+then the same file is decoded alone (:class:`photomap.drivers.video.VideoFileSource`, the upper bound) and
+mapped by ``photomap replay`` (:func:`photomap.cli.replay.replay`) with the default config and with
 ``mosaic.blend=feather``. The worker's time is split into registration (``Registrar.prepare`` of
 the new frame, ``Registrar.register`` against the reference), gluing into the map
 (``TiledMosaic.add``) and the rest (resize to the working size, bookkeeping); decoding runs in its
 own thread beside the worker.
 
 Part (b): a long lawn-mower flight (10,000 frames by default) is rendered frame by frame from
-:mod:`service.flight` into an in-memory frame source (it never holds more than the frame being
+:mod:`photomap.sim.flight` into an in-memory frame source (it never holds more than the frame being
 rendered; the pipeline's prefetch queue holds 8) and mapped by :class:`MappingPipeline`, with and
 without ``mosaic.max_tiles_in_memory``, each configuration in a fresh process so that one run's
 freed memory does not inflate the next one's peak. A thread samples the process RSS (psutil)
@@ -44,19 +44,16 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-if __package__ in (None, ""):  # run as a script: make the repo's packages importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import service.pipeline as pipeline_module  # noqa: E402
-from drivers.capture import CaptureStats, Frame, SourceBase  # noqa: E402
-from drivers.video import VideoFileSource  # noqa: E402
-from service.config import load_config  # noqa: E402
-from service.errors import PhotomapError  # noqa: E402
-from service.flight import Camera, Effects, Motion, Truth, build_pyramid, iter_frames, plan_flight  # noqa: E402
-from service.replay import replay  # noqa: E402
-from service.simulate import simulate_flight  # noqa: E402
-from service.terrain import TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask  # noqa: E402
-from tools.report import replace_section  # noqa: E402
+import photomap.mapping.pipeline as pipeline_module
+from photomap.drivers.capture import CaptureStats, Frame, SourceBase
+from photomap.drivers.video import VideoFileSource
+from photomap.config import load_config
+from photomap.errors import PhotomapError
+from photomap.sim.flight import Camera, Effects, Motion, Truth, build_pyramid, iter_frames, plan_flight
+from photomap.cli.replay import replay
+from photomap.sim.simulate import simulate_flight
+from photomap.sim.terrain import TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
+from tools.report import replace_section
 
 log = logging.getLogger("bench_pipeline")
 
@@ -88,7 +85,7 @@ class StageTimes:
 
 @contextlib.contextmanager
 def timed_stages(acc: StageTimes) -> Iterator[None]:
-    """Make :mod:`service.pipeline` build timed subclasses of ``Registrar`` and ``TiledMosaic``
+    """Make :mod:`photomap.mapping.pipeline` build timed subclasses of ``Registrar`` and ``TiledMosaic``
     while the block runs (the pipeline itself is unchanged)."""
     registrar, mosaic = pipeline_module.Registrar, pipeline_module.TiledMosaic
 

@@ -1,7 +1,7 @@
 """Registration benchmark: iFMI against imreg_dft, ORB/SIFT+RANSAC and ECC on simulated flights.
 
 Every method runs in one process on the same simulated sequences (exact ground truth from
-:mod:`service.flight`): textured ground (the bundled aukerman orthophoto), grass-like low texture,
+:mod:`photomap.sim.flight`): textured ground (the bundled aukerman orthophoto), grass-like low texture,
 featureless sand (25 % contrast) with noise, a hard 640x480 flight with exactly 10 deg rotation and
 5 % scale change per frame, and a flight with 2 deg roll/pitch. Per method and sequence it reports
 the success rate, median errors, RMS rotation error, ms per pair and the drift of the chained
@@ -38,17 +38,14 @@ import cv2
 import numpy as np
 import scipy
 
-if __package__ in (None, ""):  # run as a script: make the repo's packages importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from service.config import defaults  # noqa: E402
-from service.errors import InputError  # noqa: E402
-from service.flight import (Camera, Effects, Motion, iter_frames, plan_flight, pose_homography,  # noqa: E402
+from photomap.config import defaults
+from photomap.errors import InputError
+from photomap.sim.flight import (Camera, Effects, Motion, iter_frames, plan_flight, pose_homography,
                             relative_matrix, render_pair, simulate_sequence)
-from service.ifmi import Registrar  # noqa: E402
-from service.terrain import BUNDLED, DEFAULT_GSD, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask  # noqa: E402
-from tools.peers import Method, peer_methods  # noqa: E402
-from tools.report import replace_section  # noqa: E402
+from photomap.core.ifmi import Registrar
+from photomap.sim.terrain import BUNDLED, DEFAULT_GSD, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
+from tools.peers import Method, peer_methods
+from tools.report import replace_section
 
 log = logging.getLogger("bench_registration")
 
@@ -138,7 +135,7 @@ def ifmi_methods(shape: tuple[int, int]) -> list[Method]:
 class Flight:
     spec: SequenceSpec
     grays: list[np.ndarray]
-    truth: object  # service.flight.Truth
+    truth: object  # photomap.sim.flight.Truth
 
     @property
     def centre(self) -> np.ndarray:

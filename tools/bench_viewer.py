@@ -1,7 +1,7 @@
 """Viewer benchmark: what the rerun operator view costs in bytes and CPU.
 
 A 640x480 flight over the bundled aukerman terrain is simulated in memory
-(:func:`service.flight.simulate_sequence`), then mapped by :class:`MappingPipeline` from a source
+(:func:`photomap.sim.flight.simulate_sequence`), then mapped by :class:`MappingPipeline` from a source
 that delivers the frames at the flight's frame rate (as a camera would, so that the viewer's
 wall-clock rate limits apply as in a live flight): without a viewer (twice, before and after), and
 with ``--viewer save=...`` in the default and a lean (low-bandwidth) configuration (the bytes a
@@ -25,15 +25,12 @@ import tempfile
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script: make the repo's packages importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from drivers.capture import CaptureStats, Frame  # noqa: E402
-from service.config import load_config  # noqa: E402
-from service.flight import simulate_sequence  # noqa: E402
-from service.pipeline import MappingPipeline  # noqa: E402
-from service.terrain import TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask  # noqa: E402
-from service.viewer import Viewer  # noqa: E402
+from photomap.drivers.capture import CaptureStats, Frame
+from photomap.config import load_config
+from photomap.sim.flight import simulate_sequence
+from photomap.mapping.pipeline import MappingPipeline
+from photomap.sim.terrain import TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
+from photomap.live.viewer import Viewer
 
 
 class PacedSource:

@@ -20,11 +20,8 @@ import threading
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script: make the repo's packages importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from drivers.mavlink import open_link  # noqa: E402
-from service.errors import InputError  # noqa: E402
+from photomap.drivers.mavlink import open_link
+from photomap.errors import InputError
 
 log = logging.getLogger("mavlink_replay")
 

@@ -27,17 +27,17 @@ from typing import Callable, Iterator
 import cv2
 import numpy as np
 
-from drivers.capture import Frame, FrameSource
-from .georef import aux_xml_text, compose, png_to_map, prj_text, world_file_text
-from .ifmi import Registrar
-from .join import TelemetryJoin
-from .loopclosure import LoopCloser
-from .maprelative import map_correction
-from .mosaic import TiledMosaic
-from .tilestore import DiskTileStore
-from .tracking import LOW_CONFIDENCE, TrackStep, Tracker
-from .trajectory import PoseRow
-from .trajio import atomic_write_bytes, write_json, write_trajectory_csv, write_tum
+from photomap.drivers.capture import Frame, FrameSource
+from photomap.geo.georef import aux_xml_text, compose, png_to_map, prj_text, world_file_text
+from photomap.core.ifmi import Registrar
+from photomap.mapping.telemetry_join import TelemetryJoin
+from photomap.mapping.loopclosure import LoopCloser
+from photomap.core.maprelative import map_correction
+from photomap.core.mosaic import TiledMosaic
+from photomap.io.tilestore import DiskTileStore
+from photomap.core.tracking import LOW_CONFIDENCE, TrackStep, Tracker
+from photomap.eval.metrics import PoseRow
+from photomap.io.trajectory_files import atomic_write_bytes, write_json, write_trajectory_csv, write_tum
 
 log = logging.getLogger(__name__)
 

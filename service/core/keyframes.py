@@ -3,14 +3,14 @@
 When the predicted footprint of a new keyframe overlaps keyframes far back in the chain (a
 revisit), the new keyframe is registered against them (iFMI needs no features: candidates are
 chosen by predicted overlap, and the predicted relative pose is the prior). A confident result is
-a loop-closure edge; the pose graph (:mod:`service.posegraph`, robust loss) then corrects every
+a loop-closure edge; the pose graph (:mod:`photomap.core.posegraph`, robust loss) then corrects every
 keyframe, and the caller re-poses the frames registered against them and re-renders the map.
 
 Pure computation on frames the caller hands in; keyframe images are kept by the caller (see
-:class:`service.pipeline.MappingPipeline`), so memory stays bounded.
+:class:`photomap.mapping.pipeline.MappingPipeline`), so memory stays bounded.
 
 Conventions: poses are 3x3, input-frame pixels -> map pixels of the segment; registration runs at
-the working resolution (``working_scale``) and is converted as in :mod:`service.tracking`.
+the working resolution (``working_scale``) and is converted as in :mod:`photomap.core.tracking`.
 """
 
 from __future__ import annotations
@@ -23,10 +23,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .georef import enu_from_latlon
-from .ifmi import Prior, Registrar
-from .posegraph import PoseGraph, correction, optimize
-from .tracking import scaling
+from photomap.geo.georef import enu_from_latlon
+from photomap.core.ifmi import Prior, Registrar
+from photomap.core.posegraph import PoseGraph, correction, optimize
+from photomap.core.tracking import scaling
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +85,7 @@ class KeyframeGraph:
                      sample: Any = None, sigmas: dict | None = None) -> None:
         """A new keyframe; ``edge`` = (reference keyframe index, measured 3x3, confidence).
 
-        With a telemetry ``sample`` (:class:`service.telemetry.TelemetrySample`) and ``sigmas``
+        With a telemetry ``sample`` (:class:`photomap.telemetry.samples.TelemetrySample`) and ``sigmas``
         (the ``posegraph`` config), its heading, height and GPS fix become priors of the node.
         """
         node = self.graph.add_node(pose)

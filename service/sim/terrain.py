@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import scipy.fft
 
-from .errors import InputError
+from photomap.errors import InputError
 
 log = logging.getLogger(__name__)
 

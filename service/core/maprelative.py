@@ -13,9 +13,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .ifmi import Prior, Registrar
-from .mosaic import TiledMosaic
-from .tracking import scaling
+from photomap.core.ifmi import Prior, Registrar
+from photomap.core.mosaic import TiledMosaic
+from photomap.core.tracking import scaling
 
 
 def map_patch(mosaic: TiledMosaic, pose: np.ndarray, frame_size: tuple[int, int]

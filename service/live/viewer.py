@@ -1,6 +1,6 @@
 """Live operator view of a mapping run in rerun (DESIGN.md section 6).
 
-:class:`Viewer` plugs into :class:`service.pipeline.MappingPipeline` as its ``on_frame``
+:class:`Viewer` plugs into :class:`photomap.mapping.pipeline.MappingPipeline` as its ``on_frame``
 callback. The callback runs in the pipeline's worker thread and only copies what the view
 needs (pose, confidence, a downscaled frame and the changed map tiles when they are due) into
 a bounded queue; a viewer thread JPEG-encodes and logs. When the viewer thread falls behind
@@ -60,15 +60,15 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 
-from .errors import ConfigError, InputError
-from .trajectory import frame_centre
+from photomap.errors import ConfigError, InputError
+from photomap.eval.metrics import frame_centre
 
 if TYPE_CHECKING:
-    from drivers.capture import Frame
+    from photomap.drivers.capture import Frame
 
-    from .mosaic import TiledMosaic
-    from .pipeline import MappingPipeline
-    from .tracking import TrackStep
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.mapping.pipeline import MappingPipeline
+    from photomap.core.tracking import TrackStep
 
 log = logging.getLogger(__name__)
 
@@ -405,7 +405,7 @@ class Viewer:
         except ImportError:
             raise ConfigError(f"viewer mode '{mode}' needs rerun-sdk: pip install 'ifmi-photomap[viewer]'"
                               ) from None
-        from .viewer_blueprint import default_blueprint
+        from photomap.live.blueprint import default_blueprint
 
         if mode == "serve":
             port = int(arg) if arg else port

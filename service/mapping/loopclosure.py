@@ -3,7 +3,7 @@
 The pipeline hands every tracked frame to :class:`LoopCloser`. Keyframes are kept on disk (their
 working-resolution grey image for registration, and a JPEG of the input frame for re-rendering
 the map), so memory stays bounded over a long flight. When a new keyframe closes a loop, the
-segment's pose graph is optimised (:mod:`service.mapgraph`), every posed frame of the segment is
+segment's pose graph is optimised (:mod:`photomap.core.keyframes`), every posed frame of the segment is
 re-posed through its keyframe (a frame keeps its measured pose relative to the keyframe it was
 registered against), the tracker continues from the corrected pose, and the segment's map is
 marked for re-rendering from its keyframes (done at checkpoints and at the end of the run).
@@ -21,10 +21,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .mapgraph import KeyframeGraph
-from .mosaic import TiledMosaic
-from .tracking import TrackStep, Tracker
-from .trajectory import PoseRow
+from photomap.core.keyframes import KeyframeGraph
+from photomap.core.mosaic import TiledMosaic
+from photomap.core.tracking import TrackStep, Tracker
+from photomap.eval.metrics import PoseRow
 
 log = logging.getLogger(__name__)
 

@@ -12,17 +12,17 @@ import importlib
 import logging
 import sys
 
-from . import __version__
-from .config import load_config
-from .errors import PhotomapError
+from photomap import __version__
+from photomap.config import load_config
+from photomap.errors import PhotomapError
 
 # command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("service.demo", "simulate a flight over the bundled terrain, map it, print where the map is"),
-    "run": ("service.run", "map live from a camera (V4L2) until stopped"),
-    "replay": ("service.replay", "map a logged video or a folder of images"),
-    "simulate": ("service.simulate", "fly a virtual camera over a terrain image: video, telemetry, ground truth"),
-    "evaluate": ("service.evaluate", "compare a run's trajectory with ground truth: errors, ATE, drift, plots"),
+    "demo": ("photomap.cli.demo", "simulate a flight over the bundled terrain, map it, print where the map is"),
+    "run": ("photomap.cli.run", "map live from a camera (V4L2) until stopped"),
+    "replay": ("photomap.cli.replay", "map a logged video or a folder of images"),
+    "simulate": ("photomap.sim.simulate", "fly a virtual camera over a terrain image: video, telemetry, ground truth"),
+    "evaluate": ("photomap.eval.evaluate", "compare a run's trajectory with ground truth: errors, ATE, drift, plots"),
 }
 
 EXIT_INTERRUPTED = 130

@@ -30,7 +30,7 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from .errors import InputError
+from photomap.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +125,7 @@ def _tilt_rotation(roll: float, pitch: float) -> np.ndarray:
     """Rotation from the tilted camera's axes to the nadir camera's axes (same yaw).
 
     Camera axes are OpenCV's (x right, y down, z optical axis); the camera looks down with
-    image up = body forward (see :mod:`service.flight`). Equals ``R_nadir^T R_tilted``.
+    image up = body forward (see :mod:`photomap.sim.flight`). Equals ``R_nadir^T R_tilted``.
     """
     cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
     ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])    # pitch about body y (right)
@@ -162,11 +162,11 @@ def nadir_pixel(fx: float, cx: float, cy: float, roll: float, pitch: float) -> t
 def telemetry_prior(sample_i: Any, sample_j: Any) -> tuple[float | None, float | None]:
     """Expected registration of frame j (new) against frame i (reference) from telemetry.
 
-    In the convention of :mod:`service.ifmi` (the result maps new-frame pixels to reference
+    In the convention of :mod:`photomap.core.ifmi` (the result maps new-frame pixels to reference
     pixels): ``angle_deg = degrees(yaw_j - yaw_i)`` wrapped to (-180, 180] (a clockwise yaw
     change is a positive angle in y-down pixels) and ``scale = h_j / h_i`` (the new frame
     seen from higher up covers more ground per pixel). The samples are
-    :class:`service.telemetry.TelemetrySample` (``yaw`` radians, ``height_above_ground``
+    :class:`photomap.telemetry.samples.TelemetrySample` (``yaw`` radians, ``height_above_ground``
     metres); a missing value gives None for that part.
     """
     angle = scale = None

@@ -23,12 +23,12 @@ from pathlib import Path
 import cv2
 import yaml
 
-from drivers.tlog_writer import RATES_HZ, write_tlog
+from photomap.sim.tlog_writer import RATES_HZ, write_tlog
 
-from .errors import InputError, PhotomapError
-from .flight import PATTERNS, YAW_MODES, Camera, build_pyramid, iter_frames, pixel_to_latlon, plan_flight, split_params
-from .terrain import DEFAULT_GSD, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
-from .trajio import GROUNDTRUTH_COLUMNS
+from photomap.errors import InputError, PhotomapError
+from photomap.sim.flight import PATTERNS, YAW_MODES, Camera, build_pyramid, iter_frames, pixel_to_latlon, plan_flight, split_params
+from photomap.sim.terrain import DEFAULT_GSD, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
+from photomap.io.trajectory_files import GROUNDTRUTH_COLUMNS
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
 
     Parameters
     ----------
-    terrain : terrain name or image path (see :func:`service.terrain.load_terrain`).
+    terrain : terrain name or image path (see :func:`photomap.sim.terrain.load_terrain`).
     size, terrain_size : ``(w, h)`` of the frames and of a procedural terrain.
     gsd : metres per pixel of the stored terrain image (0 = the terrain's default); the terrain
         pixels of the ground truth are those after ``terrain_zoom`` (0 = the terrain's default),
@@ -81,7 +81,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     video_codec : ``mp4v`` (``video.mp4``: MPEG-4 part 2 at the wheel's fixed, low bitrate, a
         strong compression that wipes low-contrast texture), ``mjpg`` (``video.avi``) or ``ffv1``
         (``video.mkv``, lossless, like a camera recording at a high bitrate).
-    **params : :class:`service.flight.Motion` and :class:`service.flight.Effects` fields.
+    **params : :class:`photomap.sim.flight.Motion` and :class:`photomap.sim.flight.Effects` fields.
 
     Returns the output folder.
     """

@@ -22,14 +22,14 @@ from tqdm import tqdm
 
 import yaml
 
-from drivers.capture import Frame, open_source
-from drivers.mavlink import TelemetryReader, load_tlog
-from .errors import InputError
-from .join import TelemetryJoin
-from .pipeline import MappingPipeline
-from .telemetry import TelemetryBuffer
-from .tracking import TrackStep
-from .viewer import Viewer
+from photomap.drivers.capture import Frame, open_source
+from photomap.drivers.mavlink import TelemetryReader, load_tlog
+from photomap.errors import InputError
+from photomap.mapping.telemetry_join import TelemetryJoin
+from photomap.mapping.pipeline import MappingPipeline
+from photomap.telemetry.samples import TelemetryBuffer
+from photomap.core.tracking import TrackStep
+from photomap.live.viewer import Viewer
 
 log = logging.getLogger(__name__)
 

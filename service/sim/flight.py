@@ -1,6 +1,6 @@
 """A virtual down-looking pinhole camera flown over a terrain image: trajectories and rendering.
 
-Pure computations (arrays in, arrays out); :mod:`service.simulate` writes the files.
+Pure computations (arrays in, arrays out); :mod:`photomap.sim.simulate` writes the files.
 
 Frames
 ------
@@ -29,8 +29,8 @@ from dataclasses import asdict, dataclass, field, fields
 import cv2
 import numpy as np
 
-from .errors import InputError
-from .ifmi import similarity_matrix
+from photomap.errors import InputError
+from photomap.core.ifmi import similarity_matrix
 
 PATTERNS = ("random", "lawnmower", "figure8")
 YAW_MODES = ("random", "constant", "heading", "fixed")

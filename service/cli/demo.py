@@ -14,9 +14,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .evaluate import evaluate_run, format_table
-from .replay import add_viewer_argument, print_summary, replay
-from .simulate import simulate_flight
+from photomap.eval.evaluate import evaluate_run, format_table
+from photomap.cli.replay import add_viewer_argument, print_summary, replay
+from photomap.sim.simulate import simulate_flight
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -3,7 +3,7 @@
 Every writer is atomic: it writes a temporary file in the target's folder and ``os.replace``-s it
 over the target, so a periodic checkpoint of a live run never leaves a half-written file.
 Readers accept extra columns and raise :class:`InputError` with the file and line on bad input.
-Formats: DESIGN.md section 4; conventions: :mod:`service.trajectory`.
+Formats: DESIGN.md section 4; conventions: :mod:`photomap.eval.metrics`.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from .errors import InputError
-from .trajectory import (STATUSES, GroundTruth, PoseRow, frame_centre, pose_angle_deg,
+from photomap.errors import InputError
+from photomap.eval.metrics import (STATUSES, GroundTruth, PoseRow, frame_centre, pose_angle_deg,
                          pose_scale)
 
 log = logging.getLogger(__name__)

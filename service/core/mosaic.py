@@ -27,7 +27,7 @@ Blending
     interpolation exact.
 
 The module is pure computation: no file I/O, no threads. Tiles beyond ``max_tiles_in_memory``
-go to a :class:`service.tilestore.TileStore` (which may write files) and come back transparently.
+go to a :class:`photomap.io.tilestore.TileStore` (which may write files) and come back transparently.
 An instance is not thread-safe.
 """
 
@@ -41,10 +41,10 @@ from typing import TYPE_CHECKING, Iterable
 import cv2
 import numpy as np
 
-from .errors import ConfigError, InputError
+from photomap.errors import ConfigError, InputError
 
 if TYPE_CHECKING:
-    from .tilestore import TileStore
+    from photomap.io.tilestore import TileStore
 
 log = logging.getLogger(__name__)
 

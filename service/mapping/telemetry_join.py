@@ -21,12 +21,12 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from drivers.capture import Frame
-from .georef import (Georeference, fit_georeference, focal_px, map_heading_deg, metres_per_pixel,
+from photomap.drivers.capture import Frame
+from photomap.geo.georef import (Georeference, fit_georeference, focal_px, map_heading_deg, metres_per_pixel,
                      nadir_homography, telemetry_prior)
-from .ifmi import Prior
-from .telemetry import TelemetrySample
-from .timesync import estimate_time_offset
+from photomap.core.ifmi import Prior
+from photomap.telemetry.samples import TelemetrySample
+from photomap.telemetry.timesync import estimate_time_offset
 
 log = logging.getLogger(__name__)
 

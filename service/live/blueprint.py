@@ -8,7 +8,7 @@ import rerun.blueprint as rrb
 def default_blueprint() -> rrb.Blueprint:
     """Map on the left; the live camera, health plots and events stacked on the right.
 
-    The entity roots match :mod:`service.viewer`: ``/map`` (tiles, trajectory, footprint),
+    The entity roots match :mod:`photomap.live.viewer`: ``/map`` (tiles, trajectory, footprint),
     ``/camera``, ``/health`` and ``/telemetry`` (time series) and ``/events`` (text log).
     """
     return rrb.Blueprint(

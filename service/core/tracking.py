@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .ifmi import PreparedFrame, Prior, Registrar, Registration
+from photomap.core.ifmi import PreparedFrame, Prior, Registrar, Registration
 
 REFERENCE = "reference"
 REGISTERED = "registered"

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .trajectory import (ROTATION_OK_DEG, SCALE_OK_PCT, TRANSLATION_OK_PX, GroundTruth,
+from photomap.errors import InputError
+from photomap.eval.metrics import (ROTATION_OK_DEG, SCALE_OK_PCT, TRANSLATION_OK_PX, GroundTruth,
                          angle_scale, apply_h, evaluate_trajectory, infer_centre)
-from .trajio import (atomic_write_bytes, atomic_write_text, read_groundtruth, read_trajectory_csv,
+from photomap.io.trajectory_files import (atomic_write_bytes, atomic_write_text, read_groundtruth, read_trajectory_csv,
                      write_json)
 
 log = logging.getLogger(__name__)
@@ -51,7 +51,7 @@ def evaluate_run(run_dir: str | Path, truth_csv: str | Path, out_dir: str | Path
     Returns
     -------
     dict
-        :func:`service.trajectory.evaluate_trajectory`'s result plus ``run_dir``, ``truth``,
+        :func:`photomap.eval.metrics.evaluate_trajectory`'s result plus ``run_dir``, ``truth``,
         ``frame_centre``, ``thresholds`` and ``plots`` (paths of the PNGs written, empty without
         matplotlib). evaluation.json holds the same without the segments' ``per_frame`` lists.
 

@@ -15,8 +15,8 @@ import argparse
 import time
 from pathlib import Path
 
-from drivers.capture import open_source
-from .replay import (add_telemetry_arguments, add_viewer_argument, map_source, open_telemetry,
+from photomap.drivers.capture import open_source
+from photomap.cli.replay import (add_telemetry_arguments, add_viewer_argument, map_source, open_telemetry,
                      print_summary)
 
 

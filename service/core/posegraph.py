@@ -227,7 +227,7 @@ class PoseGraph:
     def add_gps_prior(self, node: int, east_north: Sequence[float], sigma_m: float) -> None:
         """The node's frame centre is at local ``(east, north)`` metres (+- ``sigma_m``).
 
-        Any local tangent plane works (e.g. :func:`service.georef.enu_from_latlon` about the first
+        Any local tangent plane works (e.g. :func:`photomap.geo.georef.enu_from_latlon` about the first
         fix); the map -> metres similarity is estimated (needs fixes at 2 or more places).
         """
         self._gps.append((self._node(node), float(east_north[0]), float(east_north[1]), _positive(sigma_m)))

@@ -1,6 +1,6 @@
 """Where map tiles go when the mosaic must not keep them all in memory.
 
-A tile is a small mapping of named arrays (what :class:`service.mosaic.TiledMosaic` keeps per
+A tile is a small mapping of named arrays (what :class:`photomap.core.mosaic.TiledMosaic` keeps per
 tile, e.g. ``{"color": uint8 (ts, ts, C), "cover": uint8 (ts, ts)}``). A store keeps tiles by key
 ``(tx, ty)`` (tile column and row, may be negative) and hands back an equal, independent copy.
 
@@ -22,7 +22,7 @@ from typing import Mapping, Protocol
 
 import numpy as np
 
-from .errors import PhotomapError
+from photomap.errors import PhotomapError
 
 log = logging.getLogger(__name__)
 
