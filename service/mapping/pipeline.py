@@ -26,6 +26,7 @@ from typing import Callable, Iterator
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from photomap.drivers.capture import Frame, FrameSource
 from photomap.geo.georef import aux_xml_text, compose, png_to_map, prj_text, world_file_text
@@ -177,10 +178,13 @@ class MappingPipeline:
         failure: list[BaseException] = []
 
         def work() -> None:
+            # BLAS pools pinned to one thread while mapping: the refinement's small products spin
+            # against every other busy thread otherwise (10x slower on a busy 2-core computer)
             try:
                 frames = self.source if self.source.live else _prefetch(self.source, 8, self._stop)
-                for frame in frames:  # after stop(), the frames already queued are drained
-                    self._process(frame)
+                with threadpool_limits(limits=1, user_api="blas"):
+                    for frame in frames:  # after stop(), the frames already queued are drained
+                        self._process(frame)
             except BaseException as exc:  # reported by run(), after the outputs are written
                 failure.append(exc)
 
