@@ -20,7 +20,7 @@ from photomap.drivers.images import ImageFolderSource, exif_time, parse_exif_dat
 from photomap.drivers.video import VideoFileSource, mp4_creation_time
 from photomap.errors import InputError
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from conftest import DATA_DIR as DATA
 FPS = 10.0
 N_FRAMES = 30
 STEP = 8  # gray level per frame index: frame i is uniformly i * STEP

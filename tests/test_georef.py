@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import DATA_DIR
 
 from photomap.drivers.mavlink import load_tlog
 from photomap.sim.tlog_writer import write_tlog
@@ -362,7 +363,7 @@ def test_time_offset_machinery_on_a_real_px4_log():
     """Real, irregular (~7 Hz, jittery) ATTITUDE timing and a real mission's yaw: a 30 fps
     "vision" angle track cut from the log's own yaw (plus 0.1 deg noise) at a known offset is
     found again. (A consistency check of resampling and search; the log has no video.)"""
-    path = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tlogs" / "rural.tlog"
+    path = DATA_DIR / "tlogs" / "rural.tlog"
     if not path.is_file():
         pytest.skip(f"real test data not found: {path}")
     buffer, _ = load_tlog(path)

@@ -25,7 +25,7 @@ from photomap.telemetry.samples import TelemetryBuffer
 from tools.mavlink_replay import main as replay_main
 from tools.mavlink_replay import replay
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from conftest import DATA_DIR as DATA
 T0 = 1_700_000_000.0  # UNIX time of the synthetic log's first message
 
 

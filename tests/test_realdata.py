@@ -17,7 +17,7 @@ from photomap.config import load_config
 from photomap.cli.replay import replay
 from photomap.io.trajectory_files import read_trajectory_csv
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from conftest import DATA_DIR as DATA
 BRIGHTON = DATA / "brighton_beach"
 
 
