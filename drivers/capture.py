@@ -1,7 +1,7 @@
 """Frame sources: one interface for a video file, a folder of stills and a live V4L2 camera.
 
-Every source yields :class:`Frame` objects in capture order and counts what it read, dropped,
-skipped and reconnected in :class:`CaptureStats`. Replay sources (video files, stills) never
+Every source yields :class:`~photomap.drivers.frames.Frame` objects in capture order and counts what it read, dropped,
+skipped and reconnected in :class:`~photomap.drivers.frames.CaptureStats`. Replay sources (video files, stills) never
 drop a frame; a live camera drops the *oldest* queued frame when the consumer falls behind, so
 latency stays bounded.
 
@@ -14,98 +14,16 @@ from __future__ import annotations
 import os
 import re
 import stat
-from abc import ABC, abstractmethod
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Protocol, runtime_checkable
+from typing import Any, Callable
 
-import numpy as np
+from photomap.drivers.camera import CameraSource
+from photomap.drivers.frames import FrameSource
+from photomap.drivers.images import ImageFolderSource
+from photomap.drivers.video import VideoFileSource
 
 _CAMERA_PATH = re.compile(r"^/dev/video\d+$")
 _GLOB_CHARS = re.compile(r"[*?\[]")
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One captured image.
-
-    Attributes
-    ----------
-    index : int
-        0-based position in capture order. A frame that was dropped or could not be decoded
-        still consumes its index, so gaps in ``index`` show losses.
-    t : float
-        Seconds. Video files: the frame's presentation timestamp (PTS) from the start of the
-        file. Stills: EXIF DateTimeOriginal as seconds since the Unix epoch, or
-        ``index / rate`` when the stills carry no EXIF time. Live cameras: the host's
-        monotonic clock (``time.monotonic()``) when the frame was received.
-    image : numpy.ndarray
-        uint8, ``HxW`` (gray) or ``HxWx3`` (BGR, OpenCV order).
-    source : str
-        Where the frame came from: the still's file name, the video's file name, the device.
-    """
-
-    index: int
-    t: float
-    image: np.ndarray
-    source: str
-
-
-@dataclass
-class CaptureStats:
-    """Counters of a frame source (updated by the source while it runs).
-
-    Attributes
-    ----------
-    read : int
-        Frames obtained from the input (for a live camera, including those dropped later).
-    dropped : int
-        Frames discarded because the consumer fell behind (live sources only).
-    corrupt : int
-        Frames or files skipped because they could not be decoded.
-    reconnects : int
-        Recoveries of a live camera after it was lost (frames arrive again).
-    """
-
-    read: int = 0
-    dropped: int = 0
-    corrupt: int = 0
-    reconnects: int = 0
-
-
-@runtime_checkable
-class FrameSource(Protocol):
-    """What the pipeline consumes: iterate for frames, ``close()`` when done.
-
-    Iteration ends at the end of the input or after ``close()``. ``live`` is true for sources
-    whose frames arrive in real time (and may be dropped); false for replay.
-    """
-
-    stats: CaptureStats
-    live: bool
-
-    def __iter__(self) -> Iterator[Frame]: ...
-
-    def close(self) -> None: ...
-
-
-class SourceBase(ABC):
-    """Context-manager support shared by the concrete sources."""
-
-    stats: CaptureStats
-    live: bool = False
-
-    @abstractmethod
-    def __iter__(self) -> Iterator[Frame]: ...
-
-    @abstractmethod
-    def close(self) -> None: ...
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def _is_camera(spec: str | int | Path) -> bool:
@@ -151,8 +69,6 @@ def open_source(
         The camera, folder or file cannot be opened.
     """
     if _is_camera(spec):
-        from photomap.drivers.camera import CameraSource
-
         device: str | int = spec if isinstance(spec, int) else str(spec)
         if isinstance(device, str) and device.isdigit():
             device = int(device)
@@ -170,10 +86,6 @@ def open_source(
         )
     text = str(spec)
     if Path(text).is_dir() or (_GLOB_CHARS.search(text) and not Path(text).exists()):
-        from photomap.drivers.images import ImageFolderSource
-
         return ImageFolderSource(text, rate=image_rate)
-    from photomap.drivers.video import VideoFileSource
-
     return VideoFileSource(text)
 

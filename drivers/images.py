@@ -16,7 +16,7 @@ import cv2
 
 from photomap.errors import InputError
 
-from photomap.drivers.capture import CaptureStats, Frame, SourceBase
+from photomap.drivers.frames import CaptureStats, Frame, SourceBase
 
 log = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402  (needs MAVLINK20 set first)
@@ -31,6 +31,7 @@ from pymavlink import mavutil  # noqa: E402  (needs MAVLINK20 set first)
 if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # pymavlink was imported before us
     mavutil.set_dialect(mavutil.current_dialect)
 
+from photomap.config import TelemetryConfig  # noqa: E402
 from photomap.errors import InputError  # noqa: E402
 from photomap.telemetry.samples import MESSAGE_TYPES, TelemetryBuffer, TelemetrySample  # noqa: E402
 
@@ -349,15 +350,14 @@ class TelemetryReader:
         self._ingest = _Ingest(self.buffer, self.stats, self.link_timeout)
 
     @classmethod
-    def from_config(cls, section: Mapping[str, Any]) -> TelemetryReader:
-        """A reader (not started) for the ``telemetry:`` config section; ``source`` must be set."""
-        if not section["source"]:
+    def from_config(cls, params: TelemetryConfig) -> TelemetryReader:
+        """A reader (not started) for the ``telemetry`` settings; ``source`` must be set."""
+        if not params.source:
             raise InputError("no telemetry source configured (telemetry.source)")
-        buffer = TelemetryBuffer(max_gap=section["max_gap"], max_hold=section["max_hold"],
-                                 horizon=section["horizon"])
-        return cls(section["source"], buffer, link_timeout=section["link_timeout"],
-                   send_heartbeat=section["send_heartbeat"], baud=section["baud"],
-                   source_system=section["source_system"])
+        buffer = TelemetryBuffer(max_gap=params.max_gap, max_hold=params.max_hold, horizon=params.horizon)
+        return cls(params.source, buffer, link_timeout=params.link_timeout,
+                   send_heartbeat=params.send_heartbeat, baud=params.baud,
+                   source_system=params.source_system)
 
     def start(self) -> TelemetryReader:
         """Open the link (errors raise here, in the caller's thread) and start reading."""

@@ -11,7 +11,7 @@ from typing import Iterator
 import cv2
 from photomap.errors import InputError
 
-from photomap.drivers.capture import CaptureStats, Frame, SourceBase
+from photomap.drivers.frames import CaptureStats, Frame, SourceBase
 
 log = logging.getLogger(__name__)
 

@@ -1,12 +1,20 @@
-"""The one YAML config: ``config/default.yaml`` documents every key; files and ``--set`` override it.
+"""Typed configuration: one frozen dataclass per section of ``config/default.yaml``.
 
-An override may only name keys that exist in the defaults, with a value of the same type
-(an int is accepted where a float is expected; a key whose default is ``null`` takes any scalar).
+The dataclasses below are the one source of defaults; ``config/default.yaml`` documents every
+key with the same values (a test keeps the two equal). A YAML file (``--config``) and
+``section.key=value`` items (``--set``) override them. Every value is checked when the config is
+built, by type and by value (range or allowed choices): a wrong key or value is a
+:class:`~photomap.errors.ConfigError` naming the key and what it accepts, before any frame is
+read. Components take their section (e.g. :class:`RegistrationConfig`), never a dict.
 """
 
 from __future__ import annotations
 
-import sys
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -14,74 +22,414 @@ import yaml
 
 from photomap.errors import ConfigError
 
-_CANDIDATES = (
-    Path(__file__).resolve().parents[1] / "config" / "default.yaml",  # source checkout / editable
-    Path(sys.prefix) / "share" / "photomap" / "config" / "default.yaml",  # wheel install
-)
+__all__ = ["Config", "RegistrationConfig", "MappingConfig", "OutputConfig", "CaptureConfig",
+           "TelemetryConfig", "MosaicConfig", "SimulateConfig", "ViewerConfig", "CameraConfig",
+           "GeorefConfig", "PosegraphConfig", "load_config", "parse_set", "default_config_path"]
 
 
-def default_config_path() -> Path:
-    """Path of the bundled ``default.yaml``."""
-    for path in _CANDIDATES:
-        if path.is_file():
-            return path
-    raise ConfigError("config/default.yaml not found: reinstall photomap")
+def _num(default: float | int | None, lo: float | None = None, hi: float | None = None, *,
+         lo_open: bool = False, hi_open: bool = False) -> Any:
+    """A numeric field with an allowed range (``lo_open``/``hi_open``: the bound is excluded)."""
+    return field(default=default, metadata={"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open})
 
 
-def _read_yaml(path: Path) -> dict:
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"config file {path} must hold a mapping of sections")
-    return data
+def _choice(default: Any, *choices: Any) -> Any:
+    """A field that takes one of ``choices``."""
+    return field(default=default, metadata={"choices": choices})
 
 
-def _check_type(key: str, default: Any, value: Any) -> Any:
-    if default is None:
-        return value
-    if isinstance(default, bool):
+class _Section:
+    """Validation shared by the section dataclasses (types from the annotations, ranges and
+    choices from the field metadata); ``_name`` is the section's key in the YAML."""
+
+    _name = ""
+
+    def __post_init__(self) -> None:
+        hints = typing.get_type_hints(type(self))
+        for f in dataclasses.fields(self):
+            key = f"{self._name}.{f.name}"
+            value = _coerce(key, hints[f.name], getattr(self, f.name))
+            object.__setattr__(self, f.name, value)
+            _check_value(key, value, f.metadata)
+        self._check()
+
+    def _check(self) -> None:
+        """Checks across keys (override)."""
+
+    def _fail(self, key: str, message: str) -> None:
+        raise ConfigError(f"config key '{self._name}.{key}' {message}")
+
+
+def _type_name(tp: Any) -> str:
+    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(tp, str(tp))
+
+
+def _coerce(key: str, tp: Any, value: Any) -> Any:
+    """``value`` as type ``tp`` (an int is accepted for a float; lists for tuples), or ConfigError."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(key, args[0], value)
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)) or len(value) != len(args):
+            raise ConfigError(f"config key '{key}' must be a list of {len(args)} numbers, got {value!r}")
+        return tuple(_coerce(key, a, v) for a, v in zip(args, value))
+    if tp is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"config key '{key}' must be true or false, got {value!r}")
         return value
-    if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise ConfigError(f"config key '{key}' must be a number, got {value!r}")
         return float(value)
-    if isinstance(default, int):
+    if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"config key '{key}' must be an integer, got {value!r}")
         return value
-    if isinstance(default, str):
+    if tp is str:
         if not isinstance(value, str):
             raise ConfigError(f"config key '{key}' must be a string, got {value!r}")
         return value
-    if isinstance(default, list):
-        if not isinstance(value, list):
-            raise ConfigError(f"config key '{key}' must be a list, got {value!r}")
-        return value
-    return value
+    raise TypeError(f"config key '{key}': unsupported type {tp!r}")  # a programming error
 
 
-def _merge(base: dict, override: dict, prefix: str = "") -> None:
+def _check_value(key: str, value: Any, meta: typing.Mapping[str, Any]) -> None:
+    if value is None:
+        return
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        allowed = ", ".join(str(c) for c in choices)
+        raise ConfigError(f"config key '{key}' must be one of {allowed}; got {value!r}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if lo is None and hi is None:
+        return
+    for v in value if isinstance(value, tuple) else (value,):
+        low_bad = lo is not None and (v <= lo if meta.get("lo_open") else v < lo)
+        high_bad = hi is not None and (v >= hi if meta.get("hi_open") else v > hi)
+        if low_bad or high_bad:
+            left = "(" if meta.get("lo_open") else "["
+            right = ")" if meta.get("hi_open") else "]"
+            span = f"{left}{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}{right}"
+            raise ConfigError(f"config key '{key}' must be in {span}; got {value!r}")
+
+
+# ---------------------------------------------------------------------------------- sections
+@dataclass(frozen=True)
+class RegistrationConfig(_Section):
+    """iFMI registration (:class:`photomap.core.ifmi.Registrar`); ``working_size`` is the
+    pipeline's downscaling before registration."""
+
+    _name = "registration"
+    working_size: int = _num(320, 0, 16384)
+    window: str = _choice("tukey", "tukey", "hann", "circular")
+    window_taper: float = _num(0.5, 0.0, 1.0)
+    angle_bins: int = _num(0, 0, 8192)
+    radius_bins: int = _num(0, 0, 8192)
+    band_low: float = _num(0.02, 0.0, 0.5, lo_open=True, hi_open=True)
+    band_high: float = _num(0.45, 0.0, 0.5, lo_open=True)
+    snr_weighting: bool = True
+    peak_sigma: float = _num(0.18, 0.0, 10.0, lo_open=True)
+    candidate_ratio: float = _num(0.6, 0.0, 1.0, lo_open=True)
+    max_candidates: int = _num(3, 1, 32)
+    refine_iterations: int = _num(20, 0, 1000)
+
+    def _check(self) -> None:
+        if 0 < self.working_size < 16:
+            self._fail("working_size", f"must be 0 (full resolution) or at least 16; got {self.working_size}")
+        if self.band_low >= self.band_high:
+            self._fail("band_low", f"must be below registration.band_high ({self.band_high}); got {self.band_low}")
+
+
+@dataclass(frozen=True)
+class MappingConfig(_Section):
+    """Poses, keyframes, segments, loop closure (:mod:`photomap.core.tracking`,
+    :mod:`photomap.mapping.loopclosure`)."""
+
+    _name = "mapping"
+    min_confidence: float = _num(0.12, 0.0, 1.0)
+    max_lost_frames: int = _num(10, 0, 100000)
+    keyframes: bool = True
+    keyframe_confidence: float = _num(0.5, 0.0, 1.0)
+    keyframe_max_shift: float = _num(0.5, 0.0, 10.0, lo_open=True)
+    motion_prior: bool = True
+    prior_angle_tol_deg: float = _num(20.0, 0.0, 180.0, lo_open=True)
+    prior_scale_tol: float = _num(0.15, 0.0, 10.0, lo_open=True)
+    map_scale: float = _num(1.0, 0.0, 16.0, lo_open=True)
+    map_relative: bool = False
+    loop_closure: bool = True
+    loop_min_gap: int = _num(8, 1, 100000)
+    loop_radius: float = _num(0.35, 0.0, 100.0, lo_open=True)
+    loop_min_confidence: float = _num(0.25, 0.0, 1.0)
+    loop_candidates: int = _num(2, 1, 1000)
+    optimize_in_background: bool = True
+
+
+@dataclass(frozen=True)
+class OutputConfig(_Section):
+    """What a run writes and how often (:mod:`photomap.mapping.pipeline`)."""
+
+    _name = "output"
+    checkpoint_interval: float = _num(10.0, 0.0, None)
+    max_mosaic_px: int = _num(8192, 64, 1 << 20)
+    preview_px: int = _num(1024, 16, 1 << 16)
+    data_dir: str = "~/photomap-flights"
+
+
+@dataclass(frozen=True)
+class CaptureConfig(_Section):
+    """Frame sources (:mod:`photomap.drivers`)."""
+
+    _name = "capture"
+    width: int = _num(0, 0, 16384)
+    height: int = _num(0, 0, 16384)
+    fps: float = _num(0.0, 0.0, 1000.0)
+    fourcc: str = ""
+    queue_size: int = _num(4, 1, 1000)
+    read_failures: int = _num(5, 1, 100000)
+    reconnect_initial: float = _num(0.5, 0.0, 3600.0, lo_open=True)
+    reconnect_max: float = _num(8.0, 0.0, 3600.0, lo_open=True)
+    image_rate: float = _num(1.0, 0.0, 1000.0, lo_open=True)
+
+    def _check(self) -> None:
+        if len(self.fourcc) not in (0, 4):
+            self._fail("fourcc", f"must be a 4-character code such as MJPG, or empty; got {self.fourcc!r}")
+        if self.reconnect_max < self.reconnect_initial:
+            self._fail("reconnect_max", f"must be at least capture.reconnect_initial ({self.reconnect_initial})")
+
+
+@dataclass(frozen=True)
+class TelemetryConfig(_Section):
+    """MAVLink telemetry and how the map uses it (:mod:`photomap.drivers.mavlink`,
+    :mod:`photomap.mapping.telemetry_join`)."""
+
+    _name = "telemetry"
+    source: str = ""
+    baud: int = _num(57600, 1, 10_000_000)
+    max_gap: float = _num(2.0, 0.0, 3600.0, lo_open=True)
+    max_hold: float = _num(0.5, 0.0, 3600.0)
+    horizon: float = _num(120.0, 0.0, 1e6, lo_open=True)
+    link_timeout: float = _num(2.0, 0.0, 3600.0, lo_open=True)
+    send_heartbeat: bool = False
+    send_statustext: bool = False
+    source_system: int = _num(1, 1, 255)
+    use_priors: bool = True
+    prior_angle_tol_deg: float = _num(5.0, 0.0, 180.0, lo_open=True)
+    prior_scale_tol: float = _num(0.05, 0.0, 10.0, lo_open=True)
+    rectify_tilt: bool = True
+    time_offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class MosaicConfig(_Section):
+    """The tiled map (:class:`photomap.core.mosaic.TiledMosaic`)."""
+
+    _name = "mosaic"
+    tile_size: int = _num(256, 16, 8192)
+    channels: int = _choice(3, 1, 3)
+    blend: str = _choice("overwrite", "overwrite", "feather")
+    border: int = _num(1, 0, 1000)
+    max_tiles_in_memory: int | None = _num(None, 1, None)
+    cache_dir: str | None = None
+    max_footprint_px: int = _num(16777216, 1, None)
+
+
+@dataclass(frozen=True)
+class SimulateConfig(_Section):
+    """The simulated flight (:mod:`photomap.sim`)."""
+
+    _name = "simulate"
+    terrain: str = "aukerman"
+    terrain_zoom: float = _num(0.0, 0.0, 64.0)
+    terrain_size: str = "4096x4096"
+    gsd: float = _num(0.0, 0.0, 1000.0)
+    frames: int = _num(300, 1, 10_000_000)
+    size: str = "640x480"
+    fps: float = _num(30.0, 0.0, 1000.0, lo_open=True)
+    seed: int = 0
+    hfov_deg: float = _num(60.0, 0.0, 179.0, lo_open=True)
+    pattern: str = _choice("random", "random", "lawnmower", "figure8")
+    speed: float = _num(8.0, 0.0, 1000.0)
+    yaw_mode: str = _choice("random", "random", "constant", "heading", "fixed")
+    yaw_rate: float = _num(15.0, 0.0, 3600.0)
+    yaw0: float | None = None
+    altitude: tuple[float, float] = _num((50.0, 70.0), 0.0, 100000.0, lo_open=True)
+    scale_rate: float = _num(0.05, 0.0, 10.0)
+    tilt: float = _num(0.0, 0.0, 80.0)
+    period_s: float = _num(10.0, 0.0, 1e6, lo_open=True)
+    side_overlap: float = _num(0.3, 0.0, 1.0, hi_open=True)
+    gain_drift: float = _num(0.0, 0.0, 1.0)
+    blur: float = _num(0.0, 0.0, 100.0)
+    noise: float = _num(0.0, 0.0, 255.0)
+    jpeg_quality: int = _num(0, 0, 100)
+    save_frames: bool = False
+    frames_format: str = _choice("png", "png", "jpg")
+    origin_lat: float = _num(41.1, -90.0, 90.0)
+    origin_lon: float = _num(-81.7, -180.0, 180.0)
+    origin_amsl: float = 300.0
+    t0_unix: float = _num(0.0, 0.0, None)
+    boot_offset_s: float = _num(60.0, 0.0, None)
+    video_codec: str = _choice("mp4v", "mp4v", "mjpg", "ffv1")
+
+    def _check(self) -> None:
+        if self.altitude[0] > self.altitude[1]:
+            self._fail("altitude", f"must be [min, max] with min <= max; got {list(self.altitude)}")
+        for key in ("terrain_size", "size"):
+            w, _, h = getattr(self, key).lower().partition("x")
+            if not (w.isdigit() and h.isdigit() and int(w) >= 16 and int(h) >= 16):
+                self._fail(key, f"must be WxH in pixels (each at least 16), e.g. 640x480; got {getattr(self, key)!r}")
+
+
+@dataclass(frozen=True)
+class ViewerConfig(_Section):
+    """The live rerun view (:mod:`photomap.live.viewer`)."""
+
+    _name = "viewer"
+    mode: str = "none"
+    port: int = _num(9876, 1, 65535)
+    server_memory_limit: str = "256MB"
+    queue_size: int = _num(32, 1, 100000)
+    tile_hz: float = _num(2.0, 0.0, 1000.0, lo_open=True)
+    max_tiles: int = _num(64, 1, 100000)
+    camera_hz: float = _num(5.0, 0.0, 1000.0, lo_open=True)
+    camera_px: int = _num(480, 16, 16384)
+    jpeg_quality: int = _num(75, 1, 100)
+    trajectory_every: int = _num(30, 1, 1_000_000)
+    trajectory_max_points: int = _num(2000, 2, 10_000_000)
+    color_by: str = _choice("confidence", "confidence", "segment")
+
+
+@dataclass(frozen=True)
+class CameraConfig(_Section):
+    """The camera model of the input frames (metric scale, tilt rectification)."""
+
+    _name = "camera"
+    fx_px: float = _num(0.0, 0.0, None)
+    hfov_deg: float = _num(0.0, 0.0, 180.0, hi_open=True)
+
+
+@dataclass(frozen=True)
+class GeorefConfig(_Section):
+    """Georeference from GPS and the time offset check (:mod:`photomap.geo.georef`,
+    :mod:`photomap.telemetry.timesync`)."""
+
+    _name = "georef"
+    gps_inlier_m: float = _num(10.0, 0.0, None, lo_open=True)
+    min_extent_m: float = _num(20.0, 0.0, None)
+    min_fixes: int = _num(5, 2, None)
+    timesync_window_s: float = _num(10.0, 0.0, 3600.0)
+    timesync_min_correlation: float = _num(0.9, 0.0, 1.0)
+    timesync_min_yaw_rate: float = _num(2.0, 0.0, 3600.0)
+
+
+@dataclass(frozen=True)
+class PosegraphConfig(_Section):
+    """Drift correction of keyframe poses (:mod:`photomap.core.posegraph`)."""
+
+    _name = "posegraph"
+    sigma_px: float = _num(1.0, 0.0, None, lo_open=True)
+    min_confidence: float = _num(0.05, 0.0, 1.0, lo_open=True)
+    robust: str = _choice("cauchy", "cauchy", "soft_l1", "huber", "linear")
+    f_scale: float = _num(3.0, 0.0, None, lo_open=True)
+    outlier_sigma: float = _num(4.0, 0.0, None, lo_open=True)
+    solver: str = _choice("lm", "lm", "trf")
+    max_nfev: int = _num(100, 1, 1_000_000)
+    heading_sigma_deg: float = _num(5.0, 0.0, 180.0, lo_open=True)
+    altitude_sigma: float = _num(0.02, 0.0, 10.0, lo_open=True)
+    gps_sigma_m: float = _num(3.0, 0.0, None, lo_open=True)
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration: one typed section per YAML section."""
+
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    capture: CaptureConfig = field(default_factory=CaptureConfig)
+    telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    mosaic: MosaicConfig = field(default_factory=MosaicConfig)
+    simulate: SimulateConfig = field(default_factory=SimulateConfig)
+    viewer: ViewerConfig = field(default_factory=ViewerConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    georef: GeorefConfig = field(default_factory=GeorefConfig)
+    posegraph: PosegraphConfig = field(default_factory=PosegraphConfig)
+
+    def to_dict(self) -> dict:
+        """Plain nested mapping (YAML/JSON-able; tuples become lists)."""
+        return {f.name: {k: list(v) if isinstance(v, tuple) else v
+                         for k, v in dataclasses.asdict(getattr(self, f.name)).items()}
+                for f in dataclasses.fields(self)}
+
+    def updated(self, changes: typing.Mapping[str, Any] | str | Iterable[str]) -> Config:
+        """A copy with ``changes`` applied: a nested mapping (``{"mapping": {"keyframes": False}}``)
+        or ``section.key=value`` items; checked like a config file."""
+        if isinstance(changes, str):
+            changes = [changes]
+        if not isinstance(changes, typing.Mapping):
+            merged: dict = {}
+            for item in changes:
+                _deep_update(merged, parse_set(item))
+            changes = merged
+        return _build(_merged(self.to_dict(), changes, ""))
+
+
+def _deep_update(base: dict, extra: dict) -> None:
+    for k, v in extra.items():
+        if isinstance(v, dict) and isinstance(base.get(k), dict):
+            _deep_update(base[k], v)
+        else:
+            base[k] = v
+
+
+def _merged(base: dict, override: typing.Mapping, prefix: str) -> dict:
+    """``base`` with ``override`` applied; unknown keys and sections given a scalar are errors."""
+    out = dict(base)
     for key, value in override.items():
         name = f"{prefix}{key}"
         if key not in base:
             known = ", ".join(sorted(base))
             raise ConfigError(f"unknown config key '{name}' (known here: {known})")
         if isinstance(base[key], dict):
-            if not isinstance(value, dict):
+            if not isinstance(value, typing.Mapping):
                 raise ConfigError(f"config key '{name}' is a section and needs a mapping")
-            _merge(base[key], value, f"{name}.")
+            out[key] = _merged(base[key], value, f"{name}.")
         else:
-            base[key] = _check_type(name, base[key], value)
+            if isinstance(value, typing.Mapping):
+                raise ConfigError(f"config key '{name}' is not a section; got a mapping")
+            out[key] = value
+    return out
+
+
+def _build(data: dict) -> Config:
+    sections = {f.name: f.default_factory for f in dataclasses.fields(Config)}  # type: ignore[misc]
+    return Config(**{name: cls(**data[name]) for name, cls in sections.items()})
+
+
+def default_config_path() -> Path:
+    """Path of ``config/default.yaml`` in a source checkout (the documented defaults)."""
+    return Path(__file__).resolve().parents[1] / "config" / "default.yaml"
+
+
+def read_yaml(path: str | Path) -> dict:
+    """A config file as a nested mapping; unreadable or malformed files are a ConfigError."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError(f"config file {path} is not UTF-8 text") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {' '.join(str(exc).split())}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path} must hold a mapping of sections")
+    return data
 
 
 def parse_set(item: str) -> dict:
@@ -102,16 +450,11 @@ def parse_set(item: str) -> dict:
     return out
 
 
-def defaults() -> dict:
-    """The bundled defaults, freshly read."""
-    return _read_yaml(default_config_path())
-
-
-def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> dict:
-    """Defaults, then the file at ``path``, then each ``key=value`` of ``overrides``."""
-    cfg = defaults()
+def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
+    """The defaults, then the YAML file at ``path``, then each ``section.key=value`` of ``overrides``."""
+    data = Config().to_dict()
     if path is not None:
-        _merge(cfg, _read_yaml(Path(path)))
+        data = _merged(data, read_yaml(path), "")
     for item in overrides:
-        _merge(cfg, parse_set(item))
-    return cfg
+        data = _merged(data, parse_set(item), "")
+    return _build(data)

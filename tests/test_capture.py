@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from photomap.drivers.camera import CameraSource, backoff_delays
-from photomap.drivers.capture import Frame, FrameSource, open_source
+from photomap.drivers.frames import Frame, FrameSource
+from photomap.drivers.capture import open_source
 from photomap.drivers.images import ImageFolderSource, exif_time, parse_exif_datetime
 from photomap.drivers.video import VideoFileSource, mp4_creation_time
 from photomap.errors import InputError

@@ -73,8 +73,8 @@ def test_unit_hardening_leaves_the_data_and_cache_folders_writable(unit):
     env = dict(item.split("=", 1) for item in _words(service["Environment"]))
     assert _under(env["TMPDIR"], writable)  # spilled map tiles
     cfg = load_config(ONBOARD)
-    assert _under(cfg["output"]["data_dir"], writable)
-    assert _under(str(flight_folder(cfg["output"]["data_dir"])), writable)
+    assert _under(cfg.output.data_dir, writable)
+    assert _under(str(flight_folder(cfg.output.data_dir)), writable)
     for kind in ("StateDirectory", "CacheDirectory"):
         assert _under(f"/var/{'lib' if kind == 'StateDirectory' else 'cache'}/{service[kind]}", writable)
 
@@ -82,11 +82,11 @@ def test_unit_hardening_leaves_the_data_and_cache_folders_writable(unit):
 def test_onboard_config_loads_over_the_defaults():
     cfg = load_config(ONBOARD)
     defaults = load_config()
-    assert cfg["output"]["data_dir"] == "/var/lib/photomap/flights"
-    assert cfg["mosaic"]["max_tiles_in_memory"] == 256
-    assert (cfg["capture"]["width"], cfg["capture"]["height"]) == (640, 480)
-    assert cfg["output"]["max_mosaic_px"] == 4096
-    assert cfg["registration"] == defaults["registration"]  # only the keys it names change
+    assert cfg.output.data_dir == "/var/lib/photomap/flights"
+    assert cfg.mosaic.max_tiles_in_memory == 256
+    assert (cfg.capture.width, cfg.capture.height) == (640, 480)
+    assert cfg.output.max_mosaic_px == 4096
+    assert cfg.registration == defaults.registration  # only the keys it names change
 
 
 def test_missing_camera_is_a_failure_that_systemd_restarts(capsys):

@@ -129,13 +129,14 @@ def test_the_viewer_shows_the_corrected_trajectory(terrains, tmp_path):
     pytest.importorskip("rerun")
     from rerun.chunk import RrdReader
 
+    from photomap.config import ViewerConfig
     from photomap.live.viewer import Viewer
 
     seq = closed_flight(*terrains["textured"], "figure8", 1)
     rrd = tmp_path / "view.rrd"
-    viewer = Viewer("save", str(rrd), trajectory_every=10)
+    viewer = Viewer("save", str(rrd), ViewerConfig(trajectory_every=10))
     pipeline = MappingPipeline(ListSource(seq.frames), load_config(overrides=LOOPS), tmp_path / "run",
-                               on_frame=viewer.on_frame)
+                               sinks=[viewer.on_frame])
     summary = pipeline.run()
     viewer.close()
     assert summary["loop_closure"]["corrections"] >= 1
@@ -159,7 +160,8 @@ def test_loop_closure_with_telemetry_priors(tmp_path):
     """Heading, height and GPS of the keyframes enter the pose graph; the loop still closes."""
     from photomap.cli.replay import replay
     from photomap.sim.simulate import simulate_flight
-    from photomap.eval.metrics import evaluate_trajectory, frame_centre
+    from photomap.geometry import frame_centre
+    from photomap.eval.metrics import evaluate_trajectory
     from photomap.io.trajectory_files import read_groundtruth
 
     flight = simulate_flight(tmp_path / "flight", n_frames=220, size=(320, 240), fps=10.0, seed=2,

@@ -21,9 +21,11 @@ from photomap.sim.flight import (Camera, Motion, Truth, apply_homography, build_
                             pose_homography, relative_matrix, render_view)
 from photomap.geo.georef import (aux_xml_text, compose, enu_from_latlon, epsg_zone, fit_georeference, focal_px,
                             latlon_from_enu, map_heading_deg, metres_per_pixel, nadir_homography, nadir_pixel,
-                            parse_world_file, png_to_map, pose_angle_deg, pose_scale, prj_text, telemetry_prior,
+                            parse_world_file, png_to_map, prj_text, telemetry_prior,
                             utm_epsg, utm_forward, utm_inverse, utm_zone, world_file_text)
+from photomap.config import MosaicConfig
 from photomap.core.mosaic import TiledMosaic
+from photomap.geometry import pose_angle_deg, pose_scale
 from photomap.telemetry.samples import TelemetrySample
 from photomap.telemetry.timesync import estimate_time_offset
 
@@ -224,7 +226,7 @@ def _centroid(img: np.ndarray) -> np.ndarray:
 def test_png_to_map_locates_a_rendered_mosaic_feature():
     """A smooth blob drawn into the map is found at the same map coordinates through a
     downscaled render's origin and scale (its centroid survives area averaging)."""
-    mosaic = TiledMosaic(tile_size=64, channels=1, border=0)
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64, channels=1, border=0))
     v, u = np.mgrid[:160, :200]
     blob = 240.0 * np.exp(-((u - 93.3) ** 2 + (v - 71.8) ** 2) / (2 * 10.0 ** 2))
     frame = np.round(10.0 + blob).astype(np.uint8)

@@ -9,7 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from photomap.core.ifmi import Prior, Registrar, similarity_matrix
+from photomap.config import RegistrationConfig
+from photomap.core.ifmi import Prior, Registrar
+from photomap.geometry import similarity_matrix
 from photomap.sim.terrain import BUNDLED
 
 TERRAIN_PATH = BUNDLED["aukerman"]
@@ -108,7 +110,7 @@ def test_subpixel_peak_fit_is_unbiased_without_refinement():
     """Pure fractional translations: the Gaussian fit leaves no systematic bias."""
     shape = (256, 256)
     big = smooth_noise((600, 600), 1.5, seed=3)
-    reg = Registrar(shape, refine_iterations=0)
+    reg = Registrar(shape, RegistrationConfig(refine_iterations=0))
     errors = []
     for frac in np.linspace(0.0, 0.9, 10):
         a, b, truth = cut_pair(big, shape, 0.0, 1.0, (7.0 + frac, -3.0 - frac / 2), centre=(300.0, 300.0))
@@ -121,8 +123,8 @@ def test_subpixel_peak_fit_is_unbiased_without_refinement():
 
 def test_refinement_improves_rotation_precision(terrain):
     shape = (256, 256)
-    coarse = Registrar(shape, refine_iterations=0)
-    fine = Registrar(shape, refine_iterations=2)
+    coarse = Registrar(shape, RegistrationConfig(refine_iterations=0))
+    fine = Registrar(shape, RegistrationConfig(refine_iterations=2))
     rng = np.random.default_rng(7)
     err_c, err_f = [], []
     for _ in range(8):
@@ -199,7 +201,7 @@ def test_periodic_ground_is_ambiguous_and_the_prior_decides():
     shape = (256, 256)
     rng = np.random.default_rng(2)
     field = np.tile(smooth_noise((600, 24), 1.2, seed=4), (1, 26))
-    reg = Registrar(shape, refine_iterations=0)
+    reg = Registrar(shape, RegistrationConfig(refine_iterations=0))
     a, b, _ = cut_pair(field, shape, 0.0, 1.0, (12.0, 3.0), centre=(360.0, 300.0))
     a = np.clip(a + rng.normal(0, 2.0, a.shape), 0, 255).astype(np.uint8)
     b = np.clip(b + rng.normal(0, 2.0, b.shape), 0, 255).astype(np.uint8)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import random
@@ -384,7 +385,7 @@ def test_replay_cli_errors(tmp_path, capsys):
 
 
 def test_reader_from_config_streams_a_log_paced(synthetic):
-    cfg = load_config(overrides=[f"telemetry.source={synthetic[0]}"])["telemetry"]
+    cfg = load_config(overrides=[f"telemetry.source={synthetic[0]}"]).telemetry
     reader = TelemetryReader.from_config(cfg)
     reader.speed = 50.0
     with reader:
@@ -392,9 +393,8 @@ def test_reader_from_config_streams_a_log_paced(synthetic):
     loaded, _ = load_tlog(synthetic[0])
     assert reader.stats.messages == synthetic[1]
     np.testing.assert_array_equal(reader.buffer.series("yaw")[1], loaded.series("yaw")[1])  # NaN = gap
-    cfg["source"] = ""
     with pytest.raises(InputError, match="telemetry.source"):
-        TelemetryReader.from_config(cfg)
+        TelemetryReader.from_config(dataclasses.replace(cfg, source=""))
 
 
 def test_link_wraps_an_open_connection(synthetic):

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from photomap.config import defaults
+from photomap.config import MosaicConfig, load_config
 from photomap.errors import ConfigError, InputError
 from photomap.core.mosaic import TiledMosaic
 from photomap.io.tilestore import DiskTileStore, MemoryTileStore
@@ -35,7 +35,7 @@ def shift(dx: float, dy: float) -> np.ndarray:
 @pytest.mark.parametrize("blend", ["overwrite", "feather"])
 def test_identity_reproduces_frame_pixels(blend):
     frame = noise(100, 150)
-    m = TiledMosaic(tile_size=64, blend=blend)
+    m = TiledMosaic(MosaicConfig(tile_size=64, blend=blend))
     touched = m.add(frame, shift(0, 0))
     assert touched == {(tx, ty) for tx in range(3) for ty in range(2)}
     assert m.bounds() == (1, 1, 148, 98)  # the 1 px border stays out
@@ -48,7 +48,7 @@ def test_identity_reproduces_frame_pixels(blend):
 @pytest.mark.parametrize("blend", ["overwrite", "feather"])
 def test_integer_translation_across_tiles(blend):
     frame = noise(90, 120, seed=1)
-    m = TiledMosaic(tile_size=32, blend=blend)
+    m = TiledMosaic(MosaicConfig(tile_size=32, blend=blend))
     m.add(frame, shift(70, 45))
     image, alpha, origin = m.render(bounds=(71, 46, 118, 88))
     assert origin == (71, 46)
@@ -63,7 +63,7 @@ def test_rotation_90_deg_reproduces_rotated_frame():
     frame = noise(60, 80, seed=2)
     a = math.radians(90)  # cos(a) is 6e-17, not 0: the placement must still be exact
     M = np.array([[math.cos(a), -math.sin(a), 200.0], [math.sin(a), math.cos(a), 10.0]])
-    m = TiledMosaic(tile_size=64)
+    m = TiledMosaic(MosaicConfig(tile_size=64))
     m.add(frame, M)
     # frame (u, v) -> map (200 - v, 10 + u): the frame turned clockwise on screen
     image, alpha, origin = m.render()
@@ -74,7 +74,7 @@ def test_rotation_90_deg_reproduces_rotated_frame():
 
 def test_negative_coordinates_make_negative_tile_keys():
     frame = noise(50, 70, seed=3)
-    m = TiledMosaic(tile_size=64)
+    m = TiledMosaic(MosaicConfig(tile_size=64))
     touched = m.add(frame, shift(-100, -40))
     # covered map pixels x in [-99, -32), y in [-39, 9)
     assert touched == {(-2, -1), (-1, -1), (-2, 0), (-1, 0)}
@@ -90,7 +90,7 @@ def test_negative_coordinates_make_negative_tile_keys():
 
 
 def test_uncovered_pixels_are_empty_not_black():
-    m = TiledMosaic(tile_size=32)
+    m = TiledMosaic(MosaicConfig(tile_size=32))
     m.add(np.zeros((20, 20, 3), np.uint8), shift(0, 0))  # a black frame
     m.add(np.full((20, 20, 3), 9, np.uint8), shift(40, 0))
     image, alpha, origin = m.render()
@@ -101,12 +101,12 @@ def test_uncovered_pixels_are_empty_not_black():
 
 def test_gray_frames_into_gray_and_colour_maps():
     gray = noise(40, 40, channels=1, seed=4)[..., 0]
-    g = TiledMosaic(tile_size=32, channels=1)
+    g = TiledMosaic(MosaicConfig(tile_size=32, channels=1))
     g.add(gray, shift(0, 0))
     image, _, _ = g.render()
     assert image.shape == (38, 38)
     np.testing.assert_array_equal(image, gray[1:-1, 1:-1])
-    c = TiledMosaic(tile_size=32)
+    c = TiledMosaic(MosaicConfig(tile_size=32))
     c.add(gray, shift(0, 0))
     image, _, _ = c.render()
     assert image.shape == (38, 38, 3)
@@ -117,7 +117,7 @@ def test_mask_keeps_invalid_pixels_out():
     frame = noise(40, 40, seed=5)
     mask = np.ones((40, 40), bool)
     mask[:, 20:] = False
-    m = TiledMosaic(tile_size=32)
+    m = TiledMosaic(MosaicConfig(tile_size=32))
     m.add(frame, shift(0, 0), mask=mask)
     assert m.bounds() == (1, 1, 18, 38)  # eroded by 1 px on every side of the valid part
 
@@ -125,7 +125,7 @@ def test_mask_keeps_invalid_pixels_out():
 # ---------------------------------------------------------------- blending
 def test_overwrite_puts_newest_on_top():
     dark, bright = np.full((40, 60, 3), 50, np.uint8), np.full((40, 60, 3), 200, np.uint8)
-    m = TiledMosaic(tile_size=32, blend="overwrite")
+    m = TiledMosaic(MosaicConfig(tile_size=32, blend="overwrite"))
     m.add(dark, shift(0, 0))
     m.add(bright, shift(30, 0))
     image, _, _ = m.render(bounds=(10, 10, 70, 1))
@@ -141,7 +141,7 @@ def test_dark_frame_edge_stays_out_at_subpixel_pose(blend):
     the black ring neither shows nor darkens the interpolated map pixels next to it."""
     frame = np.full((40, 50, 3), 200, np.uint8)
     frame[0, :] = frame[-1, :] = frame[:, 0] = frame[:, -1] = 0
-    m = TiledMosaic(tile_size=32, blend=blend)
+    m = TiledMosaic(MosaicConfig(tile_size=32, blend=blend))
     m.add(frame, shift(10.5, 20.25))
     image, alpha, _ = m.render()
     assert (image[alpha == 255] == 200).all()
@@ -151,7 +151,7 @@ def test_dark_frame_edge_stays_out_at_subpixel_pose(blend):
 def test_feather_reproduces_texture_from_two_frames():
     tex = smooth_texture(200, 300)
     a, b = tex[0:160, 0:200], tex[30:200, 110:300]  # offsets (0, 0) and (110, 30)
-    m = TiledMosaic(tile_size=64, blend="feather")
+    m = TiledMosaic(MosaicConfig(tile_size=64, blend="feather"))
     m.add(a, shift(0, 0))
     m.add(b, shift(110, 30))
     image, alpha, (x, y) = m.render(bounds=(1, 1, 298, 198))
@@ -177,7 +177,7 @@ def test_feather_has_no_seam_where_overwrite_has_one():
     truth = tex[1:119, 1:299]
     jumps = {}
     for blend in ("overwrite", "feather"):
-        m = TiledMosaic(tile_size=64, blend=blend)
+        m = TiledMosaic(MosaicConfig(tile_size=64, blend=blend))
         m.add(a, shift(0, 0))
         m.add(b, shift(100, 0))
         image, alpha, _ = m.render(bounds=rect)
@@ -221,11 +221,11 @@ class CheckingStore(MemoryTileStore):
 @pytest.mark.parametrize("blend", ["overwrite", "feather"])
 def test_cap_bounds_tiles_in_memory_and_render_is_unchanged(blend):
     frame = smooth_texture(60, 80, seed=2)
-    free = TiledMosaic(tile_size=32, blend=blend)
+    free = TiledMosaic(MosaicConfig(tile_size=32, blend=blend))
     _flight(free, frame)
     ref: list = []
     store = CheckingStore(ref, cap=3)
-    capped = TiledMosaic(tile_size=32, blend=blend, max_tiles_in_memory=3, store=store)
+    capped = TiledMosaic(MosaicConfig(tile_size=32, blend=blend, max_tiles_in_memory=3), store=store)
     ref.append(capped)
     for touched in _flight(capped, frame):
         assert capped.tiles_in_memory <= 3
@@ -239,10 +239,10 @@ def test_cap_bounds_tiles_in_memory_and_render_is_unchanged(blend):
 
 def test_spill_to_disk_is_lossless(tmp_path):
     frame = smooth_texture(60, 80, seed=3)
-    free = TiledMosaic(tile_size=32, blend="feather")
+    free = TiledMosaic(MosaicConfig(tile_size=32, blend="feather"))
     _flight(free, frame)
     store = DiskTileStore(tmp_path / "cache")
-    capped = TiledMosaic(tile_size=32, blend="feather", max_tiles_in_memory=4, store=store)
+    capped = TiledMosaic(MosaicConfig(tile_size=32, blend="feather", max_tiles_in_memory=4), store=store)
     _flight(capped, frame)
     files = sorted(p.name for p in (tmp_path / "cache").iterdir())
     assert files and all(n.startswith("tile_") and n.endswith(".npz") for n in files)  # no temp left
@@ -279,7 +279,7 @@ def test_disk_tile_store_round_trip(tmp_path):
 
 def test_clear_tiles_then_re_render(tmp_path):
     frame = noise(40, 40, seed=6)
-    m = TiledMosaic(tile_size=32, max_tiles_in_memory=1, store=DiskTileStore(tmp_path))
+    m = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=1), store=DiskTileStore(tmp_path))
     m.add(frame, shift(0, 0))
     m.add(frame, shift(100, 0))
     assert m.bounds() == (1, 1, 138, 38)
@@ -302,7 +302,7 @@ def test_clear_tiles_then_re_render(tmp_path):
 @pytest.mark.parametrize("scale", [0.5, 0.3])
 def test_downscaled_render_matches_inter_area(scale):
     frame = smooth_texture(150, 200, seed=4)
-    m = TiledMosaic(tile_size=64)
+    m = TiledMosaic(MosaicConfig(tile_size=64))
     a = math.radians(20)
     m.add(frame, np.array([[math.cos(a), -math.sin(a), 60.5], [math.sin(a), math.cos(a), -30.25]]))
     m.add(frame, shift(-70, 40))
@@ -324,7 +324,7 @@ def test_downscaled_render_matches_inter_area(scale):
 
 # ---------------------------------------------------------------- bad input and config
 def test_bad_input_is_an_input_error():
-    m = TiledMosaic(tile_size=32)
+    m = TiledMosaic(MosaicConfig(tile_size=32))
     frame = noise(10, 10)
     with pytest.raises(InputError, match="uint8"):
         m.add(frame.astype(np.float32), shift(0, 0))
@@ -342,11 +342,10 @@ def test_bad_input_is_an_input_error():
 
 
 def test_config_section_builds_a_mosaic():
-    section = defaults()["mosaic"]
-    kwargs = {k: v for k, v in section.items() if k != "cache_dir"}
-    m = TiledMosaic(**kwargs)
-    assert (m.tile_size, m.blend) == (section["tile_size"], section["blend"])
-    with pytest.raises(ConfigError, match="blend"):
-        TiledMosaic(blend="median")
-    with pytest.raises(ConfigError, match="store"):
-        TiledMosaic(max_tiles_in_memory=8)
+    section = load_config().mosaic
+    m = TiledMosaic(section)
+    assert (m.tile_size, m.blend) == (section.tile_size, section.blend)
+    with pytest.raises(ConfigError, match="mosaic.blend"):
+        MosaicConfig(blend="median")
+    with pytest.raises(ValueError, match="store"):
+        TiledMosaic(MosaicConfig(max_tiles_in_memory=8))

@@ -9,12 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from photomap.drivers.capture import CaptureStats, Frame
+from photomap.drivers.frames import CaptureStats, Frame
 from photomap.config import load_config
 from photomap.sim.flight import simulate_sequence
 from photomap.mapping.pipeline import MappingPipeline
 from photomap.sim.terrain import load_terrain, procedural_terrain, valid_mask
-from photomap.eval.metrics import GroundTruth, evaluate_trajectory, frame_centre
+from photomap.core.records import GroundTruth
+from photomap.geometry import frame_centre
+from photomap.eval.metrics import evaluate_trajectory
 from photomap.io.trajectory_files import read_trajectory_csv
 
 SIZE = (240, 320)  # (h, w)
@@ -151,14 +153,14 @@ def test_checkpoints_during_the_run(aukerman, tmp_path):
     seq = fly(*aukerman, 40, 8)
     seen = {}
 
-    def on_frame(frame, step, pipeline):
-        if frame.index == 30:
+    def on_frame(event):
+        if event.index == 30:
             seen["run"] = json.loads((tmp_path / "run.json").read_text())
             seen["rows"] = len(read_trajectory_csv(tmp_path / "trajectory.csv"))
             seen["preview"] = cv2.imread(str(tmp_path / "preview.png"), cv2.IMREAD_UNCHANGED)
 
     cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
-    MappingPipeline(ListSource(seq.frames), cfg, tmp_path, on_frame=on_frame).run()
+    MappingPipeline(ListSource(seq.frames), cfg, tmp_path, sinks=[on_frame]).run()
     assert seen["run"]["complete"] is False and seen["run"]["frames_in"] >= 29
     assert seen["rows"] >= 29
     assert seen["preview"] is not None and seen["preview"].shape[2] == 4

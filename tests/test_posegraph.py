@@ -7,6 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from photomap.config import PosegraphConfig
+from photomap.errors import ConfigError
 from photomap.core.posegraph import (PoseGraph, _Problem, correction, interpolate_corrections, optimize,
                                pose_matrix, pose_params)
 
@@ -48,7 +50,7 @@ def chained_graph(truth: np.ndarray, seed: int = 0, rot_bias_deg: float = 0.02, 
     """Nodes at the chained (drifting) poses; sequential edges with a known bias per edge; loop
     closures (exact truth + small noise) between every pair of frames >= 15 apart that overlap."""
     rng = np.random.default_rng(seed)
-    g = PoseGraph((W, H), sigma_px=1.0)
+    g = PoseGraph((W, H), PosegraphConfig(sigma_px=1.0))
     seq = [relative(truth, k, k + 1) @ about_centre(rot_bias_deg, 1 + scale_bias, rng.normal(0, t_noise, 2))
            for k in range(len(truth) - 1)]
     pose = truth[0]
@@ -87,7 +89,7 @@ def test_pose_params_roundtrip_and_centre_position():
 
 
 def test_edge_weight_from_confidence():
-    g = PoseGraph((W, H), sigma_px=0.5, min_confidence=0.1)
+    g = PoseGraph((W, H), PosegraphConfig(sigma_px=0.5, min_confidence=0.1))
     r = 0.5 * math.hypot(W, H)
     np.testing.assert_allclose(g.edge_sigmas(1.0), [0.5, 0.5, 0.5 / r, 0.5 / r])
     np.testing.assert_allclose(g.edge_sigmas(0.25), [2.0, 2.0, 2.0 / r, 2.0 / r])
@@ -152,7 +154,7 @@ def test_trf_solver_agrees_with_lm(truth):
     g, _ = chained_graph(truth[:120], loops=False)
     g.add_edge(0, 110, relative(truth, 0, 110), kind="loop")
     g.add_edge(20, 90, relative(truth, 20, 90), kind="loop")
-    lm, trf = optimize(g, solver="lm"), optimize(g, solver="trf")
+    lm, trf = optimize(g, PosegraphConfig(solver="lm")), optimize(g, PosegraphConfig(solver="trf"))
     assert trf.success and lm.success
     np.testing.assert_allclose(centres(trf.poses), centres(lm.poses), atol=0.05)
     assert trf.cost == pytest.approx(lm.cost, rel=1e-4)
@@ -162,11 +164,11 @@ def test_one_wrong_loop_closure_is_rejected_by_the_robust_loss(truth):
     g, _ = chained_graph(truth)
     # a confident but wrong closure: frames 40 and 150 do not overlap, the registration says they do
     wrong = g.add_edge(40, 150, about_centre(12.0, 1.08, (60.0, -35.0)), confidence=0.95, kind="loop")
-    good = optimize(g, robust="cauchy")
+    good = optimize(g, PosegraphConfig(robust="cauchy"))
     assert ate(good.poses, truth) < 3.0
     assert list(good.outliers) == [wrong]
     assert good.edge_norms[wrong] > 100
-    plain = optimize(g, robust="linear")
+    plain = optimize(g, PosegraphConfig(robust="linear"))
     assert ate(plain.poses, truth) > 10 * ate(good.poses, truth)  # without it one edge wrecks the map
     # the wrong edge keeps a small pull (Cauchy's influence decays as 1/residual): under 1 px here;
     # dropping it and re-optimising from the result gives the clean graph's answer
@@ -302,8 +304,8 @@ def test_bad_input_is_refused():
         g.add_edge(0, 1, np.diag([1.0, -1.0, 1.0]))
     with pytest.raises(ValueError, match="kind"):
         g.add_edge(0, 1, np.eye(3), kind="guess")
-    with pytest.raises(ValueError, match="robust"):
-        optimize(g, robust="l2")
+    with pytest.raises(ConfigError, match="posegraph.robust"):
+        optimize(g, PosegraphConfig(robust="l2"))
     with pytest.raises(ValueError, match="no nodes"):
         optimize(PoseGraph((W, H)))
     with pytest.raises(ValueError, match="edge indices"):

@@ -70,4 +70,4 @@ def test_unlinkable_stills_start_segments_not_a_corrupt_map(brighton_run):
     assert summary["frames_in"] == 18 and len(rows) == 18
     # every glued frame of a segment is linked to its predecessor with a confident registration
     for a, b in linked_pairs(rows):
-        assert b.confidence >= load_config()["mapping"]["min_confidence"]
+        assert b.confidence >= load_config().mapping.min_confidence

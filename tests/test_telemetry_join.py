@@ -152,7 +152,8 @@ def test_truncated_tlog(flight, tmp_path):
 
 
 def test_events_are_told_to_the_autopilot(flight, tmp_path):
-    """STATUSTEXT hook: mapping started, and a lost link to the map (a new segment)."""
+    """STATUSTEXT sink: mapping started, and a lost link to the map (a new segment)."""
+    from photomap.cli.wiring import statustext_sink
     from photomap.drivers.mavlink import load_tlog
     from photomap.mapping.telemetry_join import TelemetryJoin
     from photomap.mapping.pipeline import MappingPipeline
@@ -170,7 +171,7 @@ def test_events_are_told_to_the_autopilot(flight, tmp_path):
     meta = yaml.safe_load((flight / "meta.yaml").read_text())
     join = TelemetryJoin(buffer.at, "log", cfg, video_start=meta["t0_unix"])
     told = []
-    join.notify = told.append
-    MappingPipeline(ListSource(frames, fps=15.0), cfg, tmp_path, telemetry=join).run()
-    assert told[0] == "mapping started"
+    MappingPipeline(ListSource(frames, fps=15.0), cfg, tmp_path, telemetry=join,
+                    sinks=[statustext_sink(told.append)]).run()
+    assert told[0] == "photomap: mapping started"
     assert any("new segment" in text for text in told[1:])

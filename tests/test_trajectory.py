@@ -16,8 +16,9 @@ import pytest
 from photomap.cli import main as cli
 from photomap.eval import evaluate
 from photomap.errors import InputError
-from photomap.eval.metrics import (GroundTruth, PoseRow, angle_scale, evaluate_trajectory,
-                                frame_centre, local_linear, segment_metrics, umeyama)
+from photomap.core.records import GroundTruth, PoseRow
+from photomap.geometry import angle_scale, frame_centre, local_linear, umeyama
+from photomap.eval.metrics import evaluate_trajectory, segment_metrics
 from photomap.io.trajectory_files import (GROUNDTRUTH_COLUMNS, TRAJECTORY_COLUMNS, read_groundtruth,
                             read_trajectory_csv, write_json, write_trajectory_csv, write_tum)
 

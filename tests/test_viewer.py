@@ -12,7 +12,6 @@ import threading
 import time
 import warnings
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -21,12 +20,13 @@ import pytest
 rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (the `viewer` extra)")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from photomap.drivers.capture import CaptureStats, Frame  # noqa: E402
-from photomap.config import load_config  # noqa: E402
+from photomap.drivers.frames import CaptureStats, Frame  # noqa: E402
+from photomap.config import MosaicConfig, ViewerConfig, load_config  # noqa: E402
 from photomap.errors import ConfigError  # noqa: E402
 from photomap.core.mosaic import TiledMosaic  # noqa: E402
-from photomap.mapping.pipeline import MappingPipeline, RunStats  # noqa: E402
-from photomap.eval.metrics import frame_centre  # noqa: E402
+from photomap.mapping.events import FrameEvent  # noqa: E402
+from photomap.mapping.pipeline import MappingPipeline  # noqa: E402
+from photomap.geometry import frame_centre  # noqa: E402
 from photomap.live.viewer import Viewer, footprint_tiles, frame_outline, parse_viewer_mode  # noqa: E402
 
 W, H = 160, 120
@@ -105,7 +105,7 @@ def _has_entity(path: Path, entity: str) -> bool:
 
 def _run(viewer: Viewer, tmp_path: Path, source: ListSource | None = None) -> MappingPipeline:
     pipeline = MappingPipeline(source or ListSource(_frames()), load_config(), tmp_path / "out",
-                               on_frame=viewer.on_frame)
+                               sinks=[viewer.on_frame])
     pipeline.run()
     viewer.close()
     return pipeline
@@ -149,7 +149,7 @@ def test_outline_and_footprint_tiles_cover_what_the_mosaic_changes():
     outline = frame_outline(pose, W, H)
     assert outline.shape == (5, 2) and np.allclose(outline[0], outline[-1])
     assert np.allclose(outline[2], pose @ (W - 0.5, H - 0.5, 1.0))
-    mosaic = TiledMosaic(tile_size=64)
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
     touched = mosaic.add(np.full((H, W, 3), 128, np.uint8), pose)
     predicted = footprint_tiles(pose, W, H, 64)
     assert touched <= predicted
@@ -159,7 +159,7 @@ def test_outline_and_footprint_tiles_cover_what_the_mosaic_changes():
 # --------------------------------------------------------------------------- save mode, read back
 def test_saved_recording_matches_the_run(tmp_path):
     rrd = tmp_path / "run.rrd"
-    viewer = Viewer("save", str(rrd), tile_hz=4.0, jpeg_quality=95, trajectory_every=10)
+    viewer = Viewer("save", str(rrd), ViewerConfig(tile_hz=4.0, jpeg_quality=95, trajectory_every=10))
     pipeline = _run(viewer, tmp_path)
     assert pipeline.stats.frames_in == N_FRAMES and viewer.stats.errors == 0
     assert viewer.stats.dropped == 0
@@ -209,14 +209,20 @@ def test_saved_recording_matches_the_run(tmp_path):
 
 
 # --------------------------------------------------------------------------- backpressure
-def _fake_step(i: int, events: list[str] = ()) -> SimpleNamespace:
-    pose = np.array([[1.0, 0.0, 3.0 * i], [0.0, 1.0, 2.0 * i]])
-    return SimpleNamespace(status="registered", pose=pose, confidence=0.9, segment=0, events=list(events))
+def _pose(i: int) -> np.ndarray:
+    return np.array([[1.0, 0.0, 3.0 * i], [0.0, 1.0, 2.0 * i]])
+
+
+def _event(frame: Frame, pose: np.ndarray | None, mosaic, segment: int = 0, touched=frozenset(),
+           live: bool = False, **kw) -> FrameEvent:
+    return FrameEvent(frame.index, frame.t, live, frame.image, (W, H),
+                      "registered" if pose is not None else "low_confidence", pose,
+                      0.9 if pose is not None else 0.05, segment, touched=frozenset(touched), tiles=mosaic, **kw)
 
 
 def test_stuck_viewer_drops_oldest_viewer_data_and_keeps_events(tmp_path):
     rrd = tmp_path / "stuck.rrd"
-    viewer = Viewer("save", str(rrd), queue_size=4)
+    viewer = Viewer("save", str(rrd), ViewerConfig(queue_size=4))
     entered, release = threading.Event(), threading.Event()
     log_item = viewer._log
 
@@ -226,14 +232,12 @@ def test_stuck_viewer_drops_oldest_viewer_data_and_keeps_events(tmp_path):
         log_item(item)
 
     viewer._log = stuck_log
-    mosaic = TiledMosaic(tile_size=64)
-    pipeline = SimpleNamespace(frame_size=(W, H), source=ListSource([]), stats=RunStats(),
-                               mosaics={0: mosaic})
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
     frames = _frames(20)
     for i, frame in enumerate(frames):
-        step = _fake_step(i, ["link lost: something"] if i == 3 else ())
-        mosaic.add(frame.image, step.pose)
-        viewer.on_frame(frame, step, pipeline)
+        touched = mosaic.add(frame.image, _pose(i))
+        viewer.on_frame(_event(frame, _pose(i), mosaic, touched=touched,
+                               messages=("link lost: something",) if i == 3 else ()))
         if i == 0:
             assert entered.wait(10.0)
     # item 0 is in the stuck thread, 4 wait in the queue, the 15 others were dropped
@@ -252,26 +256,24 @@ def test_stuck_viewer_drops_oldest_viewer_data_and_keeps_events(tmp_path):
 
 def test_new_segment_clears_the_old_map_keeps_the_anchor_and_logs_live_latency(tmp_path):
     rrd = tmp_path / "segments.rrd"
-    viewer = Viewer("save", str(rrd), tile_hz=1000.0, color_by="segment")
-    source = ListSource([])
-    source.live = True  # Frame.t is then the monotonic capture time
-    mosaics = {0: TiledMosaic(tile_size=64), 1: TiledMosaic(tile_size=64)}
-    pipeline = SimpleNamespace(frame_size=(W, H), source=source, stats=RunStats(), mosaics=mosaics)
+    viewer = Viewer("save", str(rrd), ViewerConfig(tile_hz=1000.0, color_by="segment"))
+    mosaics = {0: TiledMosaic(MosaicConfig(tile_size=64)), 1: TiledMosaic(MosaicConfig(tile_size=64))}
     tex = _texture()
     anchor_pose = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     for i in range(12):
         segment = 0 if i < 6 else 1
-        step = _fake_step(i - 5 if segment else i)
-        step.segment = segment
+        pose = _pose(i - 5 if segment else i)
+        frame = Frame(i, time.monotonic(), tex[:H, :W].copy(), "tex")  # live: monotonic capture time
+        extra: dict = {}
+        touched: set = set()
         if i == 5:  # lost; frame 6 starts segment 1 anchored at frame 5
-            step.status, step.pose, step.confidence = "low_confidence", None, 0.05
+            pose = None
         if i == 6:
-            step.events, step.anchor, step.anchor_pose = ["link lost: map segment 1 started at frame 5"], 5, anchor_pose
-            mosaics[1].add(tex[:H, :W], anchor_pose)
-        frame = Frame(i, time.monotonic(), tex[:H, :W].copy(), "tex")
-        if step.pose is not None:
-            mosaics[segment].add(frame.image, step.pose)
-        viewer.on_frame(frame, step, pipeline)
+            extra = {"messages": ("link lost: map segment 1 started at frame 5",), "anchor": (5, anchor_pose)}
+            touched |= mosaics[1].add(tex[:H, :W], anchor_pose)
+        if pose is not None:
+            touched |= mosaics[segment].add(frame.image, pose)
+        viewer.on_frame(_event(frame, pose, mosaics[segment], segment, touched, live=True, **extra))
     viewer.close()
     chunks = _chunks(rrd)
     clears = [rb.column("frame").to_pylist() for rb in chunks["/map/tiles/0"]]
@@ -282,7 +284,7 @@ def test_new_segment_clears_the_old_map_keeps_the_anchor_and_logs_live_latency(t
     strips = _rows(chunks["/map/trajectory"], "LineStrips2D:strips")
     assert len(strips[-1]) == 1 and len(strips[-1][0]) == 7  # one strip: segment 1's anchor and six points
     assert np.allclose(strips[-1][0][0], anchor_pose @ centre)
-    assert np.allclose(strips[-1][0][1], _fake_step(1).pose @ centre)
+    assert np.allclose(strips[-1][0][1], _pose(1) @ centre)
     points = _rows(chunks["/map/trajectory"], "Points2D:positions")  # in frame order
     assert len(points) == 12 and np.allclose(points[5][0], anchor_pose @ centre)
     colors = _rows(chunks["/map/trajectory"], "Points2D:colors")
@@ -323,20 +325,20 @@ def test_serve_refuses_a_port_in_use():
 
 def test_serve_rejects_a_bad_memory_limit():
     with pytest.raises(ConfigError, match="server_memory_limit"):
-        Viewer("serve", str(_free_port()), server_memory_limit="lots")
+        Viewer("serve", str(_free_port()), ViewerConfig(server_memory_limit="lots"))
 
 
 def test_config_section_defaults_to_no_viewer():
-    viewer = Viewer.from_config(load_config()["viewer"])
+    viewer = Viewer.from_config(load_config().viewer)
     assert viewer.mode == "none" and not viewer.enabled
-    assert Viewer.from_config(load_config()["viewer"], "serve=9999").arg == "9999"
-    with pytest.raises(ConfigError, match="jpeg_quality"):
-        Viewer.from_config({**load_config()["viewer"], "jpeg_quality": 0})
+    assert Viewer.from_config(load_config().viewer, "serve=9999").arg == "9999"
+    with pytest.raises(ConfigError, match="viewer.jpeg_quality"):
+        load_config(overrides=["viewer.jpeg_quality=0"])
 
 
 def test_serve_client_receives_and_its_death_does_not_stop_the_run(tmp_path):
     port = _free_port()
-    viewer = Viewer("serve", str(port), tile_hz=100.0)
+    viewer = Viewer("serve", str(port), ViewerConfig(tile_hz=100.0))
     assert viewer.url.endswith(f":{port}/proxy")
     got = tmp_path / "got.rrd"
     client = subprocess.Popen([str(_rerun_exe()), "--save", str(got), "--port", "auto", "--bind", "127.0.0.1",

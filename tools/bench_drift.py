@@ -26,7 +26,8 @@ from pathlib import Path
 from photomap.config import load_config
 from photomap.cli.replay import replay
 from photomap.sim.simulate import simulate_flight
-from photomap.eval.metrics import evaluate_trajectory, frame_centre
+from photomap.geometry import frame_centre
+from photomap.eval.metrics import evaluate_trajectory
 from photomap.io.trajectory_files import read_groundtruth, read_trajectory_csv
 from tools.report import replace_section
 
@@ -46,7 +47,7 @@ TERRAINS = {
 
 
 def run(frames: int, seeds: list[int], size=(320, 240)) -> list[dict]:
-    known = load_config()["mapping"]
+    known = load_config().to_dict()["mapping"]
     modes = {k: v for k, v in MODES.items() if all(o.split("=")[0].split(".")[1] in known for o in v)}
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-drift-") as tmp:

@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 
 import photomap.mapping.pipeline as pipeline_module
-from photomap.drivers.capture import CaptureStats, Frame, SourceBase
+from photomap.drivers.frames import CaptureStats, Frame, SourceBase
 from photomap.drivers.video import VideoFileSource
 from photomap.config import load_config
 from photomap.errors import PhotomapError
@@ -261,10 +261,10 @@ def memory_run(n_frames: int, overrides: list[str]) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-pipeline-") as tmp, RssSampler() as sampler:
         before = sampler.rss_mb()
 
-        def on_frame(frame, step, pipeline) -> None:
+        def on_frame(event) -> None:
             sampler.frames_done += 1
 
-        pipe = pipeline_module.MappingPipeline(source, cfg, tmp, on_frame=on_frame, input_name="simulated")
+        pipe = pipeline_module.MappingPipeline(source, cfg, tmp, sinks=[on_frame], input_name="simulated")
         t = time.perf_counter()
         summary = pipe.run()
         wall = time.perf_counter() - t

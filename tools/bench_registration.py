@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import scipy
 
-from photomap.config import defaults
+from photomap.config import MappingConfig, RegistrationConfig
 from photomap.errors import InputError
 from photomap.sim.flight import (Camera, Effects, Motion, iter_frames, plan_flight, pose_homography,
                             relative_matrix, render_pair, simulate_sequence)
@@ -112,7 +112,7 @@ class Ifmi(Method):
 
     def __init__(self, shape: tuple[int, int], name: str = "iFMI", **settings) -> None:
         self.name = name
-        self.registrar = Registrar(shape, **settings)
+        self.registrar = Registrar(shape, RegistrationConfig(**settings))
 
     def prepare(self, gray: np.ndarray):
         return self.registrar.prepare(gray)
@@ -124,7 +124,7 @@ class Ifmi(Method):
 
 def ifmi_methods(shape: tuple[int, int]) -> list[Method]:
     """iFMI with the shipped registration config, and the same with refinement off."""
-    settings = dict(defaults()["registration"])
+    settings = dataclasses.asdict(RegistrationConfig())
     return [Ifmi(shape, "iFMI", **settings),
             Ifmi(shape, "iFMI no refine", **{**settings, "refine_iterations": 0})]
 
@@ -384,7 +384,7 @@ def calibrate(runs: list[Run], terrains: TerrainCache, count: int, configured: f
     is_gross = [(r.t_err > 5) | (r.r_err > 2) | (r.s_err > 0.05) for r in ifmi]
     gross = np.concatenate([r.confidence[g] for r, g in zip(ifmi, is_gross)])
     imprecise = np.concatenate([r.confidence[~r.success & ~g] for r, g in zip(ifmi, is_gross)])
-    method = Ifmi(shape, "iFMI", **dict(defaults()["registration"]))
+    method = Ifmi(shape, "iFMI", **dataclasses.asdict(RegistrationConfig()))
     overlap = [method.register(method.prepare(a), method.prepare(b))[1]
                for a, b in no_overlap_pairs(terrains, ["aukerman", "grass", "sand"], count, shape, rng)]
     noise = [method.register(method.prepare(a), method.prepare(b))[1] for a, b in noise_pairs(count, shape, rng)]
@@ -567,7 +567,7 @@ def main(argv: list[str] | None = None) -> int:
             log.info("timing iFMI at %dx%d", shape[1], shape[0])
             timings[shape] = time_ifmi(shape, args.timing_pairs + 1, terrains)
         log.info("confidence calibration")
-        cal = calibrate(runs, terrains, calib_count, float(defaults()["mapping"]["min_confidence"]))
+        cal = calibrate(runs, terrains, calib_count, MappingConfig().min_confidence)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from photomap.drivers.capture import CaptureStats, Frame
+from photomap.drivers.frames import CaptureStats, Frame
 from photomap.config import load_config
 from photomap.sim.flight import simulate_sequence
 from photomap.mapping.pipeline import MappingPipeline
@@ -66,9 +66,9 @@ def run_once(frames: list[Frame], fps: float, folder: Path, viewer: dict | None)
     cfg = load_config()
     view = None
     if viewer is not None:
-        view = Viewer.from_config({**cfg["viewer"], **viewer}, f"save={folder / 'view.rrd'}")
+        view = Viewer.from_config(cfg.updated({"viewer": viewer}).viewer, f"save={folder / 'view.rrd'}")
     pipeline = MappingPipeline(PacedSource(frames, fps), cfg, folder / "out",
-                               on_frame=view.on_frame if view else None)
+                               sinks=[view.on_frame] if view else ())
     cpu0, wall0 = time.process_time(), time.monotonic()
     pipeline.run()
     if view:

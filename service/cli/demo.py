@@ -14,8 +14,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from photomap.cli.replay import replay
+from photomap.cli.wiring import add_viewer_argument, print_summary
+from photomap.config import Config
 from photomap.eval.evaluate import evaluate_run, format_table
-from photomap.cli.replay import add_viewer_argument, print_summary, replay
 from photomap.sim.simulate import simulate_flight
 
 
@@ -28,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_viewer_argument(parser)
 
 
-def main(args: argparse.Namespace, cfg: dict) -> int:
+def main(args: argparse.Namespace, cfg: Config) -> int:
     out = Path(args.out)
     flight = out / "flight"
     print(f"1/3 simulating {args.frames} frames over the bundled terrain into {flight}/")

@@ -15,9 +15,9 @@ import argparse
 import time
 from pathlib import Path
 
-from photomap.drivers.capture import open_source
-from photomap.cli.replay import (add_telemetry_arguments, add_viewer_argument, map_source, open_telemetry,
-                     print_summary)
+from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
+                                 open_telemetry, print_summary)
+from photomap.config import Config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,16 +40,18 @@ def flight_folder(data_dir: str | Path) -> Path:
     return folder
 
 
-def main(args: argparse.Namespace, cfg: dict) -> int:
-    out = Path(args.out) if args.out else flight_folder(cfg["output"]["data_dir"])
+def main(args: argparse.Namespace, cfg: Config) -> int:
+    out = Path(args.out) if args.out else flight_folder(cfg.output.data_dir)
     if args.time_offset is not None:
-        cfg["telemetry"]["time_offset"] = args.time_offset
-    spec = args.mavlink or cfg["telemetry"]["source"]
-    join, reader = open_telemetry(spec, cfg, live=True) if spec else (None, None)
+        cfg = cfg.updated({"telemetry": {"time_offset": args.time_offset}})
+    spec = args.mavlink or cfg.telemetry.source
+    join = reader = None
+    if spec:
+        join, reader, cfg = open_telemetry(spec, cfg, live=True)
     try:
-        source = open_source(args.camera, **cfg["capture"])
+        source = open_capture(args.camera, cfg.capture)
         print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")
-        summary = map_source(source, cfg, out, input_name=str(args.camera), telemetry=join,
+        summary = map_source(source, cfg, out, input_name=str(args.camera), telemetry=join, reader=reader,
                              viewer=args.viewer)
     finally:
         if reader is not None:

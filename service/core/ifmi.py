@@ -38,25 +38,14 @@ import cv2
 import numpy as np
 import scipy.fft
 
-__all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar", "similarity_matrix"]
+from photomap.config import RegistrationConfig
+from photomap.geometry import similarity_matrix
+
+__all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar"]
 
 _EPS = 1e-12
 _REFINE_SAMPLES = 16384  # the refinement samples about this many pixels on a regular grid
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
-
-
-def similarity_matrix(angle_deg: float, scale: float, shift: tuple[float, float] = (0.0, 0.0),
-                      center: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
-    """2x3 similarity ``p -> scale * R(angle) (p - center) + center + shift`` (OpenCV pixels).
-
-    With ``center=(0, 0)`` the last column is ``shift``; ``R(angle)`` is ``[[c, -s], [s, c]]``,
-    which with y pointing down turns clockwise on screen for a positive angle.
-    """
-    a = math.radians(angle_deg)
-    lin = scale * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    c = np.asarray(center, dtype=np.float64)
-    t = c + np.asarray(shift, dtype=np.float64) - lin @ c
-    return np.hstack([lin, t[:, None]])
 
 
 def _matrix_params(m: np.ndarray) -> tuple[float, float, tuple[float, float]]:
@@ -168,40 +157,27 @@ class Registrar:
     ----------
     shape : (h, w)
         Frame shape in pixels (any size; non-square and non-power-of-two are fine).
-    window : {"tukey", "hann"}
-        Apodization applied before every FFT.
-    window_taper : float
-        Tukey taper fraction (ignored for Hann).
-    angle_bins, radius_bins : int
-        Log-polar grid size over 180 deg and over log radius; 0 picks them from the frame size.
-    band_low, band_high : float
-        Radial band of the magnitude spectrum used for rotation/scale, cycles/pixel.
-    snr_weighting : bool
-        Weight spectrum rings by their signal-to-noise ratio (Wiener weights from the radial power
-        profile and its high-frequency noise floor).
-    peak_sigma : float
-        Standard deviation (cycles/pixel, or cycles/bin on the log-polar grid) of the Gaussian
-        low-pass applied to every cross-power spectrum.
-    candidate_ratio, max_candidates :
-        Rotation/scale peaks within ``candidate_ratio`` of the best are also scored by the
-        translation step, up to ``max_candidates``.
-    refine_iterations : int
-        Gauss-Newton (inverse compositional) iterations after iFMI; 0 disables refinement.
+    params : RegistrationConfig
+        The ``registration`` settings (documented in ``config/default.yaml``): the apodization
+        ``window`` (and Tukey ``window_taper``), the log-polar grid (``angle_bins`` over 180 deg,
+        ``radius_bins``; 0 picks them from the frame size), the radial band ``band_low`` ..
+        ``band_high`` (cycles/pixel) used for rotation/scale, ring SNR (Wiener) weighting
+        (``snr_weighting``), the Gaussian low-pass ``peak_sigma`` (cycles/pixel, or cycles/bin on
+        the log-polar grid) of every cross-power spectrum, the rotation/scale peaks within
+        ``candidate_ratio`` of the best also scored by the translation step (up to
+        ``max_candidates``), and the Gauss-Newton (inverse compositional) refinement's
+        ``refine_iterations`` (0: off). ``working_size`` is not used here: the caller downscales.
     """
 
-    def __init__(self, shape: tuple[int, int], *, window: str = "tukey", window_taper: float = 0.5,
-                 angle_bins: int = 0, radius_bins: int = 0, band_low: float = 0.02,
-                 band_high: float = 0.45, snr_weighting: bool = True, peak_sigma: float = 0.18,
-                 candidate_ratio: float = 0.6, max_candidates: int = 3, refine_iterations: int = 20,
-                 working_size: int | None = None) -> None:
-        del working_size  # a pipeline option (downscaling happens before registration)
+    def __init__(self, shape: tuple[int, int], params: RegistrationConfig = RegistrationConfig()) -> None:
         h, w = int(shape[0]), int(shape[1])
         if h < 16 or w < 16:
             raise ValueError(f"frames of {w}x{h} px are too small to register")
-        if window not in ("tukey", "hann", "circular"):
-            raise ValueError(f"window must be 'tukey' or 'hann', got {window!r}")
-        if not 0 < band_low < band_high <= 0.5:
-            raise ValueError("need 0 < band_low < band_high <= 0.5 (cycles/pixel)")
+        window, window_taper = params.window, params.window_taper
+        band_low, band_high, peak_sigma = params.band_low, params.band_high, params.peak_sigma
+        angle_bins, radius_bins = params.angle_bins, params.radius_bins
+        snr_weighting, candidate_ratio = params.snr_weighting, params.candidate_ratio
+        max_candidates, refine_iterations = params.max_candidates, params.refine_iterations
         self.shape = (h, w)
         self.center = ((w - 1) / 2.0, (h - 1) / 2.0)
         self.snr_weighting = snr_weighting

@@ -16,19 +16,29 @@ the working resolution (``working_scale``) and is converted as in :mod:`photomap
 from __future__ import annotations
 
 import copy
-import logging
 import math
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
-from photomap.geo.georef import enu_from_latlon
+from photomap.config import MappingConfig, PosegraphConfig
 from photomap.core.ifmi import Prior, Registrar
 from photomap.core.posegraph import PoseGraph, correction, optimize
-from photomap.core.tracking import scaling
+from photomap.geometry import pose_angle_deg, pose_scale, scaling
 
-log = logging.getLogger(__name__)
+
+@dataclass(frozen=True)
+class KeyframePriors:
+    """Telemetry of a keyframe for the pose graph (each None when unknown).
+
+    ``yaw``: camera heading, radians clockwise from north; ``height``: above the ground, metres;
+    ``east_north``: position in metres on a local tangent plane shared by the whole run.
+    """
+
+    yaw: float | None = None
+    height: float | None = None
+    east_north: tuple[float, float] | None = None
 
 
 @dataclass
@@ -50,19 +60,18 @@ class KeyframeGraph:
         Working resolution / input resolution.
     load_small : callable
         ``frame index -> grey image at the working resolution`` of a keyframe (kept by the caller).
-    min_gap : int
-        A loop closure links keyframes at least this many keyframes apart.
-    radius : float
-        Candidates: keyframes whose centre lies within ``radius`` frame diagonals of the new one.
-    min_confidence : float
-        Registration confidence a loop-closure edge needs.
-    max_candidates : int
-        Old keyframes tried per new keyframe (nearest first).
+    params : MappingConfig
+        The ``mapping`` settings used here: a loop closure links keyframes at least
+        ``loop_min_gap`` keyframes apart; candidates are the keyframes whose centre lies within
+        ``loop_radius`` frame diagonals of the new one, at most ``loop_candidates`` (nearest
+        first); an edge needs a registration confidence of ``loop_min_confidence``.
+    graph_params : PosegraphConfig
+        The ``posegraph`` settings: edge noise, robust loss, solver, prior sigmas.
     """
 
     def __init__(self, registrar: Registrar, frame_size: tuple[int, int], working_scale: float,
-                 load_small: Callable[[int], np.ndarray], *, min_gap: int = 8, radius: float = 0.35,
-                 min_confidence: float = 0.25, max_candidates: int = 2, sigma_px: float = 1.0) -> None:
+                 load_small: Callable[[int], np.ndarray], params: MappingConfig = MappingConfig(),
+                 graph_params: PosegraphConfig = PosegraphConfig()) -> None:
         self.registrar = registrar
         self.frame_size = frame_size
         self.centre = np.array([(frame_size[0] - 1) / 2.0, (frame_size[1] - 1) / 2.0, 1.0])
@@ -70,40 +79,38 @@ class KeyframeGraph:
         self._to_small = scaling(working_scale)
         self._from_small = np.linalg.inv(self._to_small)
         self.load_small = load_small
-        self.min_gap = min_gap
-        self.radius = radius
-        self.min_confidence = min_confidence
-        self.max_candidates = max_candidates
-        self.graph = PoseGraph(frame_size, sigma_px=sigma_px)
+        self.min_gap = params.loop_min_gap
+        self.radius = params.loop_radius
+        self.min_confidence = params.loop_min_confidence
+        self.max_candidates = params.loop_candidates
+        self.graph_params = graph_params
+        self.graph = PoseGraph(frame_size, graph_params)
         self.keyframes: list[Keyframe] = []
         self._node: dict[int, int] = {}  # frame index -> node
         self.loops = 0
         self.rejected_loops = 0
-        self._enu_origin: tuple[float, float] | None = None  # first GPS fix (local metres)
 
     def add_keyframe(self, index: int, pose: np.ndarray, edge: tuple[int, np.ndarray, float] | None,
-                     sample: Any = None, sigmas: dict | None = None) -> None:
+                     priors: KeyframePriors | None = None) -> None:
         """A new keyframe; ``edge`` = (reference keyframe index, measured 3x3, confidence).
 
-        With a telemetry ``sample`` (:class:`photomap.telemetry.samples.TelemetrySample`) and ``sigmas``
-        (the ``posegraph`` config), its heading, height and GPS fix become priors of the node.
+        ``priors`` (from telemetry) become priors of its node: heading, height (scale) and
+        position, with the sigmas of the ``posegraph`` settings.
         """
         node = self.graph.add_node(pose)
         self._node[index] = node
         self.keyframes.append(Keyframe(index, np.array(pose, dtype=np.float64)))
         if edge is not None and edge[0] in self._node:
             self.graph.add_edge(self._node[edge[0]], node, edge[1], edge[2], kind="sequential")
-        if sample is None or sigmas is None:
+        if priors is None:
             return
-        if sample.yaw is not None:
-            self.graph.add_heading_prior(node, sample.yaw, math.radians(sigmas["heading_sigma_deg"]))
-        if sample.height_above_ground is not None and sample.height_above_ground > 0:
-            self.graph.add_scale_prior(node, sample.height_above_ground, sigmas["altitude_sigma"])
-        if sample.lat is not None and sample.lon is not None:
-            if self._enu_origin is None:
-                self._enu_origin = (sample.lat, sample.lon)
-            east, north = enu_from_latlon(np.array([sample.lat]), np.array([sample.lon]), *self._enu_origin)
-            self.graph.add_gps_prior(node, (float(east[0]), float(north[0])), sigmas["gps_sigma_m"])
+        g = self.graph_params
+        if priors.yaw is not None:
+            self.graph.add_heading_prior(node, priors.yaw, math.radians(g.heading_sigma_deg))
+        if priors.height is not None and priors.height > 0:
+            self.graph.add_scale_prior(node, priors.height, g.altitude_sigma)
+        if priors.east_north is not None:
+            self.graph.add_gps_prior(node, priors.east_north, g.gps_sigma_m)
 
     def close_loops(self, image: np.ndarray) -> int:
         """Try the newest keyframe (``image`` at the working resolution) against old ones nearby."""
@@ -122,8 +129,8 @@ class KeyframeGraph:
             ref = old[i]
             predicted = np.linalg.inv(ref.pose) @ new.pose  # input px of new -> of ref
             small = self._to_small @ predicted @ self._from_small
-            prior = Prior(angle_deg=math.degrees(math.atan2(small[1, 0], small[0, 0])), angle_tol_deg=10.0,
-                          scale=math.sqrt(abs(np.linalg.det(small[:2, :2]))), scale_tol=0.1)
+            prior = Prior(angle_deg=pose_angle_deg(small), angle_tol_deg=10.0,
+                          scale=pose_scale(small), scale_tol=0.1)
             prepared = prepared or self.registrar.prepare(image)
             reg = self.registrar.register(self.registrar.prepare(self.load_small(ref.index)), prepared, prior)
             if reg.confidence < self.min_confidence:
@@ -145,17 +152,17 @@ class KeyframeGraph:
         return copy.deepcopy(self.graph)
 
     @staticmethod
-    def solve(graph: PoseGraph) -> tuple[np.ndarray, list[int]]:
+    def solve(graph: PoseGraph, params: PosegraphConfig) -> tuple[np.ndarray, list[int]]:
         """Optimise ``graph`` (a snapshot); returns its poses and the loop edges it dropped.
 
         A loop closure that the robust solution flags as an outlier is dropped and the graph
         solved again without it.
         """
-        result = optimize(graph, robust="cauchy")
+        result = optimize(graph, params)
         dropped = [int(k) for k in result.outliers if graph.edge_kinds[k] == "loop"]
         if dropped:
             graph.drop_edges(dropped)
-            result = optimize(graph, robust="cauchy")
+            result = optimize(graph, params)
         return result.poses, dropped
 
     def apply(self, poses: np.ndarray, dropped: list[int]) -> dict[int, np.ndarray]:
@@ -163,10 +170,9 @@ class KeyframeGraph:
 
         Keyframes added after the snapshot follow the correction of its last keyframe (they are
         chained from it). Edge indices of the snapshot are still valid here: edges are only
-        appended between a snapshot and its solution.
+        appended between a snapshot and its solution. The ``dropped`` loop edges are removed here too.
         """
         if dropped:
-            log.warning("dropped %d loop closure(s) that disagree with the rest of the map", len(dropped))
             self.rejected_loops += len(dropped)
             self.loops -= len(dropped)
             self.graph.drop_edges(dropped)
@@ -182,4 +188,4 @@ class KeyframeGraph:
 
     def optimize(self) -> dict[int, np.ndarray]:
         """Optimise the graph now; returns the 3x3 correction of every keyframe (by frame index)."""
-        return self.apply(*self.solve(self.snapshot()))
+        return self.apply(*self.solve(self.snapshot(), self.graph_params))

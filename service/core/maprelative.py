@@ -15,7 +15,7 @@ import numpy as np
 
 from photomap.core.ifmi import Prior, Registrar
 from photomap.core.mosaic import TiledMosaic
-from photomap.core.tracking import scaling
+from photomap.geometry import scaling
 
 
 def map_patch(mosaic: TiledMosaic, pose: np.ndarray, frame_size: tuple[int, int]

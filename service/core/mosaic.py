@@ -33,26 +33,35 @@ An instance is not thread-safe.
 
 from __future__ import annotations
 
-import logging
 import math
 from collections import OrderedDict
-from typing import TYPE_CHECKING, Iterable
+from typing import Iterable, Mapping, Protocol
 
 import cv2
 import numpy as np
 
-from photomap.errors import ConfigError, InputError
-
-if TYPE_CHECKING:
-    from photomap.io.tilestore import TileStore
-
-log = logging.getLogger(__name__)
+from photomap.config import MosaicConfig
+from photomap.errors import InputError
 
 TileKey = tuple[int, int]
 Rect = tuple[int, int, int, int]
 Tile = dict[str, np.ndarray]
 
-BLENDS = ("overwrite", "feather")
+
+class TileStore(Protocol):
+    """Storage for spilled tiles, keyed by ``(tx, ty)`` (implementations: :mod:`photomap.io.tilestore`)."""
+
+    def put(self, key: TileKey, arrays: Mapping[str, np.ndarray]) -> None:
+        """Keep ``arrays`` under ``key``, replacing what was there."""
+
+    def get(self, key: TileKey) -> Tile | None:
+        """The arrays last put under ``key`` (a copy the caller may modify), or None."""
+
+    def keys(self) -> list[TileKey]:
+        """Every key held."""
+
+    def discard(self, key: TileKey) -> None:
+        """Forget ``key`` (no error if absent)."""
 
 
 class TiledMosaic:
@@ -60,47 +69,27 @@ class TiledMosaic:
 
     Parameters
     ----------
-    tile_size : int
-        Side of a square tile, map pixels.
-    channels : int
-        3 (BGR map) or 1 (gray map). Frames are converted to this.
-    blend : {"overwrite", "feather"}
-        How overlapping frames combine (see the module docstring).
-    max_tiles_in_memory : int or None
-        Keep at most this many tiles in memory; the least recently touched ones are handed to
-        ``store`` and loaded back when touched or read. ``None``: no cap.
+    params : MosaicConfig
+        The ``mosaic`` settings: ``tile_size`` (side of a square tile, map pixels), ``channels``
+        (3: BGR map, 1: gray; frames are converted), ``blend`` (``overwrite`` or ``feather``, see
+        the module docstring), ``border`` (frame pixels kept out of the map), ``max_tiles_in_memory``
+        (the least recently touched tiles beyond it go to ``store`` and come back when touched or
+        read; ``None``: no cap) and ``max_footprint_px`` (a frame whose map footprint, its bounding
+        box, exceeds this many map pixels is refused with :class:`InputError`, so that a wild pose
+        cannot exhaust memory). ``cache_dir`` is the caller's (where ``store`` keeps its files).
     store : TileStore or None
         Where spilled tiles go; required with ``max_tiles_in_memory``.
-    border : int
-        Frame border, pixels, kept out of the map (both blends).
-    max_footprint_px : int
-        A frame whose map footprint (its bounding box) exceeds this many map pixels is refused
-        with :class:`InputError`, so that a wild pose cannot exhaust memory.
     """
 
-    def __init__(self, tile_size: int = 256, channels: int = 3, blend: str = "overwrite",
-                 max_tiles_in_memory: int | None = None, store: TileStore | None = None,
-                 border: int = 1, max_footprint_px: int = 1 << 24) -> None:
-        if not isinstance(tile_size, int) or tile_size < 8:
-            raise ConfigError(f"mosaic tile_size must be an integer >= 8, got {tile_size!r}")
-        if channels not in (1, 3):
-            raise ConfigError(f"mosaic channels must be 1 or 3, got {channels!r}")
-        if blend not in BLENDS:
-            raise ConfigError(f"mosaic blend must be one of {', '.join(BLENDS)}, got {blend!r}")
-        if max_tiles_in_memory is not None:
-            if not isinstance(max_tiles_in_memory, int) or max_tiles_in_memory < 1:
-                raise ConfigError("mosaic max_tiles_in_memory must be a positive integer or null, "
-                                  f"got {max_tiles_in_memory!r}")
-            if store is None:
-                raise ConfigError("mosaic max_tiles_in_memory needs a tile store to spill to")
-        if not isinstance(border, int) or border < 0:
-            raise ConfigError(f"mosaic border must be an integer >= 0, got {border!r}")
-        self.tile_size = tile_size
-        self.channels = channels
-        self.blend = blend
-        self.border = border
-        self.max_tiles_in_memory = max_tiles_in_memory
-        self.max_footprint_px = int(max_footprint_px)
+    def __init__(self, params: MosaicConfig = MosaicConfig(), store: TileStore | None = None) -> None:
+        if params.max_tiles_in_memory is not None and store is None:
+            raise ValueError("a mosaic with max_tiles_in_memory needs a tile store to spill to")
+        self.tile_size = params.tile_size
+        self.channels = params.channels
+        self.blend = params.blend
+        self.border = params.border
+        self.max_tiles_in_memory = params.max_tiles_in_memory
+        self.max_footprint_px = int(params.max_footprint_px)
         self._store = store
         self._tiles: OrderedDict[TileKey, Tile] = OrderedDict()  # in memory, least recent first
         self._spilled: set[TileKey] = set()  # not in memory; current data is in the store
@@ -108,6 +97,7 @@ class TiledMosaic:
         self._frame_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
         self._extent: list[int] | None = None  # covered pixels: x0, y0, x1, y1 (exclusive)
         self._extent_stale = False
+        self.lost_tiles = 0  # spilled tiles the store could not give back
 
     # ------------------------------------------------------------------ adding frames
     def add(self, frame: np.ndarray, M: np.ndarray, mask: np.ndarray | None = None) -> set[TileKey]:
@@ -162,7 +152,6 @@ class TiledMosaic:
             cover = warped[..., C] > 0
         rows = np.flatnonzero(cover.any(axis=1))
         if rows.size == 0:
-            log.debug("frame %dx%d covers no map pixel", w, h)
             return set()
         cols = np.flatnonzero(cover.any(axis=0))
         cx0, cx1 = x0 + int(cols[0]), x0 + int(cols[-1]) + 1
@@ -266,7 +255,7 @@ class TiledMosaic:
             tile = self._store.get(key)
             self._spilled.discard(key)
             if tile is None:
-                log.warning("tile %s was lost by the tile store; starting it empty", key)
+                self.lost_tiles += 1  # the store lost it: start it empty
             else:
                 self._clean.add(key)
         if tile is None:
@@ -282,7 +271,7 @@ class TiledMosaic:
         if tile is None and key in self._spilled:
             tile = self._store.get(key)
             if tile is None:
-                log.warning("tile %s was lost by the tile store; reading it as empty", key)
+                self.lost_tiles += 1  # the store lost it: read it as empty
                 tile = self._new_tile()
         return tile
 

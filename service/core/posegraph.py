@@ -52,7 +52,6 @@ Pure: arrays in, arrays out; no I/O, no threads.
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -62,10 +61,11 @@ import scipy.optimize
 import scipy.sparse
 import scipy.sparse.linalg
 
+from photomap.config import PosegraphConfig
+
 __all__ = ["EDGE_KINDS", "ROBUST_LOSSES", "PoseGraph", "PoseGraphResult", "optimize", "correction",
            "interpolate_corrections", "pose_params", "pose_matrix"]
 
-log = logging.getLogger(__name__)
 
 EDGE_KINDS = ("sequential", "loop", "map")
 ROBUST_LOSSES = ("linear", "soft_l1", "cauchy", "huber")
@@ -118,15 +118,16 @@ class PoseGraph:
     Parameters
     ----------
     frame_size : (width, height) of the keyframes in the pixels the poses and edges use.
-    sigma_px : translation standard deviation (px) of an edge of confidence 1.
-    min_confidence : confidences are clipped to at least this before weighting.
+    params : the ``posegraph`` settings; here ``sigma_px`` (translation standard deviation, px, of
+        an edge of confidence 1) and ``min_confidence`` (confidences are clipped to at least this
+        before weighting).
     """
 
-    def __init__(self, frame_size: tuple[int, int], sigma_px: float = 1.0,
-                 min_confidence: float = 0.05) -> None:
+    def __init__(self, frame_size: tuple[int, int], params: PosegraphConfig = PosegraphConfig()) -> None:
         w, h = frame_size
-        if w <= 0 or h <= 0 or sigma_px <= 0 or not 0 < min_confidence <= 1:
-            raise ValueError("frame_size and sigma_px must be > 0, min_confidence in (0, 1]")
+        sigma_px, min_confidence = params.sigma_px, params.min_confidence
+        if w <= 0 or h <= 0:
+            raise ValueError("frame_size must be > 0")
         self.frame_size = (int(w), int(h))
         self.center = ((w - 1) / 2.0, (h - 1) / 2.0)
         self.radius = 0.5 * math.hypot(w, h)
@@ -277,6 +278,7 @@ class PoseGraphResult:
     nfev: int
     success: bool
     message: str
+    ignored_gps_priors: int = 0  # GPS priors at fewer than 2 distinct places fix nothing
 
 
 # ---------------------------------------------------------------------- robust loss per block
@@ -317,6 +319,7 @@ class _Problem:
 
     def __init__(self, graph: PoseGraph, loss: str, f_scale: float) -> None:
         self.loss, self.f2 = loss, f_scale ** 2
+        self.ignored_gps = 0
         n = graph.num_nodes
         self.x0_nodes = np.array(graph._nodes).reshape(n, _NP)
         fixed = set(graph.fixed)
@@ -371,8 +374,7 @@ class _Problem:
             zp = self.x0_nodes[self.gn, 0] + 1j * self.x0_nodes[self.gn, 1]
             zm = self.gm[:, 0] + 1j * self.gm[:, 1]
             if np.ptp(zp.real) + np.ptp(zp.imag) < 1e-9 or np.ptp(zm.real) + np.ptp(zm.imag) < 1e-9:
-                log.warning("pose graph: GPS priors at fewer than 2 distinct places; ignoring %d GPS priors",
-                            len(gps))
+                self.ignored_gps = len(gps)  # fewer than 2 distinct places: GPS fixes nothing
                 self.gn = self.gn[:0]
                 self.gm, self.gsig = self.gm[:0], self.gsig[:0]
             else:
@@ -535,13 +537,13 @@ def _levenberg_marquardt(prob: _Problem, x0: np.ndarray, max_nfev: int, ftol: fl
     return x, nfev, False, "the maximum number of evaluations is exceeded", cost
 
 
-def optimize(graph: PoseGraph, robust: str = "cauchy", f_scale: float = 3.0, max_nfev: int = 100,
-             outlier_sigma: float = 4.0, solver: str = "lm", ftol: float = 1e-10,
+def optimize(graph: PoseGraph, params: PosegraphConfig = PosegraphConfig(), *, ftol: float = 1e-10,
              xtol: float = 1e-10) -> PoseGraphResult:
     """Optimise the node poses of ``graph``.
 
     Parameters
     ----------
+    params : the ``posegraph`` settings used here:
     robust : loss per residual block: "cauchy" (default: redescending, so a wrong loop closure
         ends up with almost no pull), "soft_l1" or "huber" (their pull is bounded but does not
         vanish: a confident wrong edge in a weakly constrained part of the graph still bends
@@ -555,12 +557,8 @@ def optimize(graph: PoseGraph, robust: str = "cauchy", f_scale: float = 3.0, max
         tr_solver="lsmr")``. Both use the analytic sparse Jacobian (4 columns per node, a few
         per global); "trf"'s iterative LSMR steps get slow on long, ill-conditioned graphs.
     """
-    if robust not in ROBUST_LOSSES:
-        raise ValueError(f"robust must be one of {ROBUST_LOSSES}, got {robust!r}")
-    if solver not in ("lm", "trf"):
-        raise ValueError(f"solver must be 'lm' or 'trf', got {solver!r}")
-    if not (f_scale > 0 and outlier_sigma > 0 and max_nfev >= 1):
-        raise ValueError("f_scale and outlier_sigma must be > 0, max_nfev >= 1")
+    robust, f_scale, max_nfev = params.robust, params.f_scale, params.max_nfev
+    outlier_sigma, solver = params.outlier_sigma, params.solver
     if graph.num_nodes == 0:
         raise ValueError("the pose graph has no nodes")
     prob = _Problem(graph, robust, f_scale)
@@ -587,15 +585,13 @@ def optimize(graph: PoseGraph, robust: str = "cauchy", f_scale: float = 3.0, max
         a, b, tx, ty = x[prob.g_col:prob.g_col + 4]
         map_to_enu = np.array([[a, -b, tx], [-b, -a, -ty]])  # (east, -north) -> (east, north)
     outliers = np.flatnonzero(norms > outlier_sigma)
-    if len(outliers):
-        log.info("pose graph: %d of %d edges are outliers (> %.1f sigma)", len(outliers), len(norms), outlier_sigma)
     return PoseGraphResult(
         poses=pose_matrix(p, graph.center), edge_errors=edge.r * prob.esig, edge_norms=norms,
         outliers=outliers, prior_outliers=prior_outliers,
         heading_offset=float(_wrap(x[prob.h_col])) if prob.h_col >= 0 else None,
         log_scale_offset=float(x[prob.s_col]) if prob.s_col >= 0 else None,
         map_to_enu=map_to_enu, initial_cost=initial_cost, cost=cost, nfev=nfev, success=success,
-        message=message)
+        message=message, ignored_gps_priors=prob.ignored_gps)
 
 
 # ---------------------------------------------------------------------- applying the result

@@ -16,6 +16,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from photomap.config import MappingConfig
+from photomap.geometry import pose_angle_deg, pose_scale, scaling, to_h
 from photomap.core.ifmi import PreparedFrame, Prior, Registrar, Registration
 
 REFERENCE = "reference"
@@ -23,16 +25,6 @@ REGISTERED = "registered"
 LOW_CONFIDENCE = "low_confidence"
 
 _HINT = Prior(angle_deg=0.0, angle_tol_deg=180.0, scale=1.0, scale_tol=10.0)
-
-
-def _h(m: np.ndarray) -> np.ndarray:
-    return np.vstack([m, [0.0, 0.0, 1.0]])
-
-
-def scaling(f: float) -> np.ndarray:
-    """3x3 matrix mapping input pixels to pixels of the image resized by ``f`` (cv2.resize)."""
-    o = f / 2.0 - 0.5
-    return np.array([[f, 0.0, o], [0.0, f, o], [0.0, 0.0, 1.0]])
 
 
 @dataclass
@@ -80,26 +72,28 @@ class Tracker:
     (failed) frame, the link to the map is lost but the camera still sees coherent ground: a new
     segment is anchored at that previous frame. After ``max_lost_frames`` failures in a row a new
     segment starts at the current frame.
+
+    ``working_scale`` is the working resolution over the input resolution; ``params`` the
+    ``mapping`` settings (``map_scale``, ``min_confidence``, ``max_lost_frames``, ``keyframes``,
+    ``keyframe_confidence``, ``keyframe_max_shift``, ``motion_prior`` and its tolerances);
+    ``telemetry_prior(reference_sample, sample)`` gives the expected registration from telemetry.
     """
 
-    def __init__(self, registrar: Registrar, working_scale: float = 1.0, *, map_scale: float = 1.0,
-                 min_confidence: float = 0.12, max_lost_frames: int = 10, keyframes: bool = True,
-                 keyframe_confidence: float = 0.5, keyframe_max_shift: float = 0.5,
-                 motion_prior: bool = True,
-                 prior_angle_tol_deg: float = 20.0, prior_scale_tol: float = 0.15,
+    def __init__(self, registrar: Registrar, working_scale: float = 1.0,
+                 params: MappingConfig = MappingConfig(), *,
                  telemetry_prior: Callable[[Any, Any], Prior | None] | None = None) -> None:
         self.registrar = registrar
         self._to_small = scaling(working_scale)
         self._from_small = np.linalg.inv(self._to_small)
-        self._map = np.diag([map_scale, map_scale, 1.0])
-        self.min_confidence = min_confidence
-        self.max_lost_frames = max_lost_frames
-        self.keyframes = keyframes
-        self.keyframe_confidence = keyframe_confidence
-        self.keyframe_max_shift = keyframe_max_shift
-        self.motion_prior = motion_prior
-        self.prior_angle_tol_deg = prior_angle_tol_deg
-        self.prior_scale_tol = prior_scale_tol
+        self._map = np.diag([params.map_scale, params.map_scale, 1.0])
+        self.min_confidence = params.min_confidence
+        self.max_lost_frames = params.max_lost_frames
+        self.keyframes = params.keyframes
+        self.keyframe_confidence = params.keyframe_confidence
+        self.keyframe_max_shift = params.keyframe_max_shift
+        self.motion_prior = params.motion_prior
+        self.prior_angle_tol_deg = params.prior_angle_tol_deg
+        self.prior_scale_tol = params.prior_scale_tol
         self.telemetry_prior = telemetry_prior
         self.segment = -1
         self._ref: _Reference | None = None
@@ -154,8 +148,7 @@ class Tracker:
         last_index, last_pose = self._last
         predicted = last_pose @ self._velocity
         rel = self._to_small @ np.linalg.inv(self._ref.pose) @ predicted @ self._from_small
-        angle = math.degrees(math.atan2(rel[1, 0], rel[0, 0]))
-        scale = math.sqrt(abs(np.linalg.det(rel[:2, :2])))
+        angle, scale = pose_angle_deg(rel), pose_scale(rel)
         return Prior(angle_deg=angle, angle_tol_deg=self.prior_angle_tol_deg, scale=scale,
                      scale_tol=self.prior_scale_tol)
 
@@ -208,7 +201,7 @@ class Tracker:
             return TrackStep(LOW_CONFIDENCE, None, reg.confidence, self.segment, reg, events,
                              disagreement=disagreement)
         self._pending = None
-        rel = self._from_small @ _h(reg.matrix) @ self._to_small  # input px of frame -> of reference
+        rel = self._from_small @ to_h(reg.matrix) @ self._to_small  # input px of frame -> of reference
         pose = self._ref.pose @ rel
         if self._last is not None and index - self._last[0] == 1:
             self._velocity = np.linalg.inv(self._last[1]) @ pose

@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from photomap.errors import InputError
-from photomap.eval.metrics import (ROTATION_OK_DEG, SCALE_OK_PCT, TRANSLATION_OK_PX, GroundTruth,
-                         angle_scale, apply_h, evaluate_trajectory, infer_centre)
+from photomap.core.records import GroundTruth
+from photomap.geometry import angle_scale, apply_h
+from photomap.eval.metrics import ROTATION_OK_DEG, SCALE_OK_PCT, TRANSLATION_OK_PX, evaluate_trajectory, infer_centre
 from photomap.io.trajectory_files import (atomic_write_bytes, atomic_write_text, read_groundtruth, read_trajectory_csv,
                      write_json)
 

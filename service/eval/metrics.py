@@ -14,152 +14,21 @@ those of its local linear map at the frame centre (for a similarity:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
-STATUSES = ("reference", "registered", "low_confidence", "dropped", "corrupt")
-"""Allowed values of a row's ``status``."""
+from photomap.core.records import GLUED, STATUSES, GroundTruth, PoseRow
+from photomap.geometry import (angle_scale, apply_h, frame_centre, local_linear, pose_angle_deg, pose_scale,
+                               to_h, umeyama, wrap_deg)
 
-GLUED = frozenset({"reference", "registered"})
-"""Statuses whose pose is part of the map (the only ones evaluated and written to TUM)."""
+__all__ = ["evaluate_trajectory", "segment_metrics", "pair_errors", "anchored_poses", "path_length",
+           "infer_centre", "summary", "TRANSLATION_OK_PX", "ROTATION_OK_DEG",
+           "SCALE_OK_PCT"]
 
 TRANSLATION_OK_PX = 1.0
 ROTATION_OK_DEG = 0.5
 SCALE_OK_PCT = 1.0
-
-
-@dataclass
-class PoseRow:
-    """One input frame of a run.
-
-    Parameters
-    ----------
-    frame : int
-        Input frame index.
-    t : float
-        Time of the frame, seconds (the run's time base).
-    M : ndarray (2, 3) or None
-        Pose mapping frame pixels to map pixels of ``segment``; None when the frame has no pose
-        (writers also accept a 3x3 affine and use its first two rows).
-    confidence : float
-        Registration confidence (NaN when unknown).
-    status : str
-        One of :data:`STATUSES`.
-    segment : int
-        Map segment; each segment has its own map frame.
-    extra : dict
-        Further columns (e.g. joined telemetry ``lat``, ``lon``, ``alt_m``), written after the
-        standard ones.
-    xy : (float, float) or None
-        Map position of the frame centre. Filled by the reader; writers compute it from ``M``
-        and the frame size when they are given one.
-    """
-
-    frame: int
-    t: float
-    M: np.ndarray | None
-    confidence: float = math.nan
-    status: str = "registered"
-    segment: int = 0
-    extra: dict = field(default_factory=dict)
-    xy: tuple[float, float] | None = None
-
-    @property
-    def glued(self) -> bool:
-        """True when the frame's pose is part of the map."""
-        return self.M is not None and self.status in GLUED
-
-
-@dataclass
-class GroundTruth:
-    """Exact frame-to-terrain matrices of a simulated flight.
-
-    ``H[i]`` (3x3) maps pixels of frame ``frame[i]`` to terrain pixels; ``columns`` holds every
-    numeric column of the file by name (``x``, ``yaw_deg``, ``alt_m``, ...).
-    """
-
-    frame: np.ndarray
-    t: np.ndarray
-    H: np.ndarray
-    columns: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-# --- geometry -----------------------------------------------------------------------------
-
-def to_h(M: np.ndarray) -> np.ndarray:
-    """A 2x3 affine (or a 3x3 matrix) as a 3x3 homogeneous matrix (stacked: ``(..., 3, 3)``)."""
-    M = np.asarray(M, dtype=float)
-    if M.shape[-2:] == (3, 3):
-        return M
-    bottom = np.broadcast_to(np.array([0.0, 0.0, 1.0]), M.shape[:-2] + (1, 3))
-    return np.concatenate([M, bottom], axis=-2)
-
-
-def apply_h(H: np.ndarray, point: Sequence[float]) -> np.ndarray:
-    """Map one pixel ``(x, y)`` through a 3x3 (or 2x3) matrix, or a stack of them: ``(..., 2)``."""
-    H = to_h(H)
-    p = H @ np.array([point[0], point[1], 1.0])
-    return p[..., :2] / p[..., 2:3]
-
-
-def local_linear(H: np.ndarray, point: Sequence[float]) -> np.ndarray:
-    """Jacobian (2x2) of the pixel map of ``H`` at ``point``; the linear part for an affine."""
-    H = to_h(H)
-    x, y = float(point[0]), float(point[1])
-    u, v, w = H @ np.array([x, y, 1.0])
-    return (H[:2, :2] - np.outer([u / w, v / w], H[2, :2])) / w
-
-
-def angle_scale(H: np.ndarray, point: Sequence[float]) -> tuple[float, float]:
-    """Rotation (deg) and scale of ``H`` at ``point``.
-
-    The angle is that of the nearest rotation to the local linear map ``J``,
-    ``atan2(J10 - J01, J00 + J11)``, which equals DESIGN's ``atan2(M[1,0], M[0,0])`` for a
-    similarity; the scale is ``sqrt(|det J|)``.
-    """
-    J = local_linear(H, point)
-    angle = math.degrees(math.atan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1]))
-    return angle, math.sqrt(abs(float(np.linalg.det(J))))
-
-
-def pose_angle_deg(M: np.ndarray) -> float:
-    """DESIGN's pose angle: ``degrees(atan2(M[1,0], M[0,0]))``."""
-    return math.degrees(math.atan2(M[1, 0], M[0, 0]))
-
-
-def pose_scale(M: np.ndarray) -> float:
-    """DESIGN's pose scale: ``sqrt(det(M[:, :2]))`` (of ``|det|``, so a mirror does not fail)."""
-    return math.sqrt(abs(float(np.linalg.det(np.asarray(M, dtype=float)[:2, :2]))))
-
-
-def frame_centre(width: int, height: int) -> tuple[float, float]:
-    """Pixel coordinates of a ``width`` x ``height`` frame's centre: ``((w-1)/2, (h-1)/2)``."""
-    return (width - 1) / 2.0, (height - 1) / 2.0
-
-
-def wrap_deg(a: np.ndarray | float) -> np.ndarray | float:
-    """Wrap angles (deg) to [-180, 180)."""
-    return (np.asarray(a) + 180.0) % 360.0 - 180.0
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True
-            ) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity ``dst ~ s * R @ src + t`` of two (N, 2) point sets (Umeyama 1991).
-
-    Returns ``(s, R, t)``; R is a proper rotation (no reflection).
-    """
-    src = np.asarray(src, dtype=float)
-    dst = np.asarray(dst, dtype=float)
-    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    a, b = src - mu_s, dst - mu_d
-    U, D, Vt = np.linalg.svd(b.T @ a / len(src))
-    S = np.diag([1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
-    R = U @ S @ Vt
-    var_s = float((a ** 2).sum(axis=1).mean())
-    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale and var_s > 0 else 1.0
-    return s, R, mu_d - s * R @ mu_s
 
 
 def summary(values: np.ndarray) -> dict:

@@ -31,6 +31,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from photomap.errors import InputError
+from photomap.geometry import pose_angle_deg, pose_scale, similarity_fit
 
 log = logging.getLogger(__name__)
 
@@ -65,18 +66,6 @@ def focal_px(width: int, fx_px: float = 0.0, hfov_deg: float = 0.0) -> float | N
             raise InputError(f"camera horizontal field of view must be below 180 deg, got {hfov_deg}")
         return (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
     return None
-
-
-def pose_scale(pose: np.ndarray) -> float:
-    """``sqrt(|det(M[:, :2])|)`` of a 2x3 (or 3x3) pose: map pixels per frame pixel."""
-    m = np.asarray(pose, float)
-    return math.sqrt(abs(float(np.linalg.det(m[:2, :2]))))
-
-
-def pose_angle_deg(pose: np.ndarray) -> float:
-    """``degrees(atan2(M[1,0], M[0,0]))`` of a pose."""
-    m = np.asarray(pose, float)
-    return math.degrees(math.atan2(m[1, 0], m[0, 0]))
 
 
 def metres_per_pixel(poses: Sequence[np.ndarray | None], heights: Sequence[float | None],
@@ -300,33 +289,6 @@ def utm_inverse(easting: np.ndarray, northing: np.ndarray, epsg: int) -> tuple[n
     phi = np.arctan(tau)
     lon = _central_meridian(zone) + np.degrees(np.arctan2(np.sinh(ep), np.cos(xp)))
     return np.degrees(phi), (lon + 180.0) % 360.0 - 180.0
-
-
-# --------------------------------------------------------------------------- similarity fit
-
-def similarity_fit(src: np.ndarray, dst: np.ndarray, *, scale: float | None = None,
-                   angle_deg: float | None = None) -> np.ndarray:
-    """Least-squares 2D similarity ``dst ~ c R src + t`` (Umeyama 1991, no reflection), 2x3.
-
-    ``scale`` fixes ``c``, ``angle_deg`` fixes the rotation (OpenCV sense); both are fitted
-    otherwise. Needs two distinct points when anything is free.
-    """
-    src, dst = np.asarray(src, float), np.asarray(dst, float)
-    ms, md = src.mean(axis=0), dst.mean(axis=0)
-    a, b = src - ms, dst - md
-    if angle_deg is None:
-        cov = b.T @ a / len(src)
-        u, d, vt = np.linalg.svd(cov)
-        s = np.diag([1.0, math.copysign(1.0, np.linalg.det(u) * np.linalg.det(vt))])
-        rot = u @ s @ vt
-    else:
-        r = math.radians(angle_deg)
-        rot = np.array([[math.cos(r), -math.sin(r)], [math.sin(r), math.cos(r)]])
-    if scale is None:
-        var = (a ** 2).sum() / len(src)
-        scale = float(np.einsum("ij,ij->", b, a @ rot.T) / len(src) / var) if var > 0 else 1.0
-    lin = scale * rot
-    return np.hstack([lin, (md - lin @ ms)[:, None]])
 
 
 def _apply(m: np.ndarray, pts: np.ndarray) -> np.ndarray:

@@ -18,10 +18,11 @@ import shutil
 import tempfile
 import zipfile
 from pathlib import Path
-from typing import Mapping, Protocol
+from typing import Mapping
 
 import numpy as np
 
+from photomap.core.mosaic import TileStore
 from photomap.errors import PhotomapError
 
 log = logging.getLogger(__name__)
@@ -29,23 +30,9 @@ log = logging.getLogger(__name__)
 TileKey = tuple[int, int]
 TileArrays = dict[str, np.ndarray]
 
+__all__ = ["TileStore", "MemoryTileStore", "DiskTileStore"]
+
 _NAME = re.compile(r"^tile_(-?\d+)_(-?\d+)\.npz$")
-
-
-class TileStore(Protocol):
-    """Storage for spilled tiles, keyed by ``(tx, ty)``."""
-
-    def put(self, key: TileKey, arrays: Mapping[str, np.ndarray]) -> None:
-        """Keep ``arrays`` under ``key``, replacing what was there."""
-
-    def get(self, key: TileKey) -> TileArrays | None:
-        """The arrays last put under ``key`` (a copy the caller may modify), or None."""
-
-    def keys(self) -> list[TileKey]:
-        """Every key held."""
-
-    def discard(self, key: TileKey) -> None:
-        """Forget ``key`` (no error if absent)."""
 
 
 class MemoryTileStore:

@@ -22,8 +22,8 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from photomap.errors import InputError
-from photomap.eval.metrics import (STATUSES, GroundTruth, PoseRow, frame_centre, pose_angle_deg,
-                         pose_scale)
+from photomap.core.records import GroundTruth, PoseRow, STATUSES
+from photomap.geometry import frame_centre, pose_angle_deg, pose_scale
 
 log = logging.getLogger(__name__)
 

@@ -1,9 +1,9 @@
 """Live operator view of a mapping run in rerun (DESIGN.md section 6).
 
-:class:`Viewer` plugs into :class:`photomap.mapping.pipeline.MappingPipeline` as its ``on_frame``
-callback. The callback runs in the pipeline's worker thread and only copies what the view
-needs (pose, confidence, a downscaled frame and the changed map tiles when they are due) into
-a bounded queue; a viewer thread JPEG-encodes and logs. When the viewer thread falls behind
+:meth:`Viewer.on_frame` is a sink of :class:`photomap.mapping.pipeline.MappingPipeline`: it gets
+a :class:`~photomap.mapping.events.FrameEvent` per frame in the pipeline's worker thread and only
+copies what the view needs (pose, confidence, a downscaled frame and the changed map tiles when
+they are due) into a bounded queue; a viewer thread JPEG-encodes and logs. When the viewer thread falls behind
 (slow network, stuck sink) the *oldest* queued item is dropped and counted: viewer data is
 dropped, frames never are, and the worker never waits on rerun.
 
@@ -60,15 +60,12 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 
+from photomap.config import ViewerConfig
 from photomap.errors import ConfigError, InputError
-from photomap.eval.metrics import frame_centre
+from photomap.geometry import frame_centre, pose_angle_deg
 
 if TYPE_CHECKING:
-    from photomap.drivers.capture import Frame
-
-    from photomap.core.mosaic import TiledMosaic
-    from photomap.mapping.pipeline import MappingPipeline
-    from photomap.core.tracking import TrackStep
+    from photomap.mapping.events import FrameEvent, TileReader
 
 log = logging.getLogger(__name__)
 
@@ -291,15 +288,15 @@ class Viewer:
         the recording to the ``.rrd`` file ``arg``). Strings as in :func:`parse_viewer_mode`.
     arg : str or None
         Port (serve), URL (connect) or file (save).
-    port, server_memory_limit : serve mode's port (``arg`` wins) and memory cap (e.g. ``"256MB"``).
-    queue_size : items (one per frame) waiting for the viewer thread before the oldest is dropped.
-    tile_hz, max_tiles : map tile refreshes per second, and changed tiles sent per refresh
-        (the rest wait for the next refresh).
-    camera_hz, camera_px : camera images per second and their longest side, pixels.
-    jpeg_quality : JPEG quality 1-100 of tiles and camera images.
-    trajectory_every, trajectory_max_points : the whole path of the current segment is sent
-        every this many frames, thinned to at most this many points.
-    color_by : ``confidence`` (red low, green high) or ``segment``: colour of trajectory points.
+    params : ViewerConfig
+        The ``viewer`` settings: serve mode's ``port`` (``arg`` wins) and ``server_memory_limit``
+        (e.g. ``"256MB"``); ``queue_size`` items (one per frame) waiting for the viewer thread
+        before the oldest is dropped; ``tile_hz`` map tile refreshes per second and ``max_tiles``
+        changed tiles sent per refresh (the rest wait for the next); ``camera_hz`` camera images
+        per second and ``camera_px`` their longest side; ``jpeg_quality`` of tiles and camera
+        images; the whole path of the current segment every ``trajectory_every`` frames,
+        thinned to at most ``trajectory_max_points``; ``color_by`` ``confidence`` (red low, green
+        high) or ``segment``. Its ``mode`` is not used here (see :meth:`from_config`).
     application_id : rerun application id.
 
     Raises
@@ -316,22 +313,14 @@ class Viewer:
     recording cleanly (``disconnect``), so a ``.rrd`` gets its footer.
     """
 
-    def __init__(self, mode: str = "none", arg: str | None = None, *, port: int = 9876,
-                 server_memory_limit: str = "256MB", queue_size: int = 32, tile_hz: float = 2.0,
-                 max_tiles: int = 64, camera_hz: float = 5.0, camera_px: int = 480,
-                 jpeg_quality: int = 75, trajectory_every: int = 30,
-                 trajectory_max_points: int = 2000, color_by: str = "confidence",
+    def __init__(self, mode: str = "none", arg: str | None = None, params: ViewerConfig = ViewerConfig(),
                  application_id: str = "photomap") -> None:
         mode, arg = parse_viewer_mode(mode if arg is None else f"{mode}={arg}")
-        self._check(queue_size=queue_size, max_tiles=max_tiles, camera_px=camera_px,
-                    trajectory_every=trajectory_every, trajectory_max_points=trajectory_max_points)
-        for name, hz in (("tile_hz", tile_hz), ("camera_hz", camera_hz)):
-            if not hz > 0:
-                raise ConfigError(f"viewer {name} must be > 0, got {hz!r}")
-        if not 1 <= int(jpeg_quality) <= 100:
-            raise ConfigError(f"viewer jpeg_quality must be 1-100, got {jpeg_quality!r}")
-        if color_by not in COLOR_BY:
-            raise ConfigError(f"viewer color_by must be one of {', '.join(COLOR_BY)}, got {color_by!r}")
+        tile_hz, camera_hz = params.tile_hz, params.camera_hz
+        max_tiles, camera_px, jpeg_quality = params.max_tiles, params.camera_px, params.jpeg_quality
+        trajectory_every, trajectory_max_points = params.trajectory_every, params.trajectory_max_points
+        color_by, queue_size = params.color_by, params.queue_size
+        port, server_memory_limit = params.port, params.server_memory_limit
         self.mode, self.arg = mode, arg
         self.url: str | None = None
         self.stats = ViewerStats()
@@ -344,7 +333,8 @@ class Viewer:
         self._warned: set[str] = set()
         self._closed = False
         # worker-side state (touched only by on_frame, and by close() after the run)
-        self._pipeline: MappingPipeline | None = None
+        self._tiles: TileReader | None = None  # the current segment's map (read after the run too)
+        self._dropped_capture = 0
         self._t0: float | None = None
         self._segment: int | None = None
         self._dirty: set[TileKey] = set()
@@ -354,10 +344,8 @@ class Viewer:
         self._since_strip = 0
         self._strip_due = False
         self._last_tiles = self._last_camera = -math.inf
-        self._prev_worker_s = self._prev_register_s = 0.0
         self._prev_reconnects = 0
         self._tel_lost = self._tel_back = 0  # telemetry link losses/returns already shown
-        self._corrections = 0  # loop-closure corrections already shown
         self._heading_offset, self._heading_segment = 0.0, None
         self._carry_events: list[tuple[str, str]] = []
         self._carry_clear: list[int] = []
@@ -371,18 +359,10 @@ class Viewer:
             self._open(mode, arg, int(port), str(server_memory_limit), application_id)
 
     @classmethod
-    def from_config(cls, section: dict, mode: str | None = None) -> Viewer:
-        """A viewer from the ``viewer`` config section; ``mode`` (``--viewer MODE``) overrides it."""
-        kwargs = dict(section)
-        configured = kwargs.pop("mode", "none")
-        name, arg = parse_viewer_mode(configured if mode is None else mode)
-        return cls(name, arg, **kwargs)
-
-    @staticmethod
-    def _check(**values: int) -> None:
-        for name, value in values.items():
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"viewer {name} must be a positive integer, got {value!r}")
+    def from_config(cls, params: ViewerConfig, mode: str | None = None) -> Viewer:
+        """A viewer from the ``viewer`` settings; ``mode`` (``--viewer MODE``) overrides ``params.mode``."""
+        name, arg = parse_viewer_mode(params.mode if mode is None else mode)
+        return cls(name, arg, params)
 
     @property
     def enabled(self) -> bool:
@@ -450,110 +430,94 @@ class Viewer:
         self._thread.start()
 
     # ------------------------------------------------------------------ worker side
-    def on_frame(self, frame: Frame, step: TrackStep, pipeline: MappingPipeline) -> None:
-        """The pipeline callback: copy what the view needs and queue it. Never raises or blocks."""
+    def on_frame(self, event: FrameEvent) -> None:
+        """The pipeline sink: copy what the view needs and queue it. Never raises or blocks."""
         if self._rec is None or self._closed:
             return
         t0 = time.perf_counter()
         try:
-            self._on_frame(frame, step, pipeline)
+            self._on_frame(event)
         except Exception as exc:  # the view must never cost the map
             self.stats.errors += 1
-            self._warn_once(f"frame:{type(exc).__name__}", f"viewer: frame {frame.index} not shown: "
+            self._warn_once(f"frame:{type(exc).__name__}", f"viewer: frame {event.index} not shown: "
                                                             f"{type(exc).__name__}: {exc}")
         finally:
             self.stats.callback_s += time.perf_counter() - t0
 
-    def _telemetry(self, pipeline: MappingPipeline, index: int, step: TrackStep, item: _Item) -> None:
+    def _telemetry(self, event: FrameEvent, item: _Item) -> None:
         """Altitude, vision vs autopilot heading, and telemetry link events."""
-        tel = getattr(pipeline, "telemetry", None)
-        if tel is None:
-            return
-        link = tel.link_summary()
-        lost, back = int(link.get("link_lost", 0)), int(link.get("link_regained", 0))
-        if lost > self._tel_lost:
-            item.events.append(("WARN", f"telemetry link lost before frame {index}: mapping from vision alone"))
-        if back > self._tel_back:
-            item.events.append(("INFO", f"telemetry link regained before frame {index}"))
-        self._tel_lost, self._tel_back = lost, back
-        sample = tel.samples.get(index)
-        if sample is None:
+        if event.link_lost > self._tel_lost:
+            item.events.append(("WARN", f"telemetry link lost before frame {event.index}: "
+                                        "mapping from vision alone"))
+        if event.link_regained > self._tel_back:
+            item.events.append(("INFO", f"telemetry link regained before frame {event.index}"))
+        self._tel_lost, self._tel_back = event.link_lost, event.link_regained
+        sample = event.telemetry
+        if sample is None or event.pose is None:
             return
         item.altitude = sample.height_above_ground
-        if sample.yaw is not None and step.pose is not None:
-            angle = math.degrees(math.atan2(step.pose[1][0], step.pose[0][0]))
+        if sample.yaw is not None:
+            angle = pose_angle_deg(event.pose)
             yaw = math.degrees(sample.yaw)
-            if self._heading_segment != step.segment:
-                self._heading_offset, self._heading_segment = yaw - angle, step.segment
+            if self._heading_segment != event.segment:
+                self._heading_offset, self._heading_segment = yaw - angle, event.segment
             item.heading = ((angle + self._heading_offset + 180.0) % 360.0 - 180.0,
                             (yaw + 180.0) % 360.0 - 180.0)
 
-    def _on_frame(self, frame: Frame, step: TrackStep, pipeline: MappingPipeline) -> None:
+    def _on_frame(self, event: FrameEvent) -> None:
         now = time.monotonic()
         self.stats.frames += 1
-        self._pipeline = pipeline
         if self._t0 is None:
-            self._t0 = frame.t
-        w, h = pipeline.frame_size
-        source = pipeline.source
-        item = _Item(frame.index, frame.t - self._t0, frame.t if source.live else None,
-                     float(step.confidence), step.segment, (w, h),
-                     dropped_capture=int(source.stats.dropped),
+            self._t0 = event.t
+        w, h = event.frame_size
+        item = _Item(event.index, event.t - self._t0, event.t if event.live else None,
+                     float(event.confidence), event.segment, (w, h),
+                     dropped_capture=event.dropped_frames,
                      events=self._carry_events, clear_segments=self._carry_clear)
         self._carry_events, self._carry_clear = [], []
+        self._dropped_capture = event.dropped_frames
 
-        if step.segment != self._segment:
+        if event.segment != self._segment:
             if self._segment is None:
-                item.events.append(("INFO", f"map segment {step.segment} started at frame {frame.index}"))
+                item.events.append(("INFO", f"map segment {event.segment} started at frame {event.index}"))
             else:
                 item.clear_segments.append(self._segment)
-            self._segment = step.segment
+            self._segment = event.segment
             self._dirty.clear()
             self._path, self._path_stride, self._path_count = [], 1, 0
             self._strip_due = True
-        item.events.extend(("WARN", text) for text in step.events)
-        if getattr(step, "disagreement", None):
-            item.events.append(("WARN", step.disagreement))
-        reconnects = int(source.stats.reconnects)
-        if reconnects > self._prev_reconnects:
-            item.events.append(("WARN", f"camera reconnected (reconnect {reconnects}) before frame {frame.index}"))
-            self._prev_reconnects = reconnects
+        item.events.extend(("WARN", text) for text in event.messages if not text.startswith("loop closed"))
+        if event.reconnects > self._prev_reconnects:
+            item.events.append(("WARN", f"camera reconnected (reconnect {event.reconnects}) "
+                                        f"before frame {event.index}"))
+            self._prev_reconnects = event.reconnects
 
-        self._telemetry(pipeline, frame.index, step, item)
-        stats = pipeline.stats
-        item.register_ms = 1000.0 * (stats.register_s - self._prev_register_s)
-        item.frame_ms = 1000.0 * (stats.worker_s - self._prev_worker_s)
-        self._prev_register_s, self._prev_worker_s = stats.register_s, stats.worker_s
-
-        item.color = self._color(step.confidence, step.segment)
-        anchor = getattr(step, "anchor", None)
-        if anchor is not None and step.anchor_pose is not None:  # an earlier frame became the reference
-            item.anchor = (int(anchor), np.array(step.anchor_pose, dtype=float))
-        posed = [p for p in (item.anchor[1] if item.anchor else None, step.pose) if p is not None]
-        if step.pose is not None:
-            item.pose = np.array(step.pose, dtype=float)
-        touched = getattr(pipeline, "last_touched", None)  # the exact set, if the pipeline offers it
-        mosaic = pipeline.mosaics.get(step.segment)
+        self._telemetry(event, item)
+        item.register_ms, item.frame_ms = event.register_ms, event.frame_ms
+        item.color = self._color(event.confidence, event.segment)
+        if event.anchor is not None:  # an earlier frame became the reference
+            item.anchor = (int(event.anchor[0]), np.array(event.anchor[1], dtype=float))
+        posed = [p for p in (item.anchor[1] if item.anchor else None, event.pose) if p is not None]
+        if event.pose is not None:
+            item.pose = np.array(event.pose, dtype=float)
+        if event.tiles is not None:
+            self._tiles = event.tiles
         cx, cy = frame_centre(w, h)
         for pose in posed:
             x, y = np.asarray(pose, float) @ (cx, cy, 1.0)
-            self._append_path(float(x), float(y), float(step.confidence))
-            if touched is None and mosaic is not None:
-                self._dirty.update(footprint_tiles(pose, w, h, mosaic.tile_size))
-        if posed and touched is not None:
-            self._dirty.update(touched)
+            self._append_path(float(x), float(y), float(event.confidence))
+        if posed:
+            self._dirty.update(event.touched)
 
         if self._dirty and now - self._last_tiles >= self._tile_period:
             self._last_tiles = now
-            item.tiles = self._take_tiles(mosaic, step.segment, self._max_tiles)
+            item.tiles = self._take_tiles(event.tiles, event.segment, self._max_tiles)
         if now - self._last_camera >= self._camera_period:
             self._last_camera = now
-            item.camera = _downscale(frame.image, self._camera_px)
-        loops = getattr(pipeline, "loops", None)
-        if loops is not None and loops.corrections != self._corrections:
-            self._corrections = loops.corrections
-            self._rebuild_path(pipeline, step.segment)
-            item.events.append(("INFO", f"loop closed at frame {frame.index}: trajectory and map corrected"))
+            item.camera = _downscale(event.image, self._camera_px)
+        if event.corrected_path is not None:
+            self._rebuild_path(event.corrected_path)
+            item.events.append(("INFO", f"loop closed at frame {event.index}: trajectory and map corrected"))
         self._since_strip += 1
         if self._path and (self._strip_due or self._since_strip >= self._trajectory_every):
             item.strips = self._strips()
@@ -579,14 +543,11 @@ class Viewer:
     def _color(self, confidence: float, segment: int) -> tuple[int, int, int]:
         return confidence_color(confidence) if self._color_by == "confidence" else segment_color(segment)
 
-    def _rebuild_path(self, pipeline: MappingPipeline, segment: int) -> None:
+    def _rebuild_path(self, path: tuple[tuple[float, float, float], ...]) -> None:
         """After a pose-graph correction: the path again, from the corrected poses."""
         self._path, self._path_stride, self._path_count = [], 1, 0
-        cx, cy = frame_centre(*pipeline.frame_size)
-        for row in pipeline.rows:
-            if row.glued and row.segment == segment:
-                x, y = np.asarray(row.M, float) @ (cx, cy, 1.0)
-                self._append_path(float(x), float(y), float(row.confidence))
+        for x, y, confidence in path:
+            self._append_path(x, y, confidence)
         self._strip_due = True
 
     def _append_path(self, x: float, y: float, confidence: float) -> None:
@@ -618,7 +579,7 @@ class Viewer:
                 start = i
         return strips
 
-    def _take_tiles(self, mosaic: TiledMosaic | None, segment: int, limit: int | None
+    def _take_tiles(self, mosaic: TileReader | None, segment: int, limit: int | None
                     ) -> list[tuple[int, TileKey, tuple[int, int], np.ndarray]]:
         """Copies of up to ``limit`` dirty tiles (removed from the dirty set); missing tiles are skipped."""
         out = []
@@ -731,11 +692,11 @@ class Viewer:
         last = self._last_item
         if last is not None:
             final = _Item(last.index, last.t, None, last.confidence, last.segment, last.frame_size,
-                          dropped_capture=int(self._pipeline.source.stats.dropped),
+                          dropped_capture=self._dropped_capture,
                           events=self._carry_events, clear_segments=self._carry_clear, health=False)
             try:
                 if self._dirty:
-                    final.tiles = self._take_tiles(self._pipeline.mosaics.get(last.segment), last.segment, None)
+                    final.tiles = self._take_tiles(self._tiles, last.segment, None)
                 if self._path:
                     final.strips = self._strips()
             except Exception as exc:

@@ -1,176 +1,184 @@
-"""Loop closure in the running pipeline: keyframe images on disk, graphs per segment, re-rendering.
+"""Loop closure in the running pipeline: keyframe graphs per segment and their corrections.
 
-The pipeline hands every tracked frame to :class:`LoopCloser`. Keyframes are kept on disk (their
-working-resolution grey image for registration, and a JPEG of the input frame for re-rendering
-the map), so memory stays bounded over a long flight. When a new keyframe closes a loop, the
-segment's pose graph is optimised (:mod:`photomap.core.keyframes`), every posed frame of the segment is
-re-posed through its keyframe (a frame keeps its measured pose relative to the keyframe it was
-registered against), the tracker continues from the corrected pose, and the segment's map is
-marked for re-rendering from its keyframes (done at checkpoints and at the end of the run).
-The optimisation runs on a snapshot of the graph in a background thread (one at a time), so the
-worker never waits for it; its result is applied at the next frame.
+The pipeline hands every tracked frame to :class:`LoopCloser`. Keyframes are kept on disk
+(:class:`photomap.io.keyframestore.KeyframeStore`), so memory stays bounded over a long flight.
+When a new keyframe closes a loop, the segment's pose graph is optimised
+(:mod:`photomap.core.keyframes`) and the loop closer returns a :class:`Correction`: the new pose
+of every frame it can re-pose (a frame keeps its measured pose relative to the keyframe it was
+registered against). The pipeline, which owns the trajectory, the tracker and the maps, applies
+it. The optimisation runs on a snapshot of the graph in a background thread (one at a time), so
+the worker never waits for it; a finished solution is returned by the next call.
 """
 
 from __future__ import annotations
 
 import logging
 from concurrent.futures import Future, ThreadPoolExecutor
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from photomap.core.keyframes import KeyframeGraph
-from photomap.core.mosaic import TiledMosaic
-from photomap.core.tracking import TrackStep, Tracker
-from photomap.eval.metrics import PoseRow
+from photomap.config import MappingConfig, PosegraphConfig
+from photomap.core.ifmi import Registrar
+from photomap.core.keyframes import KeyframeGraph, KeyframePriors
+from photomap.core.tracking import TrackStep
+from photomap.geo.georef import enu_from_latlon
+from photomap.io.keyframestore import KeyframeStore
+from photomap.telemetry.samples import TelemetrySample
 
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class Correction:
+    """A pose-graph correction of one segment.
+
+    ``poses``: frame index -> new 3x3 pose (input pixels -> map pixels) of every frame that could
+    be re-posed; ``latest``: the 3x3 correction (old map px -> new map px) of the segment's newest
+    keyframe, which the tracker applies to go on from the corrected pose; ``keyframes``: the
+    segment's keyframes (index, new 3x3 pose) in order, to re-render the map from.
+    """
+
+    segment: int
+    poses: dict[int, np.ndarray]
+    latest: np.ndarray
+    keyframes: tuple[tuple[int, np.ndarray], ...]
+
+
 class LoopCloser:
     """Keyframe graphs of all segments of a run (used from the worker thread; the optimiser runs
-    on snapshots in its own thread)."""
+    on snapshots in its own thread).
 
-    def __init__(self, folder: Path, tracker: Tracker, frame_size: tuple[int, int],
-                 working_scale: float, cfg: dict, priors: dict | None = None) -> None:
-        self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.tracker = tracker
+    Parameters
+    ----------
+    store : KeyframeStore
+        Where keyframe images go.
+    registrar : Registrar
+        At the working resolution.
+    frame_size : (w, h)
+        Input frame size.
+    working_scale : float
+        Working resolution / input resolution.
+    params, graph_params : the ``mapping`` and ``posegraph`` settings.
+    use_priors : bool
+        Telemetry of keyframes becomes pose-graph priors.
+    """
+
+    def __init__(self, store: KeyframeStore, registrar: Registrar, frame_size: tuple[int, int],
+                 working_scale: float, params: MappingConfig, graph_params: PosegraphConfig,
+                 use_priors: bool = False) -> None:
+        self.store = store
+        self.registrar = registrar
         self.frame_size = frame_size
         self.working_scale = working_scale
-        self.cfg = cfg
-        self.priors = priors  # the posegraph config: telemetry prior sigmas (None: no priors)
+        self.params = params
+        self.graph_params = graph_params
+        self.use_priors = use_priors
         self.graphs: dict[int, KeyframeGraph] = {}
-        self.relative: dict[int, tuple[int, np.ndarray]] = {}  # frame -> (keyframe, 3x3 measured)
-        self.dirty: set[int] = set()  # segments whose map must be re-rendered
+        # segment -> frame -> (keyframe, 3x3 measured: input px of frame -> of keyframe)
+        self.relative: dict[int, dict[int, tuple[int, np.ndarray]]] = {}
         self.corrections = 0
+        self._enu_origin: tuple[float, float] | None = None  # first GPS fix of the run
         # optimisation in a background thread: one at a time, on a snapshot of the graph
-        self._executor = ThreadPoolExecutor(1, "photomap-posegraph") if cfg["optimize_in_background"] else None
+        self._executor = (ThreadPoolExecutor(1, "photomap-posegraph")
+                          if params.optimize_in_background else None)
         self._running: tuple[int, Future] | None = None  # (segment, solve of its snapshot)
         self._wanted: set[int] = set()  # segments with loop edges not optimised yet
 
     def _graph(self, segment: int) -> KeyframeGraph:
         if segment not in self.graphs:
-            c = self.cfg
-            self.graphs[segment] = KeyframeGraph(
-                self.tracker.registrar, self.frame_size, self.working_scale, self._load_small,
-                min_gap=c["loop_min_gap"], radius=c["loop_radius"],
-                min_confidence=c["loop_min_confidence"], max_candidates=c["loop_candidates"])
+            self.graphs[segment] = KeyframeGraph(self.registrar, self.frame_size, self.working_scale,
+                                                 self.store.small, self.params, self.graph_params)
         return self.graphs[segment]
 
-    def _path(self, index: int, kind: str) -> Path:
-        return self.folder / f"kf{index:07d}.{kind}"
+    def _priors(self, sample: TelemetrySample | None) -> KeyframePriors | None:
+        if sample is None or not self.use_priors:
+            return None
+        east_north = None
+        if sample.lat is not None and sample.lon is not None:
+            if self._enu_origin is None:
+                self._enu_origin = (sample.lat, sample.lon)
+            east, north = enu_from_latlon(np.array([sample.lat]), np.array([sample.lon]), *self._enu_origin)
+            east_north = (float(east[0]), float(north[0]))
+        return KeyframePriors(sample.yaw, sample.height_above_ground, east_north)
 
-    def _load_small(self, index: int) -> np.ndarray:
-        img = cv2.imread(str(self._path(index, "png")), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise FileNotFoundError(self._path(index, "png"))
-        return img
-
-    def _store(self, index: int, small: np.ndarray, image: np.ndarray) -> None:
-        gray = small if small.ndim == 2 else cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
-        cv2.imwrite(str(self._path(index, "png")), gray)
-        cv2.imwrite(str(self._path(index, "jpg")), image, [cv2.IMWRITE_JPEG_QUALITY, 92])
-
-    def on_anchor(self, step: TrackStep, small: np.ndarray | None, image: np.ndarray | None) -> None:
+    def on_anchor(self, step: TrackStep, small: np.ndarray, image: np.ndarray) -> None:
         """The earlier frame ``step.anchor`` became the reference of a new segment."""
-        if small is not None and image is not None:
-            self._store(step.anchor, small, image)
-            self._graph(step.segment).add_keyframe(step.anchor, np.vstack([step.anchor_pose, [0, 0, 1]]), None)
+        self.store.put(step.anchor, small, image)
+        self._graph(step.segment).add_keyframe(step.anchor, np.vstack([step.anchor_pose, [0, 0, 1]]), None)
 
     def on_step(self, index: int, step: TrackStep, small: np.ndarray, image: np.ndarray,
-                rows: list[PoseRow], sample: Any = None) -> bool:
-        """Record a tracked frame (its row already in ``rows``); True when a correction was applied.
+                sample: TelemetrySample | None = None) -> Correction | None:
+        """Record a tracked frame; returns a correction when an optimisation has finished.
 
-        A finished background optimisation is applied after the frame is recorded, so that the
-        frame itself is corrected too.
+        A finished background optimisation is returned after the frame is recorded, so that the
+        frame itself is re-posed too.
         """
         if step.pose is None:
-            return self._collect(rows, wait=False)
+            return self.poll()
         if step.reference is not None:
-            self.relative[index] = (step.reference, step.relative)
+            self.relative.setdefault(step.segment, {})[index] = (step.reference, step.relative)
         if not step.keyframe:
-            return self._collect(rows, wait=False)
-        self._store(index, small, image)
+            return self.poll()
+        self.store.put(index, small, image)
         graph = self._graph(step.segment)
-        edge = None
-        if step.reference is not None:
-            edge = (step.reference, step.relative, step.confidence)
-        graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge, sample, self.priors)
+        edge = (step.reference, step.relative, step.confidence) if step.reference is not None else None
+        graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge, self._priors(sample))
         if graph.close_loops(small):
             log.info("loop closed at frame %d (segment %d): %d loop edges", index, step.segment, graph.loops)
             self._wanted.add(step.segment)
-        corrected = self._collect(rows, wait=False)
-        return self._start(rows) or corrected
+        done = self.poll()
+        started = self._start()
+        return started or done
 
-    def _start(self, rows: list[PoseRow]) -> bool:
-        """Optimise a segment that needs it: in the background, or here and now."""
+    def _start(self) -> Correction | None:
+        """Optimise a segment that needs it: in the background (None), or here and now."""
         if self._running is not None or not self._wanted:
-            return False
+            return None
         segment = min(self._wanted)
         self._wanted.discard(segment)
         graph = self.graphs[segment]
         if self._executor is None:
-            self._finish(segment, graph.optimize(), rows)
-            return True
-        self._running = (segment, self._executor.submit(KeyframeGraph.solve, graph.snapshot()))
-        return False
+            return self._finish(segment, *KeyframeGraph.solve(graph.snapshot(), self.graph_params))
+        self._running = (segment, self._executor.submit(KeyframeGraph.solve, graph.snapshot(),
+                                                        self.graph_params))
+        return None
 
-    def _collect(self, rows: list[PoseRow], wait: bool) -> bool:
-        """Apply a finished background optimisation (``wait``: block until it finishes)."""
+    def poll(self, wait: bool = False) -> Correction | None:
+        """The correction of a finished background optimisation, if any (``wait``: block for it)."""
         if self._running is None or not (wait or self._running[1].done()):
-            return False
+            return None
         segment, future = self._running
         self._running = None
-        self._finish(segment, self.graphs[segment].apply(*future.result()), rows)
-        self._start(rows)
-        return True
+        correction = self._finish(segment, *future.result())
+        self._start()
+        return correction
 
-    def _finish(self, segment: int, fixes: dict[int, np.ndarray], rows: list[PoseRow]) -> None:
-        self._apply(segment, fixes, rows)
+    def _finish(self, segment: int, poses: np.ndarray, dropped: list[int]) -> Correction:
+        if dropped:
+            log.warning("dropped %d loop closure(s) that disagree with the rest of the map", len(dropped))
+        graph = self.graphs[segment]
+        fixes = graph.apply(poses, dropped)
         self.corrections += 1
-        self.dirty.add(segment)
+        keyframes = {kf.index: kf.pose for kf in graph.keyframes}
+        new = dict(keyframes)
+        for frame, (ref, rel) in self.relative.get(segment, {}).items():
+            if frame not in new and ref in keyframes:
+                new[frame] = keyframes[ref] @ rel
+        latest = graph.keyframes[-1]
+        return Correction(segment, new, fixes[latest.index],
+                          tuple((kf.index, kf.pose.copy()) for kf in graph.keyframes))
 
-    def collect(self, rows: list[PoseRow]) -> bool:
-        """Apply a background optimisation if it has finished (never waits)."""
-        return self._collect(rows, wait=False)
-
-    def flush(self, rows: list[PoseRow]) -> None:
-        """Finish every pending optimisation (at the end of the run)."""
+    def flush(self) -> list[Correction]:
+        """Finish every pending optimisation (at the end of the run); returns their corrections."""
+        out = []
         while self._running is not None or self._wanted:
-            if not self._collect(rows, wait=True):
-                self._start(rows)
+            correction = self.poll(wait=True) if self._running is not None else self._start()
+            if correction is not None:
+                out.append(correction)
         if self._executor is not None:
             self._executor.shutdown(wait=True)
-
-    def _apply(self, segment: int, fixes: dict[int, np.ndarray], rows: list[PoseRow]) -> None:
-        poses = {kf.index: kf.pose for kf in self.graphs[segment].keyframes}
-        for row in rows:
-            if row.M is None or row.segment != segment:
-                continue
-            if row.frame in poses:
-                new = poses[row.frame]
-            elif row.frame in self.relative and self.relative[row.frame][0] in poses:
-                ref, rel = self.relative[row.frame]
-                new = poses[ref] @ rel
-            else:
-                continue
-            row.M = new[:2].copy()
-        if segment == self.tracker.segment:  # the tracker goes on from the corrected pose
-            latest = self.graphs[segment].keyframes[-1]
-            self.tracker.correct(fixes[latest.index])
-
-    def rerender(self, segment: int, mosaic: TiledMosaic) -> set:
-        """Re-render a corrected segment's map from its keyframes; returns the tiles now in it."""
-        mosaic.reset()
-        for kf in self.graphs[segment].keyframes:
-            image = cv2.imread(str(self._path(kf.index, "jpg")), cv2.IMREAD_COLOR)
-            if image is not None:
-                mosaic.add(image, kf.pose[:2])
-        self.dirty.discard(segment)
-        return set(mosaic.tiles())
+        return out
 
     def summary(self) -> dict:
         return {"keyframes": sum(len(g.keyframes) for g in self.graphs.values()),

@@ -2,9 +2,13 @@
 
 Threads live here (and in the drivers): a file source is decoded by a prefetch thread into a
 bounded queue (replay never drops); a live source already drops its oldest frames when the worker
-falls behind. One worker thread runs prepare -> register -> pose -> map update for each frame and
-checkpoints the outputs periodically; :meth:`MappingPipeline.stop` (SIGINT/SIGTERM) ends capture,
-lets the worker finish, and the outputs are written.
+falls behind. One worker thread runs prepare -> register -> pose -> map update for each frame,
+hands a :class:`~photomap.mapping.events.FrameEvent` to its sinks and checkpoints the outputs
+periodically; :meth:`MappingPipeline.stop` (SIGINT/SIGTERM) ends capture, lets the worker finish,
+and the outputs are written.
+
+State has one owner: the pipeline owns the trajectory rows, the maps (one per segment) and the
+tracker; the loop closer returns corrections that the pipeline applies; sinks only read events.
 
 Files written to the output folder (DESIGN.md section 4): ``mosaic.png`` (BGRA, transparent where
 the map is empty; the largest segment; other segments as ``mosaic_segment{N}.png``),
@@ -22,23 +26,27 @@ import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Iterator, Sequence
 
 import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from photomap.drivers.capture import Frame, FrameSource
-from photomap.geo.georef import aux_xml_text, compose, png_to_map, prj_text, world_file_text
+from photomap.config import Config
 from photomap.core.ifmi import Registrar
-from photomap.mapping.telemetry_join import TelemetryJoin
-from photomap.mapping.loopclosure import LoopCloser
 from photomap.core.maprelative import map_correction
 from photomap.core.mosaic import TiledMosaic
-from photomap.io.tilestore import DiskTileStore
+from photomap.core.records import PoseRow
 from photomap.core.tracking import LOW_CONFIDENCE, TrackStep, Tracker
-from photomap.eval.metrics import PoseRow
-from photomap.io.trajectory_files import atomic_write_bytes, write_json, write_trajectory_csv, write_tum
+from photomap.drivers.frames import Frame, FrameSource
+from photomap.geometry import frame_centre, pose_angle_deg
+from photomap.io.keyframestore import KeyframeStore
+from photomap.io.tilestore import DiskTileStore
+from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
+from photomap.mapping.events import FrameEvent, FrameSink
+from photomap.mapping.loopclosure import Correction, LoopCloser
+from photomap.mapping.outputs import remove_sidecars, write_png, write_sidecars, write_tiles
+from photomap.mapping.telemetry_join import TelemetryJoin
 
 log = logging.getLogger(__name__)
 
@@ -123,31 +131,32 @@ class MappingPipeline:
     ----------
     source : FrameSource
         Frames to map (live or replay).
-    cfg : dict
-        The whole config (sections ``registration``, ``mapping``, ``mosaic``, ``output``).
+    cfg : Config
+        The configuration (sections ``registration``, ``mapping``, ``mosaic``, ``output``,
+        ``posegraph``).
     out_dir : path
         Output folder (created).
-    on_frame : callable, optional
-        Called in the worker thread after each frame with ``(frame, step, pipeline)``; for sinks
-        such as the viewer or a progress bar. It must be quick and must not raise.
+    sinks : sequence of callables
+        Each is called in the worker thread with the :class:`FrameEvent` of every frame (viewer,
+        progress bar, STATUSTEXT). They must be quick and must not raise.
     input_name : str
         Recorded in ``run.json``.
     telemetry : TelemetryJoin, optional
         MAVLink telemetry joined to the frames (priors, tilt, metric scale, georeference).
     """
 
-    def __init__(self, source: FrameSource, cfg: dict, out_dir: str | Path, *,
-                 on_frame: Callable[[Frame, TrackStep, "MappingPipeline"], None] | None = None,
-                 input_name: str = "", telemetry: TelemetryJoin | None = None) -> None:
+    def __init__(self, source: FrameSource, cfg: Config, out_dir: str | Path, *,
+                 sinks: Sequence[FrameSink] = (), input_name: str = "",
+                 telemetry: TelemetryJoin | None = None) -> None:
         self.source = source
         self.cfg = cfg
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.on_frame = on_frame
+        self.sinks = tuple(sinks)
         self.input_name = input_name
         self.telemetry = telemetry
         self.stats = RunStats()
-        self.rows: list[PoseRow] = []
+        self._rows: list[PoseRow] = []
         self.mosaics: dict[int, TiledMosaic] = {}
         self.frame_size: tuple[int, int] | None = None  # (w, h) of the input
         self.tracker: Tracker | None = None
@@ -160,7 +169,13 @@ class MappingPipeline:
         self._own_cache = False
         self._warned: set[str] = set()
         self._pending: tuple[int, np.ndarray, np.ndarray] | None = None  # last low-confidence frame: index, image, small
-        self.last_touched: set = set()  # map tiles changed by the last frame (for the viewer)
+        self._dirty: set[int] = set()  # segments whose map must be re-rendered from keyframes
+        self._keyframes: dict[int, tuple[tuple[int, np.ndarray], ...]] = {}  # segment -> corrected keyframes
+
+    @property
+    def rows(self) -> tuple[PoseRow, ...]:
+        """The trajectory so far, one row per input frame (read only: the pipeline writes them)."""
+        return tuple(self._rows)
 
     # ------------------------------------------------------------------ control
     def stop(self) -> None:
@@ -202,32 +217,24 @@ class MappingPipeline:
     def _setup(self, image: np.ndarray) -> None:
         h, w = image.shape[:2]
         self.frame_size = (w, h)
-        rcfg = dict(self.cfg["registration"])
-        working = int(rcfg.pop("working_size"))
+        working = self.cfg.registration.working_size
         f = min(1.0, working / max(h, w)) if working > 0 else 1.0
         self._small = (max(16, int(round(w * f))), max(16, int(round(h * f))))
         f = self._small[0] / w  # exact factor of cv2.resize in x (and, to rounding, in y)
         self._working_scale = f
-        mcfg = self.cfg["mapping"]
-        self.tracker = Tracker(Registrar((self._small[1], self._small[0]), **rcfg), f,
-                               map_scale=float(mcfg["map_scale"]),
-                               min_confidence=mcfg["min_confidence"],
-                               max_lost_frames=mcfg["max_lost_frames"], keyframes=mcfg["keyframes"],
-                               keyframe_confidence=mcfg["keyframe_confidence"],
-                               keyframe_max_shift=mcfg["keyframe_max_shift"],
-                               motion_prior=mcfg["motion_prior"],
-                               prior_angle_tol_deg=mcfg["prior_angle_tol_deg"],
-                               prior_scale_tol=mcfg["prior_scale_tol"],
+        mapping = self.cfg.mapping
+        registrar = Registrar((self._small[1], self._small[0]), self.cfg.registration)
+        self.tracker = Tracker(registrar, f, mapping,
                                telemetry_prior=self.telemetry.prior if self.telemetry else None)
-        if mcfg["keyframes"] and mcfg["loop_closure"]:
-            self.loops = LoopCloser(self._cache() / "keyframes", self.tracker, self.frame_size, f, mcfg,
-                                    priors=self.cfg["posegraph"] if self.telemetry else None)
+        if mapping.keyframes and mapping.loop_closure:
+            self.loops = LoopCloser(KeyframeStore(self._cache() / "keyframes"), registrar, self.frame_size,
+                                    f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None)
 
     def _cache(self) -> Path:
         """The run's cache folder (configured, or a temporary one removed at the end)."""
         if self._cache_dir is None:
-            if self.cfg["mosaic"]["cache_dir"]:
-                self._cache_dir = Path(self.cfg["mosaic"]["cache_dir"]).expanduser()
+            if self.cfg.mosaic.cache_dir:
+                self._cache_dir = Path(self.cfg.mosaic.cache_dir).expanduser()
                 self._cache_dir.mkdir(parents=True, exist_ok=True)
             else:
                 self._cache_dir = Path(tempfile.mkdtemp(prefix="photomap-cache-"))
@@ -236,14 +243,10 @@ class MappingPipeline:
 
     def _mosaic(self, segment: int) -> TiledMosaic:
         if segment not in self.mosaics:
-            m = self.cfg["mosaic"]
             store = None
-            if m["max_tiles_in_memory"]:
+            if self.cfg.mosaic.max_tiles_in_memory:
                 store = DiskTileStore(self._cache() / f"segment{segment}")
-            self.mosaics[segment] = TiledMosaic(
-                tile_size=m["tile_size"], channels=m["channels"], blend=m["blend"],
-                max_tiles_in_memory=m["max_tiles_in_memory"], store=store, border=m["border"],
-                max_footprint_px=m["max_footprint_px"])
+            self.mosaics[segment] = TiledMosaic(self.cfg.mosaic, store)
         return self.mosaics[segment]
 
     def _warn_once(self, kind: str, message: str) -> None:
@@ -251,24 +254,31 @@ class MappingPipeline:
             self._warned.add(kind)
             log.warning(message)
 
+    def _skip(self, frame: Frame, status: str, t0: float) -> None:
+        """A frame that cannot be mapped: a row, and an event for the sinks."""
+        segment = max(self.stats.segments - 1, 0)
+        self._rows.append(PoseRow(frame.index, frame.t, None, status=status, segment=segment))
+        w, h = self.frame_size or (frame.image.shape[1], frame.image.shape[0])
+        self._emit(FrameEvent(frame.index, frame.t, self.source.live, frame.image, (w, h), status, None,
+                              math.nan, segment, frame_ms=1000.0 * (time.perf_counter() - t0),
+                              dropped_frames=int(self.source.stats.dropped),
+                              reconnects=int(self.source.stats.reconnects)))
+
     def _process(self, frame: Frame) -> None:
         t0 = time.perf_counter()
         for missing in range(self._next_index, frame.index):  # gaps: dropped or undecodable
-            self.rows.append(PoseRow(missing, float("nan"), None, status="dropped",
-                                     segment=max(self.stats.segments - 1, 0)))
+            self._rows.append(PoseRow(missing, float("nan"), None, status="dropped",
+                                      segment=max(self.stats.segments - 1, 0)))
         self._next_index = max(self._next_index, frame.index + 1)
         self.stats.frames_in += 1
         image = frame.image
         if self.tracker is None:
             self._setup(image)
-            if self.telemetry is not None:
-                self.telemetry.notify("mapping started")
         if image.shape[:2] != (self.frame_size[1], self.frame_size[0]):
             self.stats.corrupt += 1
             self._warn_once("size", f"frame {frame.index}: size {image.shape[1]}x{image.shape[0]} "
                                     f"differs from the first frame's; skipped")
-            self.rows.append(PoseRow(frame.index, frame.t, None, status="corrupt",
-                                     segment=max(self.stats.segments - 1, 0)))
+            self._skip(frame, "corrupt", t0)
             return
         try:
             sample = self.telemetry.sample(frame) if self.telemetry else None
@@ -277,14 +287,15 @@ class MappingPipeline:
             small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
             t1 = time.perf_counter()
             step = self.tracker.step(small, frame.index, sample)
-            self.stats.register_s += time.perf_counter() - t1
-            if step.keyframe and step.reference is not None and self.cfg["mapping"]["map_relative"]:
+            register_s = time.perf_counter() - t1
+            self.stats.register_s += register_s
+            if step.keyframe and step.reference is not None and self.cfg.mapping.map_relative:
                 self._map_relative(step, small)
-            self.last_touched = set()
+            touched: set = set()
             if step.anchor is not None:
-                self.last_touched |= self._anchor(step)
+                touched |= self._anchor(step)
             if step.pose is not None:
-                self.last_touched |= self._mosaic(step.segment).add(image, step.pose)
+                touched |= self._mosaic(step.segment).add(image, step.pose)
             pending = self._pending
             self._pending = (frame.index, image, small) if step.status == LOW_CONFIDENCE else None
         except Exception as exc:  # never lose the map for one bad frame
@@ -292,21 +303,19 @@ class MappingPipeline:
             self._warn_once(f"error:{type(exc).__name__}",
                             f"frame {frame.index} skipped: {type(exc).__name__}: {exc}")
             log.debug("frame %d failed", frame.index, exc_info=True)
-            self.rows.append(PoseRow(frame.index, frame.t, None, status="corrupt",
-                                     segment=max(self.stats.segments - 1, 0)))
+            self._skip(frame, "corrupt", t0)
             return
-        new_segment = step.segment > 0 and step.segment >= self.stats.segments
+        new_segment = step.segment >= self.stats.segments  # this frame started a map segment
         self.stats.segments = step.segment + 1
+        messages = list(step.events)
         for event in step.events:
             log.warning(event)
             self.stats.events.append(event)
-        if new_segment and self.telemetry is not None:
-            self.telemetry.notify(f"link to map lost, new segment at frame {frame.index}")
         if step.disagreement is not None and self.telemetry is not None:
-            self.telemetry.stats.disagreements += 1
-            if self.telemetry.stats.disagreements <= 3:  # counted in run.json; logged for the first few
+            if self.telemetry.disagreement() <= 3:  # counted in run.json; logged for the first few
                 log.warning(step.disagreement)
                 self.stats.events.append(step.disagreement)
+            messages.append(step.disagreement)
         if step.status == LOW_CONFIDENCE:
             self.stats.low_confidence += 1
         else:
@@ -316,19 +325,60 @@ class MappingPipeline:
         if sample is not None:
             row.extra["alt_m"] = sample.height_above_ground
             if step.pose is not None:
-                self.telemetry.samples[frame.index] = sample
-        self.rows.append(row)
+                self.telemetry.keep(frame.index, sample)
+        self._rows.append(row)
+        corrected_path = None
         if self.loops is not None:
             if step.anchor is not None and pending is not None and pending[0] == step.anchor:
                 self.loops.on_anchor(step, pending[2], pending[1])
-            if self.loops.on_step(frame.index, step, small, image, self.rows, sample):
-                self.stats.events.append(f"loop closed at frame {frame.index}: map corrected")
+            correction = self.loops.on_step(frame.index, step, small, image, sample)
+            if correction is not None:
+                self._apply(correction)
+                message = f"loop closed at frame {frame.index}: map corrected"
+                self.stats.events.append(message)
+                messages.append(message)
+                if correction.segment == step.segment:
+                    corrected_path = self._path(step.segment)
         self.stats.worker_s += time.perf_counter() - t0
-        if self.on_frame is not None:
-            self.on_frame(frame, step, self)
-        interval = float(self.cfg["output"]["checkpoint_interval"])
+        if self.sinks:
+            link = self.telemetry.link_summary() if self.telemetry is not None else {}
+            anchor = (step.anchor, step.anchor_pose.copy()) if step.anchor is not None else None
+            self._emit(FrameEvent(
+                frame.index, frame.t, self.source.live, frame.image, self.frame_size, step.status,
+                None if step.pose is None else step.pose.copy(), float(step.confidence), step.segment,
+                keyframe=step.keyframe, new_segment=new_segment, anchor=anchor, messages=tuple(messages),
+                touched=frozenset(touched), tiles=self.mosaics.get(step.segment),
+                register_ms=1000.0 * register_s, frame_ms=1000.0 * (time.perf_counter() - t0),
+                dropped_frames=int(self.source.stats.dropped), reconnects=int(self.source.stats.reconnects),
+                telemetry=sample, link_lost=int(link.get("link_lost", 0)),
+                link_regained=int(link.get("link_regained", 0)), corrected_path=corrected_path))
+        interval = self.cfg.output.checkpoint_interval
         if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
             self.checkpoint()
+
+    def _emit(self, event: FrameEvent) -> None:
+        for sink in self.sinks:
+            sink(event)
+
+    def _path(self, segment: int) -> tuple[tuple[float, float, float], ...]:
+        """The map positions of the frame centres of ``segment`` (x, y, confidence), in order."""
+        centre = (*frame_centre(*self.frame_size), 1.0)
+        out = []
+        for row in self._rows:
+            if row.glued and row.segment == segment:
+                x, y = np.asarray(row.M, float) @ centre
+                out.append((float(x), float(y), float(row.confidence)))
+        return tuple(out)
+
+    def _apply(self, correction: Correction) -> None:
+        """Re-pose the frames of a corrected segment; the tracker goes on from the corrected pose."""
+        for row in self._rows:
+            if row.M is not None and row.segment == correction.segment and row.frame in correction.poses:
+                row.M = correction.poses[row.frame][:2].copy()
+        if correction.segment == self.tracker.segment:
+            self.tracker.correct(correction.latest)
+        self._keyframes[correction.segment] = correction.keyframes
+        self._dirty.add(correction.segment)
 
     def _map_relative(self, step: TrackStep, small: np.ndarray) -> None:
         """Snap a new keyframe to the map rendered at its predicted pose (less drift)."""
@@ -337,8 +387,7 @@ class MappingPipeline:
             return
         pose = np.vstack([step.pose, [0.0, 0.0, 1.0]])
         fix = map_correction(self.tracker.registrar, mosaic, pose, small, self.frame_size,
-                             self._working_scale,
-                             min_confidence=self.cfg["mapping"]["loop_min_confidence"])
+                             self._working_scale, min_confidence=self.cfg.mapping.loop_min_confidence)
         if fix is not None:
             step.pose = (fix @ pose)[:2]
             self.tracker.correct(fix)
@@ -349,7 +398,7 @@ class MappingPipeline:
 
         Returns the map tiles it changed.
         """
-        for row in reversed(self.rows):
+        for row in reversed(self._rows):
             if row.frame == step.anchor:
                 row.M, row.status, row.segment = step.anchor_pose, "reference", step.segment
                 row.confidence = step.confidence
@@ -369,7 +418,7 @@ class MappingPipeline:
         out = self.stats.summary(time.monotonic() - self._started)
         out.update({"input": self.input_name, "frame_size": list(self.frame_size or ()),
                     "working_size": list(getattr(self, "_small", ())),
-                    "reconnects": src.reconnects, "map_scale": self.cfg["mapping"]["map_scale"]})
+                    "reconnects": src.reconnects, "map_scale": self.cfg.mapping.map_scale})
         if self.loops is not None:
             out["loop_closure"] = self.loops.summary()
         return out
@@ -377,17 +426,34 @@ class MappingPipeline:
     def _write_trajectory(self) -> None:
         if self.frame_size is None:
             return
-        write_trajectory_csv(self.out_dir / "trajectory.csv", self.rows, self.frame_size)
-        if any(r.glued for r in self.rows):
-            write_tum(self.out_dir / "trajectory.tum", self.rows, self.frame_size)
+        write_trajectory_csv(self.out_dir / "trajectory.csv", self._rows, self.frame_size)
+        if any(r.glued for r in self._rows):
+            write_tum(self.out_dir / "trajectory.tum", self._rows, self.frame_size)
 
     def _rerender(self) -> None:
-        """Re-render the maps that a loop closure corrected."""
+        """Re-render the maps that a loop closure corrected, from their keyframes."""
         if self.loops is not None:
-            self.loops.collect(self.rows)
-            for segment in sorted(self.loops.dirty):
-                if segment in self.mosaics:
-                    self.last_touched |= self.loops.rerender(segment, self.mosaics[segment])
+            correction = self.loops.poll()
+            if correction is not None:
+                self._apply(correction)
+        for segment in sorted(self._dirty):
+            mosaic = self.mosaics.get(segment)
+            if mosaic is None:
+                continue
+            mosaic.reset()
+            for index, pose in self._keyframes.get(segment, ()):
+                image = self.loops.store.image(index)
+                if image is not None:
+                    mosaic.add(image, pose[:2])
+        self._dirty.clear()
+
+    def _largest_segments(self) -> list[int]:
+        """Segments with a map, the one with the most posed frames first."""
+        counts = {s: 0 for s in self.mosaics}
+        for r in self._rows:
+            if r.glued and r.segment in counts:
+                counts[r.segment] += 1
+        return sorted(counts, key=lambda s: -counts[s])
 
     def checkpoint(self) -> None:
         """Rewrite trajectory, run.json and a mosaic preview (atomically)."""
@@ -397,29 +463,9 @@ class MappingPipeline:
         summary = self.summary()
         summary["complete"] = False
         if self.mosaics:
-            seg = max(self.mosaics, key=lambda s: sum(r.glued and r.segment == s for r in self.rows))
-            self._write_png(self.out_dir / "preview.png", self.mosaics[seg],
-                            int(self.cfg["output"]["preview_px"]))
+            write_png(self.out_dir / "preview.png", self.mosaics[self._largest_segments()[0]],
+                      self.cfg.output.preview_px)
         write_json(self.out_dir / "run.json", summary)
-
-    @staticmethod
-    def _write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
-        bounds = mosaic.bounds()
-        if bounds is None:
-            return None
-        _, _, w, h = bounds
-        scale = min(1.0, max_px / max(w, h))
-        image, alpha, origin = mosaic.render(scale=scale)
-        if image.ndim == 2:
-            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-        ok, buf = cv2.imencode(".png", np.dstack([image, alpha]))
-        if not ok:
-            raise RuntimeError(f"PNG encoding of {path.name} failed")
-        atomic_write_bytes(path, buf.tobytes())
-        # exact per-axis scale of the PNG: output size over the map rectangle's size
-        return {"file": path.name, "origin_xy": list(origin), "scale": scale,
-                "pixel_scale": [image.shape[1] / w, image.shape[0] / h],
-                "bounds": [int(v) for v in bounds], "size": [int(image.shape[1]), int(image.shape[0])]}
 
     def _georeference(self, summary: dict, maps: list[dict]) -> None:
         """Metric scale and georeference per segment; world files beside the mosaics."""
@@ -428,22 +474,18 @@ class MappingPipeline:
         geo_out = {}
         for info in maps:
             seg = info["segment"]
-            rows = [r for r in self.rows if r.glued and r.segment == seg and r.frame in join.samples]
+            rows = [r for r in self._rows if r.glued and r.segment == seg and join.kept(r.frame)]
             mpp, geo = join.georeference(w, h, [np.asarray(r.M) for r in rows],
-                                         [join.samples[r.frame] for r in rows])
+                                         [join.kept(r.frame) for r in rows])
             entry: dict = {"metres_per_pixel": mpp}
             if geo is not None:
-                stem = Path(info["file"]).stem
-                png = compose(geo.map_to_crs, png_to_map(info["origin_xy"], info["pixel_scale"]))
-                atomic_write_bytes(self.out_dir / f"{stem}.pgw", world_file_text(png).encode())
-                atomic_write_bytes(self.out_dir / f"{stem}.prj", prj_text(geo.epsg).encode())
-                atomic_write_bytes(self.out_dir / f"{info['file']}.aux.xml", aux_xml_text(geo.epsg).encode())
+                world_file = write_sidecars(self.out_dir, info, geo)
                 entry.update({"crs": f"EPSG:{geo.epsg}", "map_to_crs": geo.map_to_crs.tolist(),
                               "origin_lat": geo.origin_lat, "origin_lon": geo.origin_lon,
                               "gps_rms_m": geo.rms_m, "scale_source": geo.scale_source,
-                              "world_file": f"{stem}.pgw"})
+                              "world_file": world_file})
                 centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
-                for r in self.rows:
+                for r in self._rows:
                     if r.glued and r.segment == seg:
                         lat, lon = geo.to_latlon((np.asarray(r.M) @ centre)[None, :])
                         r.extra["lat"], r.extra["lon"] = float(lat[0]), float(lon[0])
@@ -452,9 +494,8 @@ class MappingPipeline:
         head = geo_out.get(maps[0]["segment"]) if maps else None
         summary["metres_per_pixel"] = head["metres_per_pixel"] if head else None
         summary["georeference"] = head if head and "crs" in head else None
-        posed = [r for r in self.rows if r.glued and r.segment == (maps[0]["segment"] if maps else 0)]
-        check = join.time_offset_check([r.t for r in posed],
-                                       [math.degrees(math.atan2(r.M[1][0], r.M[0][0])) for r in posed])
+        posed = [r for r in self._rows if r.glued and r.segment == (maps[0]["segment"] if maps else 0)]
+        check = join.time_offset_check([r.t for r in posed], [pose_angle_deg(np.asarray(r.M)) for r in posed])
         summary["telemetry"] = {**asdict(join.stats), "link": join.link_summary(),
                                 "time_offset_s": join.offset, "time_offset_check": check}
         if check is not None and abs(check["residual_offset_s"]) > 0.2:
@@ -463,35 +504,26 @@ class MappingPipeline:
                         check["correlation"], join.offset + check["residual_offset_s"])
         self._write_trajectory()
 
-    def _write_tiles(self, folder: Path, mosaic: TiledMosaic) -> None:
-        folder.mkdir(exist_ok=True)
-        for key in mosaic.tiles():
-            image, alpha = mosaic.tile_image(key)
-            if image.ndim == 2:
-                image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-            ok, buf = cv2.imencode(".png", np.dstack([image, alpha]))
-            if ok:
-                atomic_write_bytes(folder / f"tile_{key[0]}_{key[1]}.png", buf.tobytes())
-
     def finish(self) -> dict:
         """Write the final outputs; returns the run summary (also in ``run.json``)."""
         if self.loops is not None:
-            self.loops.flush(self.rows)
+            for correction in self.loops.flush():
+                self._apply(correction)
         self._rerender()
         self._write_trajectory()
         summary = self.summary()
         maps = []
-        max_px = int(self.cfg["output"]["max_mosaic_px"])
-        order = sorted(self.mosaics, key=lambda s: -sum(r.glued and r.segment == s for r in self.rows))
-        for rank, seg in enumerate(order):
+        max_px = self.cfg.output.max_mosaic_px
+        for rank, seg in enumerate(self._largest_segments()):
             name = "mosaic.png" if rank == 0 else f"mosaic_segment{seg}.png"
-            info = self._write_png(self.out_dir / name, self.mosaics[seg], max_px)
+            info = write_png(self.out_dir / name, self.mosaics[seg], max_px)
             if info is None:
                 continue
+            remove_sidecars(self.out_dir, name)  # an earlier run's georeference must not stay
             info["segment"] = seg
             if info["scale"] < 1.0:
                 tiles = self.out_dir / ("tiles" if rank == 0 else f"tiles_segment{seg}")
-                self._write_tiles(tiles, self.mosaics[seg])
+                write_tiles(tiles, self.mosaics[seg])
                 info["tiles"] = tiles.name
                 info["tile_size"] = self.mosaics[seg].tile_size
             maps.append(info)
@@ -504,3 +536,4 @@ class MappingPipeline:
         if self._own_cache and self._cache_dir is not None:
             shutil.rmtree(self._cache_dir, ignore_errors=True)
         return summary
+

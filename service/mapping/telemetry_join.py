@@ -21,7 +21,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from photomap.drivers.capture import Frame
+from photomap.config import Config
+from photomap.drivers.frames import Frame
 from photomap.geo.georef import (Georeference, fit_georeference, focal_px, map_heading_deg, metres_per_pixel,
                      nadir_homography, telemetry_prior)
 from photomap.core.ifmi import Prior
@@ -57,30 +58,43 @@ class TelemetryJoin:
         UNIX time of video time 0 (``log`` mode).
     offset : float
         Added to every frame time, seconds (``--time-offset``).
-    cfg : dict
-        The whole config (sections ``telemetry``, ``camera``, ``georef``).
+    cfg : Config
+        The configuration (sections ``telemetry``, ``camera``, ``georef``).
+    link_summary : callable
+        What the link saw (messages, gaps, link losses), for ``run.json``.
     """
 
-    def __init__(self, sample_at: Callable[[float], TelemetrySample], mode: str, cfg: dict, *,
-                 video_start: float = 0.0, offset: float = 0.0) -> None:
+    def __init__(self, sample_at: Callable[[float], TelemetrySample], mode: str, cfg: Config, *,
+                 video_start: float = 0.0, offset: float = 0.0,
+                 link_summary: Callable[[], dict] = dict) -> None:
         if mode not in ("live", "log", "link"):
             raise ValueError(f"unknown telemetry time mode {mode!r}")
         self.sample_at = sample_at
         self.mode = mode
         self.video_start = video_start
         self.offset = offset
-        self.tcfg = cfg["telemetry"]
-        self.ccfg = cfg["camera"]
-        self.gcfg = cfg["georef"]
+        self.tcfg = cfg.telemetry
+        self.ccfg = cfg.camera
+        self.gcfg = cfg.georef
         self.stats = JoinStats()
         self._mono_to_unix = time.time() - time.monotonic()
         self._link_start: float | None = None
         self._fx: float | None = None
-        self.samples: dict[int, TelemetrySample] = {}  # frame index -> sample (posed frames only)
-        # set by whoever opened the link: what the link saw (messages, gaps, link losses)
-        self.link_summary: Callable[[], dict] = dict
-        # set by whoever opened the link: tell the autopilot/GCS about an event (STATUSTEXT)
-        self.notify: Callable[[str], None] = lambda text: None
+        self._samples: dict[int, TelemetrySample] = {}  # frame index -> sample (posed frames only)
+        self.link_summary = link_summary
+
+    def keep(self, index: int, sample: TelemetrySample) -> None:
+        """Keep the sample of posed frame ``index`` for the georeference at the end."""
+        self._samples[index] = sample
+
+    def kept(self, index: int) -> TelemetrySample | None:
+        """The sample kept for frame ``index``, if any."""
+        return self._samples.get(index)
+
+    def disagreement(self) -> int:
+        """Count one frame where vision overruled telemetry; returns the count so far."""
+        self.stats.disagreements += 1
+        return self.stats.disagreements
 
     # ------------------------------------------------------------------ per frame
     def telemetry_time(self, t: float) -> float:
@@ -105,12 +119,12 @@ class TelemetryJoin:
 
     def focal(self, width: int) -> float | None:
         if self._fx is None:
-            self._fx = focal_px(width, self.ccfg["fx_px"], self.ccfg["hfov_deg"])
+            self._fx = focal_px(width, self.ccfg.fx_px, self.ccfg.hfov_deg)
         return self._fx
 
     def rectify(self, image: np.ndarray, s: TelemetrySample | None) -> np.ndarray:
         """Warp a tilted frame to the nadir view (needs roll, pitch and the camera model)."""
-        if not self.tcfg["rectify_tilt"] or s is None or s.roll is None or s.pitch is None:
+        if not self.tcfg.rectify_tilt or s is None or s.roll is None or s.pitch is None:
             return image
         if abs(s.roll) < _MIN_TILT_RAD and abs(s.pitch) < _MIN_TILT_RAD:
             return image
@@ -125,14 +139,14 @@ class TelemetryJoin:
 
     def prior(self, reference: TelemetrySample | None, current: TelemetrySample | None) -> Prior | None:
         """Expected registration of ``current`` against ``reference`` from yaw and height."""
-        if not self.tcfg["use_priors"] or reference is None or current is None:
+        if not self.tcfg.use_priors or reference is None or current is None:
             return None
         angle, scale = telemetry_prior(reference, current)
         if angle is None and scale is None:
             return None
         self.stats.priors_used += 1
-        return Prior(angle_deg=angle, angle_tol_deg=float(self.tcfg["prior_angle_tol_deg"]),
-                     scale=scale, scale_tol=float(self.tcfg["prior_scale_tol"]))
+        return Prior(angle_deg=angle, angle_tol_deg=self.tcfg.prior_angle_tol_deg,
+                     scale=scale, scale_tol=self.tcfg.prior_scale_tol)
 
     # ------------------------------------------------------------------ after the run
     def time_offset_check(self, frame_t: list[float], angles: list[float]) -> dict | None:
@@ -141,8 +155,8 @@ class TelemetryJoin:
             return None
         tel_t = [self.telemetry_time(t) for t in frame_t]
         ts, yaws = [], []
-        for t in np.arange(tel_t[0] - self.gcfg["timesync_window_s"],
-                           tel_t[-1] + self.gcfg["timesync_window_s"], 0.05):
+        for t in np.arange(tel_t[0] - self.gcfg.timesync_window_s,
+                           tel_t[-1] + self.gcfg.timesync_window_s, 0.05):
             s = self.sample_at(float(t))
             if s is not None and s.yaw is not None:
                 ts.append(float(t))
@@ -150,9 +164,9 @@ class TelemetryJoin:
         if len(ts) < 10:
             return None
         found = estimate_time_offset(tel_t, angles, ts, yaws, nominal_s=0.0,
-                                     window_s=self.gcfg["timesync_window_s"],
-                                     min_correlation=self.gcfg["timesync_min_correlation"],
-                                     min_rate_deg_s=self.gcfg["timesync_min_yaw_rate"])
+                                     window_s=self.gcfg.timesync_window_s,
+                                     min_correlation=self.gcfg.timesync_min_correlation,
+                                     min_rate_deg_s=self.gcfg.timesync_min_yaw_rate)
         if found is None:
             return None
         offset, corr = found
@@ -169,9 +183,9 @@ class TelemetryJoin:
         heading = map_heading_deg(poses, [s.yaw for s in samples])
         geo = fit_georeference(xy, [s.lat for s in samples], [s.lon for s in samples],
                                metres_per_px=mpp, heading_deg=heading,
-                               inlier_m=self.gcfg["gps_inlier_m"],
-                               min_extent_m=self.gcfg["min_extent_m"],
-                               min_fixes=self.gcfg["min_fixes"])
+                               inlier_m=self.gcfg.gps_inlier_m,
+                               min_extent_m=self.gcfg.min_extent_m,
+                               min_fixes=self.gcfg.min_fixes)
         if mpp is None and geo is not None:
             mpp = geo.metres_per_px
         return mpp, geo

@@ -30,15 +30,11 @@ import cv2
 import numpy as np
 
 from photomap.errors import InputError
-from photomap.core.ifmi import similarity_matrix
+from photomap.geo.georef import enu_from_latlon, latlon_from_enu
+from photomap.geometry import similarity_matrix
 
 PATTERNS = ("random", "lawnmower", "figure8")
 YAW_MODES = ("random", "constant", "heading", "fixed")
-
-# WGS84
-_A = 6378137.0
-_E2 = 6.69437999014e-3
-
 
 # --------------------------------------------------------------------------- camera and poses
 
@@ -128,30 +124,18 @@ def frame_outline(camera: Camera, step: float = 8.0) -> np.ndarray:
 
 def pixel_to_latlon(x: np.ndarray, y: np.ndarray, gsd: float, origin_lat: float,
                     origin_lon: float) -> tuple[np.ndarray, np.ndarray]:
-    """Terrain pixels -> WGS84 degrees through a local tangent plane at terrain pixel (0, 0).
+    """Terrain pixels -> WGS84 degrees through the local tangent plane at terrain pixel (0, 0).
 
-    East = ``x * gsd`` metres, north = ``-y * gsd`` metres; meridian and prime-vertical radii
-    of curvature at the origin (good to millimetres over a few kilometres).
+    East = ``x * gsd`` metres, north = ``-y * gsd`` metres (:func:`photomap.geo.georef.latlon_from_enu`).
     """
-    lat0 = math.radians(origin_lat)
-    s = math.sin(lat0)
-    n_radius = _A / math.sqrt(1.0 - _E2 * s * s)
-    m_radius = n_radius * (1.0 - _E2) / (1.0 - _E2 * s * s)
-    lat = origin_lat + np.degrees(-np.asarray(y, float) * gsd / m_radius)
-    lon = origin_lon + np.degrees(np.asarray(x, float) * gsd / (n_radius * math.cos(lat0)))
-    return lat, lon
+    return latlon_from_enu(np.asarray(x, float) * gsd, -np.asarray(y, float) * gsd, origin_lat, origin_lon)
 
 
 def latlon_to_pixel(lat: np.ndarray, lon: np.ndarray, gsd: float, origin_lat: float,
                     origin_lon: float) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of :func:`pixel_to_latlon`."""
-    lat0 = math.radians(origin_lat)
-    s = math.sin(lat0)
-    n_radius = _A / math.sqrt(1.0 - _E2 * s * s)
-    m_radius = n_radius * (1.0 - _E2) / (1.0 - _E2 * s * s)
-    y = -np.radians(np.asarray(lat, float) - origin_lat) * m_radius / gsd
-    x = np.radians(np.asarray(lon, float) - origin_lon) * n_radius * math.cos(lat0) / gsd
-    return x, y
+    east, north = enu_from_latlon(np.asarray(lat, float), np.asarray(lon, float), origin_lat, origin_lon)
+    return east / gsd, -north / gsd
 
 
 # --------------------------------------------------------------------------- parameters

@@ -14,6 +14,7 @@ examples:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import csv
 import logging
 import time
@@ -196,7 +197,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace, cfg: dict) -> int:
     """``photomap simulate``: merge flags over the config, simulate, print where the files are."""
-    c = dict(cfg["simulate"])
+    c = dataclasses.asdict(cfg.simulate)
     flags = {"terrain": "terrain", "zoom": "terrain_zoom", "gsd": "gsd", "frames": "frames", "size": "size",
              "fps": "fps", "seed": "seed", "hfov": "hfov_deg", "pattern": "pattern", "speed": "speed",
              "yaw_mode": "yaw_mode", "yaw_rate": "yaw_rate", "altitude": "altitude", "scale_rate": "scale_rate",

@@ -1,0 +1,202 @@
+"""What the mapping commands share: telemetry links, the pipeline with its sinks, signals, summary.
+
+``replay``, ``run`` and ``demo`` are thin: they open a frame source, call :func:`open_telemetry`
+and :func:`map_source`, and print :func:`print_summary`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import yaml
+from tqdm import tqdm
+
+from photomap.config import CaptureConfig, Config
+from photomap.drivers.capture import open_source
+from photomap.drivers.frames import FrameSource
+from photomap.drivers.mavlink import TelemetryReader, load_tlog
+from photomap.errors import InputError
+from photomap.live.viewer import Viewer
+from photomap.mapping.events import FrameEvent, FrameSink
+from photomap.mapping.pipeline import MappingPipeline
+from photomap.mapping.telemetry_join import TelemetryJoin
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------- arguments
+def add_telemetry_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--mavlink", metavar="CONNECTION",
+                        help="MAVLink telemetry: a .tlog file, udpin:0.0.0.0:14550, tcp:HOST:PORT, "
+                             "/dev/ttyUSB0,57600 ... (default: telemetry.source; none = vision only)")
+    parser.add_argument("--time-offset", type=float, metavar="SECONDS",
+                        help="seconds added to frame times to get telemetry times")
+
+
+def add_viewer_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--viewer", metavar="MODE",
+                        help="live view in rerun (needs the viewer extra): none, spawn, serve[=PORT] "
+                             "(an operator runs `rerun rerun+http://HOST:PORT/proxy`), "
+                             "connect=URL, save=FILE.rrd (default: viewer.mode)")
+
+
+# ---------------------------------------------------------------------------------- frames
+def open_capture(spec: str, c: CaptureConfig) -> FrameSource:
+    """The frame source ``spec`` names (camera, folder/glob of stills, video), set up from ``capture``."""
+    return open_source(spec, width=c.width, height=c.height, fps=c.fps, fourcc=c.fourcc,
+                       queue_size=c.queue_size, read_failures=c.read_failures,
+                       reconnect_initial=c.reconnect_initial, reconnect_max=c.reconnect_max,
+                       image_rate=c.image_rate)
+
+
+# ---------------------------------------------------------------------------------- telemetry
+def video_metadata(input_spec: str) -> dict:
+    """The simulator's meta.yaml beside a video (camera model, UNIX time of frame 0), if any."""
+    meta = Path(input_spec).parent / "meta.yaml"
+    if not Path(input_spec).is_file() or not meta.is_file():
+        return {}
+    try:
+        data = yaml.safe_load(meta.read_text(encoding="utf-8")) or {}
+    except (OSError, yaml.YAMLError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _link_summary(spec: str, stats) -> dict:
+    return {"source": spec, "messages": stats.total, "gaps": stats.gaps,
+            "link_lost": stats.link_lost, "link_regained": stats.link_regained,
+            "rejected_samples": sum(stats.rejected.values()), "parse_errors": stats.receive_errors}
+
+
+def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None, input_spec: str = "",
+                   video_start: float | None = None, realtime: bool = False, live: bool = False
+                   ) -> tuple[TelemetryJoin, TelemetryReader | None, Config]:
+    """A telemetry join for ``spec`` (a .tlog or a live link), the reader to stop (or None), and
+    the config completed with the video's own camera model when it has one."""
+    tcfg = cfg.telemetry
+    meta = video_metadata(input_spec) if input_spec else {}
+    camera = meta.get("camera") or {}
+    if not cfg.camera.fx_px and not cfg.camera.hfov_deg and camera.get("fx"):
+        cfg = cfg.updated({"camera": {"fx_px": float(camera["fx"])}})  # the video's own camera model
+    if spec.lower().endswith(".tlog") and not live:
+        if not Path(spec).is_file():
+            raise InputError(f"telemetry log not found: {spec}")
+        buffer, stats = load_tlog(spec, max_gap=tcfg.max_gap, max_hold=tcfg.max_hold,
+                                  link_timeout=tcfg.link_timeout)
+        if video_start is None:
+            video_start = meta.get("t0_unix") or getattr(source, "creation_time", None)
+        if video_start is None and getattr(source, "exif_times", None):
+            video_start = 0.0  # stills carry UNIX times already
+        if video_start is None:
+            span = buffer.span
+            video_start = span[0] if span else 0.0
+            log.warning("video start time unknown: assuming it starts with the telemetry log "
+                        "(use --video-start or --time-offset)")
+        join = TelemetryJoin(buffer.at, "log", cfg, video_start=float(video_start), offset=tcfg.time_offset,
+                             link_summary=lambda: _link_summary(spec, stats))
+        return join, None, cfg
+    link_cfg = cfg.updated({"telemetry": {"source": spec, "send_heartbeat": tcfg.send_heartbeat and live}})
+    reader = TelemetryReader.from_config(link_cfg.telemetry).start()
+    if not live and not realtime:
+        log.warning("a live telemetry link with a replay as fast as possible cannot be joined in "
+                    "time: use --realtime")
+    join = TelemetryJoin(reader.at, "live" if live else "link", cfg, offset=tcfg.time_offset,
+                         link_summary=lambda: _link_summary(spec, reader.stats))
+    return join, reader, cfg
+
+
+# ---------------------------------------------------------------------------------- sinks
+def progress_sink(total: int | None, enabled: bool) -> tuple[FrameSink, Callable[[], None]]:
+    """A progress bar on stderr (one tick per frame) and its close function."""
+    bar = tqdm(total=total, unit="frame", disable=not enabled, file=sys.stderr, dynamic_ncols=True)
+    return (lambda event: bar.update(1)), bar.close
+
+
+def pacing_sink() -> FrameSink:
+    """Sleeps so that frame times advance no faster than wall time (``--realtime``)."""
+    t0: list[float] = []
+
+    def pace(event: FrameEvent) -> None:
+        if not t0:
+            t0.extend((event.t, time.monotonic()))
+            return
+        delay = (event.t - t0[0]) - (time.monotonic() - t0[1])
+        if delay > 0:
+            time.sleep(delay)
+    return pace
+
+
+def statustext_sink(send: Callable[[str], None]) -> FrameSink:
+    """Mapping events to the autopilot/GCS as STATUSTEXT: mapping started, link to the map lost."""
+    def notify(event: FrameEvent) -> None:
+        if event.new_segment:
+            send("photomap: mapping started" if event.segment == 0 else
+                 f"photomap: link to map lost, new segment at frame {event.index}")
+    return notify
+
+
+# ---------------------------------------------------------------------------------- mapping
+def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_name: str = "",
+               progress: bool = False, total: int | None = None, realtime: bool = False,
+               telemetry: TelemetryJoin | None = None, reader: TelemetryReader | None = None,
+               viewer: str | None = None) -> dict:
+    """Run the mapping pipeline over ``source`` and write the outputs; returns the run summary.
+
+    SIGINT/SIGTERM (when called from the main thread) stop capture, drain the queue and write
+    the outputs. ``viewer`` is a ``--viewer`` mode string (default: the ``viewer.mode`` config);
+    ``reader`` is the live telemetry link (STATUSTEXT goes out on it when configured).
+    """
+    view = Viewer.from_config(cfg.viewer, viewer)
+    if view.url:
+        print(f"viewer: connect with `rerun {view.url}`")
+    tick, close_bar = progress_sink(total, progress)
+    sinks = [tick]
+    if view.enabled:
+        sinks.append(view.on_frame)
+    if reader is not None and cfg.telemetry.send_statustext and source.live:
+        sinks.append(statustext_sink(reader.send_status))
+    if realtime:
+        sinks.append(pacing_sink())
+    pipeline = MappingPipeline(source, cfg, out_dir, sinks=sinks, input_name=input_name, telemetry=telemetry)
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        def handler(signum, _frame):
+            log.warning("%s: stopping, writing the map", signal.Signals(signum).name)
+            pipeline.stop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+    try:
+        summary = pipeline.run()
+    finally:
+        close_bar()
+        view.close()
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+    return summary
+
+
+def print_summary(summary: dict, out_dir: str | Path) -> None:
+    out = Path(out_dir)
+    mosaics = summary.get("mosaics") or []
+    print(f"frames: {summary['frames_in']} in, {summary['registered']} registered, "
+          f"{summary['skipped']} skipped, {summary['dropped']} dropped; "
+          f"{summary['segments']} segment(s); "
+          f"{summary['ms_per_frame'] or 0:.1f} ms/frame ({summary['fps'] or 0:.1f} fps)")
+    if mosaics:
+        print(f"map: {out / mosaics[0]['file']}")
+    else:
+        print("map: nothing was mapped")
+    geo = summary.get("georeference")
+    if geo:
+        print(f"georeferenced: {geo['crs']}, {summary['metres_per_pixel']:.3f} m per map pixel "
+              f"(world file {out / geo['world_file']}; opens in place in QGIS)")
+    elif summary.get("metres_per_pixel"):
+        print(f"scale: {summary['metres_per_pixel']:.3f} m per map pixel")
+    print(f"trajectory: {out / 'trajectory.csv'}")

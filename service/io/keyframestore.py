@@ -1,0 +1,42 @@
+"""Keyframe images on disk, so that memory stays bounded over a long flight.
+
+Each keyframe keeps two files in the store's folder: ``kf{index:07d}.png``, the grey frame at the
+working resolution (what loop closure registers), and ``kf{index:07d}.jpg``, the input frame
+(what re-renders the map after a pose-graph correction).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+class KeyframeStore:
+    """Keyframe images by frame index in ``folder`` (created)."""
+
+    def __init__(self, folder: str | Path, jpeg_quality: int = 92) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._jpeg = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
+
+    def _path(self, index: int, kind: str) -> Path:
+        return self.folder / f"kf{index:07d}.{kind}"
+
+    def put(self, index: int, small: np.ndarray, image: np.ndarray) -> None:
+        """Keep keyframe ``index``: ``small`` (working resolution, grey or BGR) and ``image``."""
+        gray = small if small.ndim == 2 else cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
+        cv2.imwrite(str(self._path(index, "png")), gray)
+        cv2.imwrite(str(self._path(index, "jpg")), image, self._jpeg)
+
+    def small(self, index: int) -> np.ndarray:
+        """The grey working-resolution image of keyframe ``index``; FileNotFoundError if lost."""
+        img = cv2.imread(str(self._path(index, "png")), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise FileNotFoundError(self._path(index, "png"))
+        return img
+
+    def image(self, index: int) -> np.ndarray | None:
+        """The input frame of keyframe ``index`` (BGR), or None if it cannot be read."""
+        return cv2.imread(str(self._path(index, "jpg")), cv2.IMREAD_COLOR)

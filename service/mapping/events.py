@@ -1,0 +1,73 @@
+"""What the mapping worker tells its sinks (viewer, progress bar, STATUSTEXT) after each frame.
+
+The pipeline owns its state (trajectory, maps, tracker); sinks get an immutable
+:class:`FrameEvent` instead of the pipeline itself. Sinks run in the worker thread: they must be
+quick, must not raise, and copy what they keep (the frame image and the map tiles are read-only
+views that change after the call).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from photomap.telemetry.samples import TelemetrySample
+
+TileKey = tuple[int, int]
+
+
+class TileReader(Protocol):
+    """Read access to one segment's map tiles (a :class:`photomap.core.mosaic.TiledMosaic`)."""
+
+    tile_size: int
+
+    def tiles(self) -> list[TileKey]:
+        """Keys of the tiles the map holds."""
+
+    def tile_origin(self, key: TileKey) -> tuple[int, int]:
+        """Map pixel of the tile's top-left pixel."""
+
+    def tile_image(self, key: TileKey) -> tuple[np.ndarray, np.ndarray]:
+        """The tile's colour (BGR or grey) and alpha (uint8); KeyError when there is no such tile."""
+
+
+@dataclass(frozen=True)
+class FrameEvent:
+    """One frame, mapped (or not).
+
+    Poses are 2x3 (input pixels -> map pixels of ``segment``); ``t`` is the frame time (live:
+    host monotonic seconds at capture, ``live`` True; replay: seconds from the first frame).
+    """
+
+    index: int
+    t: float
+    live: bool
+    image: np.ndarray  # the input frame (read-only)
+    frame_size: tuple[int, int]  # (w, h)
+    status: str  # reference | registered | low_confidence | corrupt
+    pose: np.ndarray | None
+    confidence: float
+    segment: int
+    keyframe: bool = False
+    new_segment: bool = False
+    # an earlier frame was posed now (it anchors a new segment): (frame index, 2x3 pose)
+    anchor: tuple[int, np.ndarray] | None = None
+    # what an operator should read: segment started, telemetry disagreed, loop closed ...
+    messages: tuple[str, ...] = ()
+    touched: frozenset[TileKey] = frozenset()  # map tiles of ``segment`` changed by this frame
+    tiles: TileReader | None = None  # the segment's map, for reading the touched tiles
+    register_ms: float = 0.0
+    frame_ms: float = 0.0
+    dropped_frames: int = 0  # cumulative, by the capture
+    reconnects: int = 0  # cumulative, camera
+    telemetry: TelemetrySample | None = None
+    link_lost: int = 0  # cumulative telemetry link losses / regains
+    link_regained: int = 0
+    # after a pose-graph correction of ``segment``: its whole path again, (x, y, confidence) of
+    # each posed frame's centre in frame order
+    corrected_path: tuple[tuple[float, float, float], ...] | None = None
+
+
+FrameSink = Callable[[FrameEvent], None]
