@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 _UTM_NAME = re.compile(r"^WGS\s*84\s+UTM\s+(\d{1,2})\s*([NS])$", re.IGNORECASE)
 _EPSG = re.compile(r"^EPSG:(\d+)$", re.IGNORECASE)
 
-Projection = Callable[[float, float], "tuple[float, float]"]
+Projection = Callable[[float, float], tuple[float, float]]
 
 
 @dataclass(frozen=True)

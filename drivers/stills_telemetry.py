@@ -18,6 +18,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
+from photomap.errors import InputError
 from photomap.drivers.exif import StillMetadata, median_focal_px, read_still_metadata, still_sample
 from photomap.drivers.geotxt import GeoEntry, GeoFile, read_geo_txt
 from photomap.telemetry.samples import TelemetrySample, wrap_angle
@@ -183,3 +184,31 @@ def stills_telemetry_for(source, *, geo: str | Path | GeoFile | None = None) -> 
     """:func:`read_stills_telemetry` for an :class:`~photomap.drivers.images.ImageFolderSource`
     (its ``paths`` and ``times``)."""
     return read_stills_telemetry(source.paths, source.times, geo=geo)
+
+
+def open_stills_telemetry(source, *, geo: str | Path | GeoFile | None = None) -> StillsTelemetry | None:
+    """The stills' own telemetry for a replay without MAVLink, or None.
+
+    None when ``source`` is not a folder of stills (it has no ``paths`` and ``times``), or when
+    no still has a GPS position or an altitude (EXIF/XMP, or a line of ``geo``). Logs one line
+    saying what the stills carry.
+
+    Raises
+    ------
+    InputError
+        ``geo`` is given for a source that is not a folder of stills, or cannot be read.
+    """
+    if not hasattr(source, "paths") or not hasattr(source, "times"):
+        if geo is not None:
+            raise InputError("a geo.txt gives positions to still images: the input is not a folder of stills")
+        return None
+    tel = stills_telemetry_for(source, geo=geo)
+    s = tel.summary()
+    if not tel.usable:
+        log.info("the %d stills carry no GPS or altitude: mapping by vision alone", s["stills"])
+        return None
+    focal = f"{s['focal_px']:.1f} px ({s['focal_source']})" if s["focal_px"] else "unknown"
+    log.info("telemetry from the stills (%s): %d of %d with GPS, %d with height above take-off, "
+             "%d with attitude; focal length %s", s["source"], s["with_gps"], s["stills"],
+             s["with_height"], s["with_attitude"], focal)
+    return tel

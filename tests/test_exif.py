@@ -9,7 +9,6 @@ from __future__ import annotations
 import io
 import math
 import warnings
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -18,15 +17,15 @@ from PIL import ExifTags, Image
 from PIL.TiffImagePlugin import IFDRational
 
 from conftest import shared_data
-from stills_fixtures import brighton_folder, dji_xmp, dms, read_poses, seneca_folder
+from stills_fixtures import brighton_folder, dji_xmp, read_poses, seneca_folder
 
 from photomap.config import load_config
 from photomap.drivers.exif import (StillMetadata, camera_attitude, focal_length_px, parse_dji_xmp,
                                    parse_exif_datetime, read_still_metadata, still_sample)
 from photomap.drivers.geotxt import parse_geo_txt, read_geo_txt
 from photomap.drivers.images import ImageFolderSource, exif_time
-from photomap.drivers.stills_telemetry import (StillsTelemetry, merge_geo, read_stills_telemetry,
-                                               stills_telemetry_for)
+from photomap.drivers.stills_telemetry import (StillsTelemetry, merge_geo, open_stills_telemetry,
+                                               read_stills_telemetry, stills_telemetry_for)
 from photomap.errors import InputError
 from photomap.geo.georef import nadir_pixel, utm_epsg, utm_forward
 from photomap.io.trajectory_files import read_trajectory_csv
@@ -185,6 +184,27 @@ def test_pipeline_gets_metric_scale_from_the_stills(brighton, tmp_path):
     assert len(ratios) >= 5
     assert np.median(ratios) == pytest.approx(1.0, abs=0.03)
     assert np.all(np.abs(np.array(ratios) - 1.0) < 0.2), ratios
+
+
+def test_open_stills_telemetry_only_when_the_stills_say_where(tmp_path):
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for i in range(3):
+        (plain / f"f{i}.jpg").write_bytes(jpeg_bytes(Image.Exif()))
+    src = ImageFolderSource(plain)
+    assert open_stills_telemetry(src) is None                # nothing to join: vision alone
+    geo = tmp_path / "geo.txt"
+    geo.write_text("EPSG:4326\nf0.jpg 10 45 100\nf1.jpg 10.0001 45 100\n")
+    tel = open_stills_telemetry(src, geo=geo)
+    assert tel is not None and tel.summary()["with_gps"] == 2
+    assert tel.at(src.times[2]) is None                       # f2 has no line: no sample
+
+    class Video:   # any source without stills
+        pass
+
+    assert open_stills_telemetry(Video()) is None
+    with pytest.raises(InputError, match="not a folder of stills"):
+        open_stills_telemetry(Video(), geo=geo)
 
 
 def test_duplicate_capture_times_keep_the_first_still():
