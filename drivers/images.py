@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import calendar
 import glob
 import logging
-import mmap
 import re
-import struct
-from datetime import datetime
 from pathlib import Path
 from typing import Iterator
 
@@ -16,132 +12,27 @@ import cv2
 
 from photomap.errors import InputError
 
+from photomap.drivers.exif import parse_exif_datetime, read_capture_time
 from photomap.drivers.frames import CaptureStats, Frame, SourceBase
 
 log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
-_TAG_DATETIME = 0x0132  # IFD0 DateTime (last modification): fallback only
-_TAG_EXIF_IFD = 0x8769
-_TAG_DATETIME_ORIGINAL = 0x9003
-_TAG_OFFSET_TIME_ORIGINAL = 0x9011
-_TAG_SUBSEC_TIME_ORIGINAL = 0x9291
-_ASCII = 2
-_OFFSET = re.compile(r"^([+-])(\d\d):(\d\d)$")
 _GLOB_CHARS = re.compile(r"[*?\[]")
 
-
-def parse_exif_datetime(text: str, subsec: str | None = None, offset: str | None = None) -> float:
-    """Seconds since the Unix epoch of an EXIF date/time.
-
-    Parameters
-    ----------
-    text : str
-        ``"YYYY:MM:DD HH:MM:SS"`` (EXIF DateTimeOriginal).
-    subsec : str, optional
-        EXIF SubSecTimeOriginal: the digits of the decimal fraction (``"25"`` = 0.25 s).
-    offset : str, optional
-        EXIF OffsetTimeOriginal, ``"+HH:MM"``. Without it the clock is taken as UTC (EXIF
-        times are the camera's local time; only differences matter within one flight).
-
-    Raises
-    ------
-    ValueError
-        ``text`` (or ``offset``) is not in EXIF format.
-    """
-    stamp = datetime.strptime(text.strip(), "%Y:%m:%d %H:%M:%S")
-    seconds = float(calendar.timegm(stamp.timetuple()))
-    digits = (subsec or "").strip()
-    if digits.isdigit():
-        seconds += int(digits) / 10 ** len(digits)
-    if offset and offset.strip():
-        m = _OFFSET.match(offset.strip())
-        if m is None:
-            raise ValueError(f"bad EXIF time offset {offset!r}")
-        sign = 1 if m.group(1) == "+" else -1
-        seconds -= sign * (int(m.group(2)) * 3600 + int(m.group(3)) * 60)
-    return seconds
+__all__ = ["IMAGE_SUFFIXES", "ImageFolderSource", "exif_time", "list_images", "parse_exif_datetime"]
 
 
 def exif_time(path: str | Path) -> float | None:
-    """Capture time of a JPEG or TIFF still from its EXIF, in seconds since the Unix epoch.
+    """Capture time of a still from its EXIF, in seconds since the Unix epoch.
 
     Uses DateTimeOriginal (+ SubSecTimeOriginal, OffsetTimeOriginal), falling back to the
-    IFD0 DateTime. Reads only the EXIF block. Returns None when the file has no (valid) EXIF
-    time; never raises for malformed EXIF.
+    IFD0 DateTime (see :func:`photomap.drivers.exif.parse_exif_datetime`); read with Pillow
+    (JPEG, TIFF, PNG eXIf, WebP). Returns None when the file has no (valid) EXIF time; never
+    raises for malformed EXIF.
     """
-    try:
-        with open(path, "rb") as f:
-            head = f.read(4)
-            if head[:2] == b"\xff\xd8":
-                tiff = _jpeg_exif_block(f)
-                return None if tiff is None else _tiff_time(tiff)
-            if head in (b"II*\x00", b"MM\x00*"):
-                with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
-                    return _tiff_time(data)
-    except (OSError, ValueError, struct.error) as exc:
-        log.debug("%s: no usable EXIF time (%s)", path, exc)
-    return None
-
-
-def _jpeg_exif_block(f) -> bytes | None:
-    """The TIFF structure inside a JPEG's APP1 "Exif" segment, or None."""
-    f.seek(2)
-    while True:
-        marker = f.read(4)
-        if len(marker) < 4 or marker[0] != 0xFF:
-            return None
-        kind, length = marker[1], struct.unpack(">H", marker[2:])[0]
-        if kind in (0xDA, 0xD9) or length < 2:  # start of scan / end of image: no EXIF before the data
-            return None
-        payload = f.read(length - 2)
-        if kind == 0xE1 and payload[:6] == b"Exif\x00\x00":
-            return payload[6:]
-
-
-def _tiff_time(data) -> float | None:
-    order = {b"II": "<", b"MM": ">"}.get(bytes(data[:2]))
-    if order is None:
-        return None
-    ifd0 = _read_ifd(data, order, struct.unpack(order + "I", data[4:8])[0])
-    exif: dict[int, tuple[int, int, bytes]] = {}
-    if _TAG_EXIF_IFD in ifd0:
-        _, _, raw = ifd0[_TAG_EXIF_IFD]
-        exif = _read_ifd(data, order, struct.unpack(order + "I", raw)[0])
-    text = _ascii(data, order, exif.get(_TAG_DATETIME_ORIGINAL))
-    subsec = _ascii(data, order, exif.get(_TAG_SUBSEC_TIME_ORIGINAL))
-    offset = _ascii(data, order, exif.get(_TAG_OFFSET_TIME_ORIGINAL))
-    if not text:
-        text, subsec, offset = _ascii(data, order, ifd0.get(_TAG_DATETIME)), None, None
-    if not text:
-        return None
-    return parse_exif_datetime(text, subsec, offset)
-
-
-def _read_ifd(data, order: str, offset: int) -> dict[int, tuple[int, int, bytes]]:
-    """Entries of the IFD at ``offset``: tag -> (type, count, raw 4-byte value/offset field)."""
-    (n,) = struct.unpack(order + "H", data[offset:offset + 2])
-    entries = {}
-    for i in range(n):
-        start = offset + 2 + 12 * i
-        tag, kind, count = struct.unpack(order + "HHI", data[start:start + 8])
-        entries[tag] = (kind, count, bytes(data[start + 8:start + 12]))
-    return entries
-
-
-def _ascii(data, order: str, entry: tuple[int, int, bytes] | None) -> str | None:
-    if entry is None or entry[0] != _ASCII:
-        return None
-    _, count, raw = entry
-    if count <= 4:
-        value = raw[:count]
-    else:
-        (start,) = struct.unpack(order + "I", raw)
-        value = bytes(data[start:start + count])
-        if len(value) < count:
-            return None
-    return value.split(b"\x00", 1)[0].decode("ascii", "replace").strip() or None
+    return read_capture_time(path)
 
 
 def list_images(folder_or_glob: str | Path) -> list[Path]:
