@@ -14,7 +14,7 @@ import argparse
 from pathlib import Path
 
 from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
-                                 open_telemetry, print_summary)
+                                 open_stills_telemetry, open_telemetry, print_summary)
 from photomap.config import Config
 
 
@@ -26,6 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_telemetry_arguments(parser)
     add_viewer_argument(parser)
+    parser.add_argument("--geo", metavar="FILE",
+                        help="positions of the stills in OpenDroneMap's geo.txt format (default: the "
+                             "stills' own EXIF GPS / DJI XMP, when they carry it)")
     parser.add_argument("--video-start", type=float, metavar="UNIX",
                         help="UNIX time of the video's first frame, to join a .tlog (default: "
                              "the simulator's meta.yaml, the file's creation time, or the log's start)")
@@ -33,11 +36,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool = False,
            realtime: bool = False, mavlink: str | None = None,
-           video_start: float | None = None, viewer: str | None = None) -> dict:
+           video_start: float | None = None, viewer: str | None = None, geo: str | None = None) -> dict:
     """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary.
 
     ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, or a live link (then use
-    ``realtime``).
+    ``realtime``). Without it, stills use their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a
+    geo.txt file).
     """
     source = open_capture(str(input_spec), cfg.capture)
     total = getattr(source, "frame_count", None) or len(getattr(source, "paths", ()) or ()) or None
@@ -46,6 +50,8 @@ def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool 
     if spec:
         join, reader, cfg = open_telemetry(spec, cfg, source=source, input_spec=str(input_spec),
                                            video_start=video_start, realtime=realtime)
+    else:
+        join, cfg = open_stills_telemetry(source, cfg, geo)
     try:
         return map_source(source, cfg, out_dir, input_name=str(input_spec), progress=progress,
                           total=total, realtime=realtime, telemetry=join, reader=reader, viewer=viewer)
@@ -59,6 +65,6 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         cfg = cfg.updated({"telemetry": {"time_offset": args.time_offset}})
     summary = replay(args.input, args.out, cfg, progress=not (args.no_progress or args.quiet),
                      realtime=args.realtime, mavlink=args.mavlink, video_start=args.video_start,
-                     viewer=args.viewer)
+                     viewer=args.viewer, geo=args.geo)
     print_summary(summary, args.out)
     return 0 if summary["registered"] > 0 else 1

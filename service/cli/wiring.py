@@ -22,6 +22,7 @@ from photomap.config import CaptureConfig, Config
 from photomap.drivers.capture import open_source
 from photomap.drivers.frames import FrameSource
 from photomap.drivers.mavlink import TelemetryReader, load_tlog
+from photomap.drivers.stills_telemetry import open_stills_telemetry as stills_telemetry
 from photomap.errors import InputError
 from photomap.live.viewer import Viewer
 from photomap.mapping.events import FrameEvent, FrameSink
@@ -110,6 +111,19 @@ def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None,
     join = TelemetryJoin(reader.at, "live" if live else "link", cfg, offset=tcfg.time_offset,
                          link_summary=lambda: _link_summary(spec, reader.stats))
     return join, reader, cfg
+
+
+def open_stills_telemetry(source: FrameSource, cfg: Config, geo: str | None = None
+                          ) -> tuple[TelemetryJoin | None, Config]:
+    """The telemetry that survey stills carry (EXIF GPS, DJI XMP, or a ``geo.txt``), joined like
+    MAVLink samples; None for a video or stills without any. The config gets the stills' focal
+    length when the camera model is not configured."""
+    tel = stills_telemetry(source, geo=geo)
+    if tel is None:
+        return None, cfg
+    if not cfg.camera.fx_px and not cfg.camera.hfov_deg and tel.focal_px:
+        cfg = cfg.updated({"camera": {"fx_px": float(tel.focal_px)}})
+    return TelemetryJoin(tel.at, "stills", cfg, link_summary=tel.summary), cfg
 
 
 # ---------------------------------------------------------------------------------- sinks

@@ -7,7 +7,8 @@ clock:
 
 - live camera: the frame's host monotonic time, converted to UNIX time;
 - a log replay with a ``.tlog``: ``video_start + frame.t + offset``;
-- a (real-time) replay with a live link: UNIX time of the first frame + ``frame.t + offset``.
+- a (real-time) replay with a live link: UNIX time of the first frame + ``frame.t + offset``;
+- survey stills with their own telemetry (EXIF/XMP, geo.txt): the still's own time (``frame.t``).
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ class TelemetryJoin:
     ----------
     sample_at : callable
         ``t -> TelemetrySample`` on the telemetry clock (a buffer's or reader's ``at``).
-    mode : {"live", "log", "link"}
+    mode : {"live", "log", "link", "stills"}
         How frame times map to the telemetry clock (see the module docstring).
     video_start : float
         UNIX time of video time 0 (``log`` mode).
@@ -67,7 +68,7 @@ class TelemetryJoin:
     def __init__(self, sample_at: Callable[[float], TelemetrySample], mode: str, cfg: Config, *,
                  video_start: float = 0.0, offset: float = 0.0,
                  link_summary: Callable[[], dict] = dict) -> None:
-        if mode not in ("live", "log", "link"):
+        if mode not in ("live", "log", "link", "stills"):
             raise ValueError(f"unknown telemetry time mode {mode!r}")
         self.sample_at = sample_at
         self.mode = mode
@@ -105,6 +106,8 @@ class TelemetryJoin:
             if self._link_start is None:
                 self._link_start = time.time() - t
             return self._link_start + t + self.offset
+        if self.mode == "stills":
+            return t
         return self.video_start + t + self.offset
 
     def sample(self, frame: Frame) -> TelemetrySample | None:
@@ -150,8 +153,9 @@ class TelemetryJoin:
 
     # ------------------------------------------------------------------ after the run
     def time_offset_check(self, frame_t: list[float], angles: list[float]) -> dict | None:
-        """Estimate the video/telemetry offset from yaw rates; None when it cannot be told."""
-        if not frame_t:
+        """Estimate the video/telemetry offset from yaw rates; None when it cannot be told (or the
+        telemetry is the stills' own: the same clock by construction)."""
+        if not frame_t or self.mode == "stills":
             return None
         tel_t = [self.telemetry_time(t) for t in frame_t]
         ts, yaws = [], []
