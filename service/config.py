@@ -360,7 +360,7 @@ class Config:
     def to_dict(self) -> dict:
         """Plain nested mapping (YAML/JSON-able; tuples become lists)."""
         return {f.name: {k: list(v) if isinstance(v, tuple) else v
-                         for k, v in dataclasses.asdict(getattr(self, f.name)).items()}
+                         for k, v in vars(getattr(self, f.name)).items()}
                 for f in dataclasses.fields(self)}
 
     def updated(self, changes: typing.Mapping[str, Any] | str | Iterable[str]) -> Config:
@@ -373,7 +373,8 @@ class Config:
             for item in changes:
                 _deep_update(merged, parse_set(item))
             changes = merged
-        return _build(_merged(self.to_dict(), changes, ""))
+        data = _merged(self.to_dict(), changes, "")
+        return Config(**{f.name: type(getattr(self, f.name))(**data[f.name]) for f in dataclasses.fields(self)})
 
 
 def _deep_update(base: dict, extra: dict) -> None:

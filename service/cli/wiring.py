@@ -174,7 +174,7 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
     sinks = [tick]
     if view.enabled:
         sinks.append(view.on_frame)
-    if reader is not None and cfg.telemetry.send_statustext and source.live:
+    if cfg.telemetry.send_statustext and reader is not None and source.live:
         sinks.append(statustext_sink(reader.send_status))
     if realtime:
         sinks.append(pacing_sink())

@@ -361,7 +361,8 @@ class Viewer:
     @classmethod
     def from_config(cls, params: ViewerConfig, mode: str | None = None) -> Viewer:
         """A viewer from the ``viewer`` settings; ``mode`` (``--viewer MODE``) overrides ``params.mode``."""
-        name, arg = parse_viewer_mode(params.mode if mode is None else mode)
+        configured = params.mode
+        name, arg = parse_viewer_mode(configured if mode is None else mode)
         return cls(name, arg, params)
 
     @property
