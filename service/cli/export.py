@@ -116,8 +116,9 @@ def export(run_dir: str | Path, *, cog: str | None = None, tiles: str | None = N
 
     def do_cog() -> str:
         raster = run_raster(run, segment)
-        info = geotiff.write_cog(_out(run, cog or "map.tif"), raster, gsd=gsd)
-        return (f"GeoTIFF: {_out(run, info['file'])} ({info['size'][0]} x {info['size'][1]} px, "
+        path = _out(run, cog or "map.tif")
+        info = geotiff.write_cog(path, raster, gsd=gsd)
+        return (f"GeoTIFF: {path} ({info['size'][0]} x {info['size'][1]} px, "
                 f"{info['gsd_m']:.3f} m, {info['crs']}, north-up COG)")
 
     def do_tiles() -> str:
