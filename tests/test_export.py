@@ -419,3 +419,51 @@ def test_pipeline_hook_writes_the_same_cog_from_the_live_mosaic(flight, tmp_path
     assert refresh_track_files(work, run.rows, run.frame_size, {}) is None and not (work / "track.kml").exists()
     assert refresh_track_files(work, run.rows[:30], run.frame_size, run.georeferences())["features"] >= 3
     assert (work / "track.kml").is_file()
+
+
+def test_cog_of_a_rotated_map_is_written_by_windows_and_resampled_right(tmp_path):
+    """A procedural map (a smooth pattern known at every map point) under a 30-degree georeference:
+    the GeoTIFF holds the pattern at each pixel's map point, and writing it never held the whole
+    image (Python's peak allocation stays a fraction of it)."""
+    rasterio = pytest.importorskip("rasterio", reason="the geo extra (rasterio) is not installed")
+    import tracemalloc
+
+    from photomap.io.geotiff import write_cog
+
+    n = 2000
+
+    def pattern(u, v):
+        return (np.sin(u / 23.0) + np.cos(v / 31.0)) * 60.0 + 128.0
+
+    def render(x, y, w, h, s):
+        ow, oh = max(1, round(w * s)), max(1, round(h * s))
+        u, v = np.meshgrid(x + (np.arange(ow) + 0.5) * w / ow - 0.5, y + (np.arange(oh) + 0.5) * h / oh - 0.5)
+        inside = (u >= -0.5) & (u < size - 0.5) & (v >= -0.5) & (v < size - 0.5)
+        img = np.zeros((oh, ow, 3), np.uint8)
+        img[..., 1] = np.where(inside, np.rint(pattern(u, v)), 0).astype(np.uint8)
+        return img, np.where(inside, 255, 0).astype(np.uint8)
+
+    th, mpp = math.radians(30.0), 0.05
+    m2c = np.array([[mpp * math.cos(th), mpp * math.sin(th), 400000.0],
+                    [mpp * math.sin(th), -mpp * math.cos(th), 4500000.0]])
+    peaks, sizes = [], []
+    for size in (n // 2, n):  # the peak allocation must not grow with the image
+        tracemalloc.start()
+        try:
+            info = write_cog(tmp_path / "rot.tif", MapRaster(render, (0, 0, size, size), m2c, 32617))
+            peaks.append(tracemalloc.get_traced_memory()[1])
+        finally:
+            tracemalloc.stop()
+        sizes.append(info["size"][0] * info["size"][1])
+    assert sizes[1] > 3.5 * sizes[0] and peaks[1] < 1.5 * peaks[0], (sizes, peaks)
+    assert peaks[1] < sizes[1] * 4  # less than one whole RGBA image
+    with rasterio.open(tmp_path / "rot.tif") as src:
+        t = src.transform
+        green, alpha = src.read(2), src.read(4)
+    rows, cols = np.nonzero(alpha == 255)
+    pick = np.random.default_rng(1).choice(len(rows), 2000, replace=False)
+    e = t.c + t.a * (cols[pick] + 0.5)
+    nn = t.f + t.e * (rows[pick] + 0.5)
+    uv = np.c_[e - m2c[0, 2], nn - m2c[1, 2]] @ np.linalg.inv(m2c[:, :2]).T
+    err = np.abs(green[rows[pick], cols[pick]].astype(float) - pattern(uv[:, 0], uv[:, 1]))
+    assert np.median(err) < 0.5 and err.max() < 2.0  # bilinear on a smooth pattern, 8-bit rounding

@@ -166,7 +166,8 @@ def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, 
     blocks = [(bx, by) for by in range(0, height, block) for bx in range(0, width, block)]
     written = 0
     try:
-        with rasterio.Env(), threadpool_limits(limits=1, user_api="blas"):
+        # GDAL_CACHEMAX bounds GDAL's block cache (default 5 % of the RAM) on small onboard computers
+        with rasterio.Env(GDAL_CACHEMAX=128), threadpool_limits(limits=1, user_api="blas"):
             with rasterio.open(tmp, "w", **profile) as dst:
                 dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
                 for i, (bx, by) in enumerate(blocks):

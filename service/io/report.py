@@ -233,9 +233,10 @@ def report_html(run_dir: str | Path) -> str:
     if thumb is not None:
         uri, f, size = thumb
         svg = _map_svg(entry, rows, frame_size, f, size, mpp, m2c) if entry else ""
+        legend = ("; yellow: track (green start, red end); blue: frame footprints (spaced)"
+                  if "polyline" in svg else "")
         map_html = (f'<div class="map"><img src="{uri}" width="{size[0]}" height="{size[1]}" alt="map">{svg}</div>'
-                    f'<p class="muted">{html.escape(png.name)}; yellow: track (green start, red end); blue: '
-                    f'frame footprints (spaced)</p>')
+                    f'<p class="muted">{html.escape(png.name)}{legend}</p>')
 
     # numbers
     area = None

@@ -121,6 +121,9 @@ class RunFiles:
             if "map_to_crs" in geo and "crs" in geo:  # a checkpoint with the main segment's
                 out[int(geo.get("segment", 0))] = (parse_map_to_crs(geo["map_to_crs"]), parse_crs(geo["crs"]))
         if not out:
+            if not self.complete:
+                raise InputError(f"{self.dir.name} is a checkpoint of an unfinished run: its run.json has no "
+                                 f"georeference yet (written at the end of a run with GPS telemetry)")
             raise InputError(f"{self.dir.name} {NO_GEOREFERENCE}")
         return out
 
