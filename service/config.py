@@ -176,6 +176,8 @@ class OutputConfig(_Section):
     max_mosaic_px: int = _num(8192, 64, 1 << 20)
     preview_px: int = _num(1024, 16, 1 << 16)
     data_dir: str = "~/photomap-flights"
+    geotiff: bool = True
+    footprints: str = _choice("spaced", "all", "keyframes", "spaced", "none")
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,7 @@ from photomap.io.keyframestore import KeyframeStore
 from photomap.io.tilestore import DiskTileStore
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
 from photomap.mapping.events import FrameEvent, FrameSink
+from photomap.mapping.geo_outputs import write_geo_outputs
 from photomap.mapping.loopclosure import Correction, LoopCloser
 from photomap.mapping.outputs import remove_sidecars, write_png, write_sidecars, write_tiles
 from photomap.mapping.telemetry_join import TelemetryJoin
@@ -418,10 +419,21 @@ class MappingPipeline:
         out = self.stats.summary(time.monotonic() - self._started)
         out.update({"input": self.input_name, "frame_size": list(self.frame_size or ()),
                     "working_size": list(getattr(self, "_small", ())),
-                    "reconnects": src.reconnects, "map_scale": self.cfg.mapping.map_scale})
+                    "reconnects": src.reconnects, "map_scale": self.cfg.mapping.map_scale,
+                    "video_start_unix": self._video_start_unix()})
         if self.loops is not None:
             out["loop_closure"] = self.loops.summary()
         return out
+
+    def _video_start_unix(self) -> float | None:
+        """UNIX time of frame time 0 (live: frames carry the monotonic clock), when known."""
+        if self.telemetry is not None:
+            return self.telemetry.video_start_unix()
+        if self.source.live:
+            return time.time() - time.monotonic()
+        if getattr(self.source, "exif_times", False):
+            return 0.0  # stills timed by their EXIF capture time
+        return getattr(self.source, "creation_time", None)
 
     def _write_trajectory(self) -> None:
         if self.frame_size is None:
@@ -530,6 +542,11 @@ class MappingPipeline:
         (self.out_dir / "preview.png").unlink(missing_ok=True)
         if self.telemetry is not None:
             self._georeference(summary, maps)
+            exports = write_geo_outputs(self.out_dir, maps, self.mosaics, self._rows, self.frame_size,
+                                        t0_unix=summary["video_start_unix"], cog=self.cfg.output.geotiff,
+                                        footprints=self.cfg.output.footprints)
+            if exports:
+                summary["exports"] = exports
         summary["mosaics"] = maps
         summary["complete"] = True
         write_json(self.out_dir / "run.json", summary)

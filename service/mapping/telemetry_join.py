@@ -110,6 +110,16 @@ class TelemetryJoin:
             return t
         return self.video_start + t + self.offset
 
+    def video_start_unix(self) -> float | None:
+        """UNIX time of frame time 0 on the telemetry clock, without ``offset`` (None until known)."""
+        if self.mode == "live":
+            return self._mono_to_unix
+        if self.mode == "link":
+            return self._link_start
+        if self.mode == "stills":
+            return 0.0
+        return self.video_start
+
     def sample(self, frame: Frame) -> TelemetrySample | None:
         s = self.sample_at(self.telemetry_time(frame.t))
         known = s is not None and (s.yaw is not None or s.height_above_ground is not None

@@ -1,0 +1,100 @@
+"""The georeferenced outputs of a run, for the pipeline to call (end of run and checkpoints).
+
+- :func:`write_geo_outputs` (end of run, after the georeference, **before** the tile cache is
+  removed): the north-up COG ``map.tif`` of the main map from the live mosaic (when the ``geo``
+  extra is installed; else one INFO line), world files + ``tiles.vrt`` for full-resolution
+  ``tiles/``, and ``track.kml`` / ``track.geojson``.
+- :func:`refresh_track_files` (each checkpoint): rewrite ``track.kml`` / ``track.geojson``
+  atomically, so a ground station reloading them (a KML network link, a GeoJSON layer) sees the
+  coverage grow.
+
+Every argument is explicit: the run.json ``mosaics[]`` entries (with their ``georeference``),
+the live mosaics by segment, the rows, the frame size.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Sequence
+
+from photomap.core.mosaic import TiledMosaic
+from photomap.errors import PhotomapError
+from photomap.core.records import PoseRow
+from photomap.io.geotiff import write_cog_if_available
+from photomap.io.mapsource import MapRaster, mosaic_source
+from photomap.io.runfiles import parse_crs, parse_map_to_crs
+from photomap.io.tileworld import write_tile_georeference
+from photomap.io.trackfiles import Georefs, mosaic_overlay, write_track_files
+
+log = logging.getLogger(__name__)
+
+
+def georefs_from_maps(maps: Sequence[dict]) -> Georefs:
+    """``{segment: (map_to_crs 2x3, epsg)}`` of the run.json ``mosaics[]`` entries that carry a
+    georeference (``georeference.crs`` and ``georeference.map_to_crs``)."""
+    out: Georefs = {}
+    for m in maps:
+        geo = m.get("georeference") or {}
+        if geo.get("crs") and geo.get("map_to_crs") is not None:
+            out[int(m.get("segment", 0))] = (parse_map_to_crs(geo["map_to_crs"]), parse_crs(geo["crs"]))
+    return out
+
+
+def refresh_track_files(out_dir: str | Path, rows: Sequence[PoseRow], frame_size: tuple[int, int],
+                        georefs: Georefs, *, t0_unix: float | None = None, footprints: str = "spaced") -> dict | None:
+    """Rewrite ``track.geojson`` and ``track.kml`` (atomically); None (and a debug line) when
+    nothing is georeferenced yet. ``georefs``: ``{segment: (map_to_crs, epsg)}``, e.g. from
+    :func:`georefs_from_maps` or the telemetry join's current fit."""
+    if not georefs or frame_size is None:
+        log.debug("track files not written: no georeference yet")
+        return None
+    return write_track_files(out_dir, rows, frame_size, georefs, footprints=footprints, t0_unix=t0_unix)
+
+
+def write_geo_outputs(out_dir: str | Path, maps: Sequence[dict], mosaics: dict[int, TiledMosaic],
+                      rows: Sequence[PoseRow], frame_size: tuple[int, int], *, t0_unix: float | None = None,
+                      cog: bool = True, cog_name: str = "map.tif", footprints: str = "spaced") -> dict:
+    """The end-of-run georeferenced outputs; returns what was written (for run.json ``exports``).
+
+    Parameters
+    ----------
+    maps : run.json ``mosaics[]`` entries (``file``, ``segment``, ``origin_xy``, ``pixel_scale``,
+        ``size``, optional ``tiles``/``tile_size``, ``georeference``); the first is the main map.
+    mosaics : the live mosaics by segment (still readable: call before removing the tile cache).
+    t0_unix : UNIX time of frame time 0 (footprint time stamps), or None.
+    cog : write the GeoTIFF of the main map (when rasterio is installed).
+
+    A failure of one output is logged as a warning and does not stop the others.
+    """
+    out = Path(out_dir)
+    georefs = georefs_from_maps(maps)
+    done: dict = {}
+    if not georefs:
+        return done
+    main = maps[0]
+    seg = int(main.get("segment", 0))
+    if cog and seg in georefs and seg in mosaics and mosaics[seg].bounds() is not None:
+        try:
+            raster = MapRaster(mosaic_source(mosaics[seg]), mosaics[seg].bounds(), *georefs[seg])
+            info = write_cog_if_available(out / cog_name, raster)
+            if info is not None:
+                done["cog"] = info
+        except (PhotomapError, OSError, RuntimeError) as exc:  # rasterio errors are RuntimeErrors
+            log.warning("GeoTIFF not written: %s", exc)
+    for m in maps:
+        s = int(m.get("segment", 0))
+        if m.get("tiles") and s in georefs:
+            try:
+                info = write_tile_georeference(out / m["tiles"], int(m.get("tile_size") or 256), *georefs[s])
+                done.setdefault("tile_georeference", []).append(info)
+            except (PhotomapError, OSError) as exc:
+                log.warning("tile world files not written: %s", exc)
+    try:
+        overlay = mosaic_overlay(main, *georefs[seg]) if seg in georefs else None
+        done["track"] = write_track_files(out, rows, frame_size, georefs, footprints=footprints,
+                                          t0_unix=t0_unix, overlay=overlay)
+    except (PhotomapError, OSError) as exc:
+        log.warning("track files not written: %s", exc)
+    return done
+

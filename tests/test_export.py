@@ -1,0 +1,477 @@
+"""GIS and ground-station exports, read back with the real libraries and checked against the
+simulator's truth (terrain pixel -> WGS84 by ``photomap.sim.flight.pixel_to_latlon``)."""
+
+from __future__ import annotations
+
+import html.parser
+import json
+import math
+import shutil
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from photomap.cli.main import main
+from photomap.config import MosaicConfig
+from photomap.core.mosaic import TiledMosaic
+from photomap.geo import webmercator as wm
+from photomap.geo.georef import enu_from_latlon, parse_world_file, utm_epsg, utm_forward, utm_inverse
+from photomap.io.mapsource import ImageSource, MapRaster, TileFolderSource, mosaic_source, run_raster
+from photomap.io.runfiles import RunFiles
+from photomap.io.trajectory_files import read_groundtruth
+from photomap.io.xyz_tiles import render_tile
+from photomap.sim.flight import latlon_to_pixel, pixel_to_latlon
+from photomap.sim.simulate import simulate_flight
+from photomap.sim.terrain import load_terrain
+
+T0_UNIX = None  # set from meta.yaml in the fixture
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """A georeferenced run of a simulated flight; the map is larger than max_mosaic_px, so the
+    run also has full-resolution tiles/."""
+    root = tmp_path_factory.mktemp("export")
+    sim = root / "sim"
+    simulate_flight(sim, n_frames=90, fps=15.0, seed=3)
+    run = root / "run"
+    assert main(["replay", str(sim / "video.mp4"), "--out", str(run), "--mavlink", str(sim / "telemetry.tlog"),
+                 "--no-progress", "-q", "--set", "output.max_mosaic_px=700"]) == 0
+    meta = yaml.safe_load((sim / "meta.yaml").read_text())
+    return sim, run, meta
+
+
+def _truth_latlon(meta: dict, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return pixel_to_latlon(x, y, meta["gsd"], meta["origin"]["lat"], meta["origin"]["lon"])
+
+
+def _metres(lat1, lon1, lat2, lon2) -> np.ndarray:
+    e, n = enu_from_latlon(np.asarray(lat2), np.asarray(lon2), float(np.mean(lat1)), float(np.mean(lon1)))
+    e0, n0 = enu_from_latlon(np.asarray(lat1), np.asarray(lon1), float(np.mean(lat1)), float(np.mean(lon1)))
+    return np.hypot(e - e0, n - n0)
+
+
+def _truth_footprints(sim: Path, meta: dict) -> list[np.ndarray]:
+    """(4, 2) lat, lon of every frame's outer corners, from groundtruth.csv."""
+    gt = read_groundtruth(sim / "groundtruth.csv")
+    w, h = meta["camera"]["width"], meta["camera"]["height"]
+    corners = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [w - 0.5, h - 0.5, 1], [-0.5, h - 0.5, 1]])
+    out = []
+    for H in gt.H:
+        p = corners @ H.T
+        lat, lon = _truth_latlon(meta, p[:, 0] / p[:, 2], p[:, 1] / p[:, 2])
+        out.append(np.c_[lat, lon])
+    return out
+
+
+# --------------------------------------------------------------------------- web mercator
+
+def test_xyz_tile_indices_match_published_values():
+    # mercantile's documented examples (mapbox/mercantile tests and README)
+    assert wm.tile_of(40.1222, 20.6852, 9) == (285, 193)
+    s, w, n, e = wm.tile_bounds(486, 332, 10)
+    assert (w, e) == pytest.approx((-9.140625, -8.7890625), abs=1e-9)
+    assert (s, n) == pytest.approx((53.12040528310657, 53.33087298301705), abs=1e-9)
+    assert wm.tile_of(0.0, 0.0, 0) == (0, 0) and wm.tile_of(-10.0, 10.0, 1) == (1, 1)
+    assert wm.tms_y(332, 10) == 1023 - 332 and wm.tms_y(wm.tms_y(5, 4), 4) == 5
+    assert wm.ground_resolution(0.0, 0) == pytest.approx(156543.03392804097, rel=1e-12)
+    px, py = wm.latlon_to_pixel(53.2, -9.0, 10)
+    lat, lon = wm.pixel_to_latlon(px, py, 10)
+    assert (float(lat), float(lon)) == pytest.approx((53.2, -9.0), abs=1e-12)
+    assert wm.tiles_covering(53.2, -9.1, 53.3, -8.7, 10) == [(486, 332), (487, 332)]
+    assert wm.tiles_covering(53.2, -9.1, 53.3, -8.9, 10) == [(486, 332)]
+
+
+# --------------------------------------------------------------------------- sources
+
+def test_render_sources_agree_with_the_mosaic_render(tmp_path):
+    rng = np.random.default_rng(0)
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    mosaic.add(rng.integers(0, 255, (300, 400, 3), np.uint8), np.array([[0.9, -0.3, 17.3], [0.3, 0.9, -40.2]]))
+    bx, by, bw, bh = mosaic.bounds()
+    full, alpha, origin = mosaic.render(1.0)
+    image = ImageSource(np.dstack([full, alpha]), origin)
+    for key in mosaic.tiles():
+        t_img, t_alpha = mosaic.tile_image(key)
+        cv2.imwrite(str(tmp_path / f"tile_{key[0]}_{key[1]}.png"), np.dstack([t_img, t_alpha]))
+    tiles = TileFolderSource(tmp_path, 64, cache_tiles=3)
+    live = mosaic_source(mosaic)
+    for region, scale in [((bx, by, bw, bh), 0.3), ((bx + 5, by + 7, 123, 77), 0.77),
+                          ((bx - 20, by + 30, 300, 200), 0.1), ((bx, by, 50, 50), 1.0)]:
+        ref_img, ref_alpha = live(*region, scale)
+        for source in (image, tiles):
+            img, a = source(*region, scale)
+            assert img.shape == ref_img.shape and a.shape == ref_alpha.shape
+            assert np.abs(img.astype(int) - ref_img).max() <= 1  # rounding of the weighted mean
+            assert np.abs(a.astype(int) - ref_alpha).max() <= 1
+
+
+# --------------------------------------------------------------------------- GeoTIFF
+
+def test_cog_is_a_north_up_cog_where_the_simulator_says(flight, tmp_path):
+    rasterio = pytest.importorskip("rasterio", reason="the geo extra (rasterio) is not installed")
+    sim, run, meta = flight
+    assert main(["export", str(run), "--cog", str(tmp_path / "map.tif"), "-q"]) == 0
+    with rasterio.open(tmp_path / "map.tif") as src:
+        assert src.crs.to_epsg() == utm_epsg(meta["origin"]["lat"], meta["origin"]["lon"])
+        t = src.transform
+        assert t.b == 0 and t.d == 0 and t.a > 0 and t.e == -t.a  # north-up, square pixels
+        m2c, _ = RunFiles(run).georeference()
+        assert t.a == pytest.approx(math.sqrt(-np.linalg.det(m2c[:, :2])), rel=1e-9)  # the map's resolution
+        structure = src.tags(ns="IMAGE_STRUCTURE")
+        assert structure.get("LAYOUT") == "COG" and structure.get("COMPRESSION") == "DEFLATE"
+        assert src.profile["tiled"] and src.block_shapes[0] == (512, 512)
+        assert src.overviews(1), "a COG larger than a tile carries overviews"
+        assert src.colorinterp[3] == rasterio.enums.ColorInterp.alpha
+        data = src.read()
+        ovr = src.read(4, out_shape=(src.height // src.overviews(4)[0], src.width // src.overviews(4)[0]))
+    alpha = data[3]
+    assert (alpha == 0).any() and (alpha == 255).mean() > 0.3 and ovr.max() == 255
+
+    # every COG pixel centre -> UTM -> WGS84 -> terrain pixel of the simulator: the same picture
+    h, w = alpha.shape
+    cols, rows = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    lat, lon = utm_inverse(t.c + t.a * cols, t.f + t.e * rows, src.crs.to_epsg())
+    tx, ty = latlon_to_pixel(lat, lon, meta["gsd"], meta["origin"]["lat"], meta["origin"]["lon"])
+    terrain = load_terrain(meta["terrain"]["name"], zoom=meta["terrain"]["zoom"])
+    truth = cv2.cvtColor(cv2.remap(terrain, tx.astype(np.float32), ty.astype(np.float32), cv2.INTER_LINEAR),
+                         cv2.COLOR_BGR2GRAY).astype(np.float32)
+    ours = cv2.cvtColor(np.ascontiguousarray(data[:3].transpose(1, 2, 0)), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    inside = alpha == 255
+    a = (ours - ours[inside].mean()) * inside
+    b = (truth - truth[inside].mean()) * inside
+    (dx, dy), _ = cv2.phaseCorrelate(b, a, cv2.createHanningWindow((w, h), cv2.CV_32F))
+    assert math.hypot(dx, dy) * t.a < 0.25, f"COG off the truth by {math.hypot(dx, dy) * t.a:.2f} m"
+    assert np.abs(ours - truth)[inside].mean() < 8.0  # same content (video compression, resampling)
+
+    # the map's corners: the extreme covered pixels against the union of the true footprints
+    corners = np.concatenate(_truth_footprints(sim, meta))
+    e, n = utm_forward(corners[:, 0], corners[:, 1], src.crs.to_epsg())
+    cov_rows, cov_cols = np.nonzero(alpha >= 128)
+    ours_box = (t.c + t.a * cov_cols.min(), t.c + t.a * (cov_cols.max() + 1),
+                t.f + t.e * (cov_rows.max() + 1), t.f + t.e * cov_rows.min())
+    truth_box = (e.min(), e.max(), n.min(), n.max())
+    assert np.abs(np.subtract(ours_box, truth_box)).max() < 1.0, (ours_box, truth_box)
+
+
+def test_cog_writer_falls_back_to_one_info_line_without_rasterio(flight, monkeypatch, caplog, tmp_path):
+    from photomap.io import geotiff
+
+    monkeypatch.setattr(geotiff, "rasterio_available", lambda: False)
+    raster = run_raster(RunFiles(flight[1]))
+    with caplog.at_level("INFO"):
+        assert geotiff.write_cog_if_available(tmp_path / "map.tif", raster) is None
+    assert not (tmp_path / "map.tif").exists()
+    assert any("ifmi-photomap[geo]" in r.getMessage() for r in caplog.records)
+
+
+# --------------------------------------------------------------------------- web tiles
+
+def test_xyz_tiles_are_where_the_simulator_says(flight, tmp_path):
+    sim, run, meta = flight
+    assert main(["export", str(run), "--tiles", str(tmp_path / "xyz"), "-q"]) == 0
+    info = json.loads((tmp_path / "xyz" / "tiles.json").read_text())
+    zmin, zmax = info["zooms"]
+    assert zmin < zmax and info["tiles"] > 4
+    mpp = json.loads((run / "run.json").read_text())["metres_per_pixel"]
+    lat0 = meta["origin"]["lat"]
+    assert 0.5 < wm.ground_resolution(lat0, zmax) / mpp < 2.0  # the deepest zoom keeps the resolution
+    files = sorted((tmp_path / "xyz" / str(zmax)).glob("*/*.png"))
+    assert len(files) >= 4
+    # the tile with the most map in it: pixel centres -> WGS84 -> terrain, compared with the terrain
+    best = max(files, key=lambda p: int((cv2.imread(str(p), cv2.IMREAD_UNCHANGED)[..., 3] == 255).sum()))
+    tile = cv2.imread(str(best), cv2.IMREAD_UNCHANGED)
+    assert tile.shape == (256, 256, 4)
+    x, y = int(best.parent.name), int(best.stem)
+    u = np.arange(256) + 0.5
+    px, py = np.meshgrid(x * 256 + u, y * 256 + u)
+    lat, lon = wm.pixel_to_latlon(px, py, zmax)
+    tx, ty = latlon_to_pixel(lat, lon, meta["gsd"], meta["origin"]["lat"], meta["origin"]["lon"])
+    terrain = load_terrain(meta["terrain"]["name"], zoom=meta["terrain"]["zoom"])
+    truth = cv2.cvtColor(cv2.remap(terrain, tx.astype(np.float32), ty.astype(np.float32), cv2.INTER_LINEAR),
+                         cv2.COLOR_BGR2GRAY).astype(np.float32)
+    ours = cv2.cvtColor(tile[..., :3], cv2.COLOR_BGR2GRAY).astype(np.float32)
+    inside = tile[..., 3] == 255
+    assert inside.mean() > 0.5
+    a, b = (ours - ours[inside].mean()) * inside, (truth - truth[inside].mean()) * inside
+    (dx, dy), _ = cv2.phaseCorrelate(b, a, cv2.createHanningWindow((256, 256), cv2.CV_32F))
+    assert math.hypot(dx, dy) * wm.ground_resolution(lat0, zmax) < 0.5
+    assert np.abs(ours - truth)[inside].mean() < 10.0
+    # TMS numbering: the same tile under the flipped row
+    assert main(["export", str(run), "--tiles", str(tmp_path / "tms"), "--tms", "--zoom", str(zmax), "-q"]) == 0
+    flipped = cv2.imread(str(tmp_path / "tms" / str(zmax) / str(x) / f"{wm.tms_y(y, zmax)}.png"), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(flipped, tile)
+
+
+def test_an_empty_tile_is_not_rendered(flight):
+    raster = run_raster(RunFiles(flight[1]))
+    assert render_tile(raster, 0, 0, 5) is None  # far from the flight
+
+
+# --------------------------------------------------------------------------- vectors
+
+def test_kml_and_geojson_match_the_trajectory_and_the_truth(flight, tmp_path):
+    sim, run, meta = flight
+    work = tmp_path / "run"
+    shutil.copytree(run, work)
+    summary = json.loads((work / "run.json").read_text())
+    summary["video_start_unix"] = meta["t0_unix"]
+    (work / "run.json").write_text(json.dumps(summary))
+    assert main(["export", str(work), "--kml", "--geojson", "--footprints", "all", "-q"]) == 0
+    rows = [r for r in RunFiles(work).rows if r.glued]
+    csv_lat = np.array([r.extra["lat"] for r in rows])
+    csv_lon = np.array([r.extra["lon"] for r in rows])
+
+    gj = json.loads((work / "track.geojson").read_text())
+    assert gj["type"] == "FeatureCollection"
+    kinds = [f["properties"]["kind"] for f in gj["features"]]
+    assert kinds.count("track") == 1 and kinds.count("footprint") == len(rows) and kinds.count("coverage") == 1
+    track = np.array(next(f for f in gj["features"] if f["properties"]["kind"] == "track")["geometry"]["coordinates"])
+    assert len(track) == len(rows)
+    assert _metres(csv_lat, csv_lon, track[:, 1], track[:, 0]).max() < 1.0
+
+    # footprints against the true frame corners (frame 0 is the map's reference)
+    truth = _truth_footprints(sim, meta)
+    fps = [f for f in gj["features"] if f["properties"]["kind"] == "footprint"]
+    for f in (fps[0], fps[len(fps) // 2], fps[-1]):
+        ring = np.array(f["geometry"]["coordinates"][0])
+        assert len(ring) == 5 and np.array_equal(ring[0], ring[-1])
+        area2 = np.sum(ring[:-1, 0] * ring[1:, 1] - ring[1:, 0] * ring[:-1, 1])
+        assert area2 > 0, "RFC 7946: exterior rings are counter-clockwise"
+        got = ring[:-1][:, ::-1]  # (lat, lon)
+        want = truth[f["properties"]["frame"]]
+        # each true corner has one of ours within the tolerance
+        d = max(_metres(np.full(4, la), np.full(4, lo), got[:, 0], got[:, 1]).min() for la, lo in want)
+        assert d < 1.0, f"footprint of frame {f['properties']['frame']} off by {d:.2f} m"
+        assert f["properties"]["time"].startswith("20") and f["properties"]["t_unix"] == pytest.approx(
+            meta["t0_unix"] + f["properties"]["t"], abs=1e-3)
+
+    # coverage: its area against the mosaic's covered pixels
+    cov = next(f for f in gj["features"] if f["properties"]["kind"] == "coverage")["properties"]
+    png = cv2.imread(str(work / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+    entry = summary["mosaics"][0]
+    mosaic_m2 = (png[..., 3].astype(float) / 255).sum() / np.prod(entry["pixel_scale"]) * summary["metres_per_pixel"] ** 2
+    assert cov["area_m2"] == pytest.approx(mosaic_m2, rel=0.03)
+
+    # KML: the same track, read with xml.etree
+    ns = {"k": "http://www.opengis.net/kml/2.2", "gx": "http://www.google.com/kml/ext/2.2"}
+    root = ET.parse(work / "track.kml").getroot()
+    lines = root.findall(".//k:Placemark/k:LineString/k:coordinates", ns)
+    assert len(lines) == 1
+    coords = np.array([[float(v) for v in c.split(",")] for c in lines[0].text.split()])
+    assert _metres(csv_lat, csv_lon, coords[:, 1], coords[:, 0]).max() < 1.0
+    assert len(root.findall(".//k:Placemark/k:Polygon", ns)) == len(rows)
+    assert len(root.findall(".//k:Placemark/k:TimeStamp/k:when", ns)) == len(rows)
+    quad = root.find(".//gx:LatLonQuad/k:coordinates", ns)
+    assert quad is not None and root.find(".//k:GroundOverlay/k:Icon/k:href", ns).text == "mosaic.png"
+    assert len(quad.text.split()) == 4
+
+
+# --------------------------------------------------------------------------- evo
+
+def test_tum_utm_positions_times_and_heading(flight, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    sim, run, meta = flight
+    work = tmp_path / "run"
+    shutil.copytree(run, work)
+    assert main(["export", str(work), "--tum-utm", "--video-start", str(meta["t0_unix"]),
+                 "--gps-tlog", str(sim / "telemetry.tlog"), "-q"]) == 0
+    data = np.loadtxt(work / "trajectory_utm.tum")
+    rows = [r for r in RunFiles(work).rows if r.glued]
+    assert len(data) == len(rows)
+    assert data[:, 0] == pytest.approx(meta["t0_unix"] + np.array([r.t for r in rows]), abs=1e-6)
+    epsg = utm_epsg(meta["origin"]["lat"], meta["origin"]["lon"])
+    e, n = utm_forward(np.array([r.extra["lat"] for r in rows]), np.array([r.extra["lon"] for r in rows]), epsg)
+    assert np.hypot(data[:, 1] - e, data[:, 2] - n).max() < 0.05
+    # heading of the image's up direction (true north, through the grid convergence) vs the truth's yaw
+    gt = read_groundtruth(sim / "groundtruth.csv")
+    yaw = dict(zip(gt.frame.tolist(), gt.columns["yaw_deg"].tolist()))
+    up = Rotation.from_quat(data[:, 4:8]).apply([0.0, -1.0, 0.0])
+    lat1, lon1 = utm_inverse(data[:, 1], data[:, 2], epsg)
+    lat2, lon2 = utm_inverse(data[:, 1] + up[:, 0], data[:, 2] + up[:, 1], epsg)
+    de, dn = enu_from_latlon(lat2, lon2, float(lat1[0]), float(lon1[0]))
+    de0, dn0 = enu_from_latlon(lat1, lon1, float(lat1[0]), float(lon1[0]))
+    heading = np.degrees(np.arctan2(de - de0, dn - dn0))
+    diff = (heading - np.array([yaw[r.frame] for r in rows]) + 180.0) % 360.0 - 180.0
+    assert np.abs(diff).max() < 1.0
+    assert np.abs(up[:, 2]).max() < 1e-9  # level: the image plane is horizontal
+    # GPS in the same frame: at the frames' times the GPS and the map agree within a metre
+    gps = np.loadtxt(work / "gps_utm.tum")
+    ge = np.interp(data[:, 0], gps[:, 0], gps[:, 1])
+    gn = np.interp(data[:, 0], gps[:, 0], gps[:, 2])
+    assert np.hypot(ge - data[:, 1], gn - data[:, 2]).max() < 1.0
+
+
+def test_tum_utm_without_the_video_start_says_what_is_missing(flight, tmp_path, capsys):
+    work = tmp_path / "run"
+    shutil.copytree(flight[1], work)
+    summary = json.loads((work / "run.json").read_text())
+    summary["video_start_unix"] = None  # e.g. a video file without a creation time, no telemetry
+    (work / "run.json").write_text(json.dumps(summary))
+    assert main(["export", str(work), "--tum-utm"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "video_start_unix" in err[0] and "--video-start" in err[0]
+
+
+# --------------------------------------------------------------------------- tiles/ georeference
+
+def test_full_resolution_tiles_get_world_files_and_a_vrt(flight, tmp_path):
+    rasterio = pytest.importorskip("rasterio", reason="the geo extra (rasterio) is not installed")
+    work = tmp_path / "run"
+    shutil.copytree(flight[1], work)
+    assert main(["export", str(work), "--tile-georef", "-q"]) == 0
+    run = RunFiles(work)
+    m2c, epsg = run.georeference()
+    entry = run.mosaic()
+    ts = entry["tile_size"]
+    tile = sorted((work / "tiles").glob("tile_*.png"))[0]
+    tx, ty = (int(v) for v in tile.stem.split("_")[1:])
+    world = parse_world_file((work / "tiles" / f"{tile.stem}.pgw").read_text())
+    assert world[:, :2] == pytest.approx(m2c[:, :2], abs=1e-12)
+    assert world[:, 2] == pytest.approx(m2c @ [tx * ts, ty * ts, 1.0], abs=1e-6)
+    with rasterio.open(tile) as src:  # GDAL reads the world file and the .aux.xml CRS
+        assert src.crs.to_epsg() == epsg
+        assert src.transform @ (0.5, 0.5) == pytest.approx(tuple(m2c @ [tx * ts, ty * ts, 1.0]), abs=1e-6)
+    with rasterio.open(work / "tiles.vrt") as vrt:
+        assert vrt.crs.to_epsg() == epsg and vrt.count == 4
+        x0, y0 = vrt.transform @ (0.5, 0.5)  # centre of the VRT's top-left pixel
+        keys = [tuple(int(v) for v in p.stem.split("_")[1:]) for p in (work / "tiles").glob("tile_*.png")]
+        kx, ky = min(k[0] for k in keys), min(k[1] for k in keys)
+        assert (x0, y0) == pytest.approx(tuple(m2c @ [kx * ts, ky * ts, 1.0]), abs=1e-6)
+        win = rasterio.windows.Window((tx - kx) * ts, (ty - ky) * ts, ts, ts)
+        data = vrt.read(window=win)
+    png = cv2.imread(str(tile), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(data[0], png[..., 2]) and np.array_equal(data[3], png[..., 3])
+
+
+# --------------------------------------------------------------------------- report and errors
+
+class _Links(html.parser.HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.refs: list[str] = []
+        self.tags: set[str] = set()
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.add(tag)
+        self.refs += [v for k, v in attrs if k in ("src", "href") and v]
+
+
+def test_report_is_self_contained_and_says_what_happened(flight, tmp_path):
+    work = tmp_path / "run"
+    shutil.copytree(flight[1], work)
+    assert main(["export", str(work), "--report", "-q"]) == 0
+    text = (work / "report.html").read_text()
+    parser = _Links()
+    parser.feed(text)
+    assert parser.refs and all(r.startswith("data:image/") for r in parser.refs)
+    assert "script" not in parser.tags and "link" not in parser.tags and "svg" in parser.tags
+    summary = json.loads((work / "run.json").read_text())
+    assert f"<th>frames in</th><td>{summary['frames_in']}</td>" in text
+    assert "EPSG:32617" in text and "km²" in text and "in sync" in text
+    assert f"{summary['metres_per_pixel'] * 100:.2f} cm/pixel" in text
+
+
+def test_export_without_georeference_is_one_clear_line(flight, tmp_path, capsys):
+    work = tmp_path / "run"
+    shutil.copytree(flight[1], work)
+    summary = json.loads((work / "run.json").read_text())
+    for m in summary["mosaics"]:
+        m["georeference"] = {"metres_per_pixel": None}
+    summary["georeference"] = None
+    (work / "run.json").write_text(json.dumps(summary))
+    for name in ("track.kml", "track.geojson", "map.tif"):  # what the run itself wrote
+        (work / name).unlink(missing_ok=True)
+    for flag in ("--cog", "--tiles", "--kml"):
+        assert main(["export", str(work), flag]) == 3
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "georeference" in err[0] and "--mavlink" in err[0], err
+    # without a flag: what it can (the report), no error
+    assert main(["export", str(work), "-q"]) == 0
+    assert (work / "report.html").is_file() and not (work / "track.kml").exists()
+    assert main(["export", str(tmp_path / "nothing-here")]) == 3
+    assert "not found" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- pipeline hooks
+
+def test_pipeline_hook_writes_the_same_cog_from_the_live_mosaic(flight, tmp_path):
+    rasterio = pytest.importorskip("rasterio", reason="the geo extra (rasterio) is not installed")
+    from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
+
+    work = tmp_path / "run"
+    shutil.copytree(flight[1], work)
+    run = RunFiles(work)
+    entry = run.mosaic()
+    ts = entry["tile_size"]
+    # the live mosaic, rebuilt exactly from its full-resolution tiles
+    mosaic = TiledMosaic(MosaicConfig(tile_size=ts, border=0))
+    for p in (work / "tiles").glob("tile_*.png"):
+        tx, ty = (int(v) for v in p.stem.split("_")[1:])
+        bgra = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        mosaic.add(bgra[..., :3], np.array([[1.0, 0, tx * ts], [0, 1.0, ty * ts]]), mask=bgra[..., 3])
+    done = write_geo_outputs(work, run.mosaics, {entry["segment"]: mosaic}, run.rows, run.frame_size)
+    assert set(done) == {"cog", "tile_georeference", "track"}
+    assert main(["export", str(work), "--cog", str(tmp_path / "from_files.tif"), "-q"]) == 0
+    with rasterio.open(work / "map.tif") as a, rasterio.open(tmp_path / "from_files.tif") as b:
+        assert a.transform == b.transform and a.crs == b.crs
+        assert np.array_equal(a.read(), b.read())
+    assert (work / "tiles.vrt").is_file() and (work / "track.kml").is_file()
+    # a checkpoint before any georeference writes nothing; with one it rewrites the files
+    (work / "track.kml").unlink()
+    assert refresh_track_files(work, run.rows, run.frame_size, {}) is None and not (work / "track.kml").exists()
+    assert refresh_track_files(work, run.rows[:30], run.frame_size, run.georeferences())["features"] >= 3
+    assert (work / "track.kml").is_file()
+
+
+def test_cog_of_a_rotated_map_is_written_by_windows_and_resampled_right(tmp_path):
+    """A procedural map (a smooth pattern known at every map point) under a 30-degree georeference:
+    the GeoTIFF holds the pattern at each pixel's map point, and writing it never held the whole
+    image (Python's peak allocation stays a fraction of it)."""
+    rasterio = pytest.importorskip("rasterio", reason="the geo extra (rasterio) is not installed")
+    import tracemalloc
+
+    from photomap.io.geotiff import write_cog
+
+    n = 2000
+
+    def pattern(u, v):
+        return (np.sin(u / 23.0) + np.cos(v / 31.0)) * 60.0 + 128.0
+
+    def render(x, y, w, h, s):
+        ow, oh = max(1, round(w * s)), max(1, round(h * s))
+        u, v = np.meshgrid(x + (np.arange(ow) + 0.5) * w / ow - 0.5, y + (np.arange(oh) + 0.5) * h / oh - 0.5)
+        inside = (u >= -0.5) & (u < size - 0.5) & (v >= -0.5) & (v < size - 0.5)
+        img = np.zeros((oh, ow, 3), np.uint8)
+        img[..., 1] = np.where(inside, np.rint(pattern(u, v)), 0).astype(np.uint8)
+        return img, np.where(inside, 255, 0).astype(np.uint8)
+
+    th, mpp = math.radians(30.0), 0.05
+    m2c = np.array([[mpp * math.cos(th), mpp * math.sin(th), 400000.0],
+                    [mpp * math.sin(th), -mpp * math.cos(th), 4500000.0]])
+    peaks, sizes = [], []
+    for size in (n // 2, n):  # the peak allocation must not grow with the image
+        tracemalloc.start()
+        try:
+            info = write_cog(tmp_path / "rot.tif", MapRaster(render, (0, 0, size, size), m2c, 32617))
+            peaks.append(tracemalloc.get_traced_memory()[1])
+        finally:
+            tracemalloc.stop()
+        sizes.append(info["size"][0] * info["size"][1])
+    assert sizes[1] > 3.5 * sizes[0] and peaks[1] < 1.5 * peaks[0], (sizes, peaks)
+    assert peaks[1] < sizes[1] * 4  # less than one whole RGBA image
+    with rasterio.open(tmp_path / "rot.tif") as src:
+        t = src.transform
+        green, alpha = src.read(2), src.read(4)
+    rows, cols = np.nonzero(alpha == 255)
+    pick = np.random.default_rng(1).choice(len(rows), 2000, replace=False)
+    e = t.c + t.a * (cols[pick] + 0.5)
+    nn = t.f + t.e * (rows[pick] + 0.5)
+    uv = np.c_[e - m2c[0, 2], nn - m2c[1, 2]] @ np.linalg.inv(m2c[:, :2]).T
+    err = np.abs(green[rows[pick], cols[pick]].astype(float) - pattern(uv[:, 0], uv[:, 1]))
+    assert np.median(err) < 0.5 and err.max() < 2.0  # bilinear on a smooth pattern, 8-bit rounding
