@@ -112,6 +112,10 @@ class KeyframeGraph:
         if priors.east_north is not None:
             self.graph.add_gps_prior(node, priors.east_north, g.gps_sigma_m)
 
+    def pose_of(self, index: int) -> np.ndarray:
+        """The current 3x3 pose of keyframe ``index`` (KeyError if it is not in this graph)."""
+        return self.keyframes[self._node[index]].pose
+
     def close_loops(self, image: np.ndarray) -> int:
         """Try the newest keyframe (``image`` at the working resolution) against old ones nearby."""
         if len(self.keyframes) <= self.min_gap:
@@ -146,6 +150,22 @@ class KeyframeGraph:
             added += 1
         self.loops += added
         return added
+
+    def absorb(self, other: KeyframeGraph, transform: np.ndarray,
+               edge: tuple[int, int, np.ndarray, float]) -> None:
+        """Take in the keyframes of another segment's graph, now linked to this one.
+
+        ``transform`` (3x3) maps the other segment's map px to this map's px; ``edge`` = (keyframe
+        here, keyframe there, measured 3x3: input px of the latter -> of the former, confidence).
+        """
+        base = self.graph.absorb(other.graph, transform)
+        for k, kf in enumerate(other.keyframes):
+            self._node[kf.index] = base + k
+            self.keyframes.append(Keyframe(kf.index, transform @ kf.pose))  # in node order
+        here, there, measured, confidence = edge
+        self.graph.add_edge(self._node[here], self._node[there], measured, confidence, kind="join")
+        self.loops += other.loops
+        self.rejected_loops += other.rejected_loops
 
     def snapshot(self) -> PoseGraph:
         """A copy of the graph to optimise elsewhere (another thread) while this one grows."""

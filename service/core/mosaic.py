@@ -182,6 +182,27 @@ class TiledMosaic:
                 touched.add(key)
         return touched
 
+    def merge(self, other: TiledMosaic, transform: np.ndarray, chunk: int = 1024) -> set[TileKey]:
+        """Paint the map ``other`` into this one through ``transform`` (3x3: map px of ``other``
+        -> map px of this map), e.g. when two map segments turn out to be one; in chunks of at
+        most ``chunk`` px a side, so memory stays bounded. Returns the tiles it changed."""
+        region = other.bounds()
+        if region is None:
+            return set()
+        t = np.asarray(transform, dtype=np.float64)
+        x, y, w, h = region
+        pad = self.border + 1  # add() erodes a frame's border: render a little more
+        touched: set[TileKey] = set()
+        for cy in range(y, y + h, chunk):
+            for cx in range(x, x + w, chunk):
+                box = (cx - pad, cy - pad, min(chunk, x + w - cx) + 2 * pad, min(chunk, y + h - cy) + 2 * pad)
+                image, alpha, (ox, oy) = other.render(1.0, box)
+                if not alpha.any():
+                    continue
+                pose = t @ np.array([[1.0, 0.0, ox], [0.0, 1.0, oy], [0.0, 0.0, 1.0]])
+                touched |= self.add(image, pose[:2], mask=alpha == 255)
+        return touched
+
     def _to_channels(self, frame: np.ndarray) -> np.ndarray:
         """``frame`` as uint8 (h, w, channels)."""
         frame = np.asarray(frame)

@@ -67,7 +67,7 @@ __all__ = ["EDGE_KINDS", "ROBUST_LOSSES", "PoseGraph", "PoseGraphResult", "optim
            "interpolate_corrections", "pose_params", "pose_matrix"]
 
 
-EDGE_KINDS = ("sequential", "loop", "map")
+EDGE_KINDS = ("sequential", "loop", "map", "join")
 ROBUST_LOSSES = ("linear", "soft_l1", "cauchy", "huber")
 _NP = 4  # parameters per node: x, y, theta, log s
 
@@ -216,6 +216,28 @@ class PoseGraph:
         if len(poses) != len(self._nodes):
             raise ValueError(f"{len(poses)} poses for {len(self._nodes)} nodes")
         self._nodes = [pose_params(p, self.center) for p in poses]
+
+    def absorb(self, other: PoseGraph, transform: np.ndarray) -> int:
+        """Append ``other``'s nodes (their poses mapped through ``transform``, 3x3: other's map px
+        -> this map's px), edges and priors; returns the index of its first node here.
+
+        Both graphs must use the same frame size. Priors on absolute quantities (GPS, heading,
+        altitude) stay as they are: the map-to-world globals are shared from now on.
+        """
+        if tuple(other.frame_size) != tuple(self.frame_size):
+            raise ValueError(f"graphs of frames {other.frame_size} and {self.frame_size} cannot be joined")
+        t = _as3x3(transform, "transform")
+        base = len(self._nodes)
+        for pose in other.initial_poses():
+            self.add_node(t @ pose)
+        self._edges.extend((i + base, j + base, z, sig, kind) for i, j, z, sig, kind in other._edges)
+        self.fixed |= {base + k for k in other.fixed}
+        self._position.extend((n + base, *(t[:2, :2] @ (x, y) + t[:2, 2]), s * math.sqrt(abs(np.linalg.det(t[:2, :2]))))
+                              for n, x, y, s in other._position)
+        self._gps.extend((n + base, e, nn, s) for n, e, nn, s in other._gps)
+        self._heading.extend((n + base, h, s) for n, h, s in other._heading)
+        self._scale.extend((n + base, a, s) for n, a, s in other._scale)
+        return base
 
     def fix(self, node: int) -> None:
         """Lock a node: its pose is not optimised."""

@@ -10,6 +10,7 @@ are converted back to input pixels here (OpenCV pixel centres: ``x_small = f * (
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -95,7 +96,8 @@ class Tracker:
         self.prior_angle_tol_deg = params.prior_angle_tol_deg
         self.prior_scale_tol = params.prior_scale_tol
         self.telemetry_prior = telemetry_prior
-        self.segment = -1
+        self.segment = -1  # the current map segment
+        self.segments = 0  # segments started so far (a new one gets the next number)
         self._ref: _Reference | None = None
         self._last: tuple[int, np.ndarray] | None = None  # (index, 3x3 pose) of the last posed frame
         self._velocity: np.ndarray | None = None  # 3x3 motion between the last two posed frames
@@ -104,7 +106,8 @@ class Tracker:
 
     def _new_segment(self, prepared: PreparedFrame, index: int, events: list[str],
                      sample: Any = None) -> TrackStep:
-        self.segment += 1
+        self.segment = self.segments
+        self.segments += 1
         self._ref = _Reference(prepared, self._map.copy(), index, sample)
         self._last, self._velocity, self._lost = (index, self._map.copy()), None, 0
         self._pending = None
@@ -128,6 +131,12 @@ class Tracker:
             shift += np.hypot(*(v @ c - c)[:2])
         return float(shift / min(h, w))
 
+    def rejoin(self, segment: int, transform: np.ndarray) -> None:
+        """The current segment joined ``segment``: go on in its map frame (``transform``, 3x3: map
+        px of the current segment -> map px of ``segment``)."""
+        self.correct(transform)
+        self.segment = segment
+
     def correct(self, c: np.ndarray) -> None:
         """Apply a pose-graph correction (3x3, old map px -> new map px) to the tracking state."""
         if self._ref is not None:
@@ -149,8 +158,15 @@ class Tracker:
         predicted = last_pose @ self._velocity
         rel = self._to_small @ np.linalg.inv(self._ref.pose) @ predicted @ self._from_small
         angle, scale = pose_angle_deg(rel), pose_scale(rel)
+        # the expected shift decides between near-equal translation peaks (periodic ground):
+        # within a few pixels plus a quarter of the frame-to-frame step
+        step = self._to_small @ self._velocity @ self._from_small
+        h, w = self.registrar.shape
+        c = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+        tol = 4.0 + 0.25 * float(np.hypot(*(step @ c - c)[:2]))
         return Prior(angle_deg=angle, angle_tol_deg=self.prior_angle_tol_deg, scale=scale,
-                     scale_tol=self.prior_scale_tol)
+                     scale_tol=self.prior_scale_tol, shift=(float(rel[0, 2]), float(rel[1, 2])),
+                     shift_tol=tol)
 
     def _register(self, ref: PreparedFrame, ref_sample: Any, prepared: PreparedFrame, index: int,
                   sample: Any) -> tuple[Registration, str | None]:
@@ -160,6 +176,8 @@ class Tracker:
         """
         tprior = self.telemetry_prior(ref_sample, sample) if self.telemetry_prior else None
         motion = self._prior(index)
+        if tprior is not None and motion is not None and motion.shift is not None:
+            tprior = dataclasses.replace(tprior, shift=motion.shift, shift_tol=motion.shift_tol)
         if tprior is None:
             return self.registrar.register(ref, prepared, motion), None
         reg = self.registrar.register(ref, prepared, tprior)

@@ -8,6 +8,14 @@ of every frame it can re-pose (a frame keeps its measured pose relative to the k
 registered against). The pipeline, which owns the trajectory, the tracker and the maps, applies
 it. The optimisation runs on a snapshot of the graph in a background thread (one at a time), so
 the worker never waits for it; a finished solution is returned by the next call.
+
+Segments rejoin: a new map segment (started when the link to the map was lost) is not forever.
+Each of its new keyframes is also registered against keyframes of the other segments: the
+nearest by GPS when the keyframes carry a fix, else the most similar by their place signature
+(:mod:`photomap.core.places`, translation and rotation invariant, as iFMI's magnitude spectra
+are). A confident match joins the two segments into one map frame (a ``join`` edge of one pose
+graph); the loop closer returns a :class:`Join` that the pipeline applies to its trajectory, maps
+and tracker.
 """
 
 from __future__ import annotations
@@ -21,8 +29,10 @@ import numpy as np
 from photomap.config import MappingConfig, PosegraphConfig
 from photomap.core.ifmi import Registrar
 from photomap.core.keyframes import KeyframeGraph, KeyframePriors
+from photomap.core.places import place_signature, place_similarity
 from photomap.core.tracking import TrackStep
 from photomap.geo.georef import enu_from_latlon
+from photomap.geometry import scaling, to_h
 from photomap.io.keyframestore import KeyframeStore
 from photomap.telemetry.samples import TelemetrySample
 
@@ -45,6 +55,23 @@ class Correction:
     keyframes: tuple[tuple[int, np.ndarray], ...]
 
 
+@dataclass(frozen=True)
+class Join:
+    """Segment ``segment`` now belongs to segment ``into``: ``transform`` (3x3) maps map px of
+    ``segment`` to map px of ``into``; found between keyframe ``frame`` (of ``segment``) and
+    keyframe ``match`` (of ``into``) at registration ``confidence``."""
+
+    segment: int
+    into: int
+    transform: np.ndarray
+    frame: int
+    match: int
+    confidence: float
+
+
+Update = Correction | Join
+
+
 class LoopCloser:
     """Keyframe graphs of all segments of a run (used from the worker thread; the optimiser runs
     on snapshots in its own thread).
@@ -62,11 +89,14 @@ class LoopCloser:
     params, graph_params : the ``mapping`` and ``posegraph`` settings.
     use_priors : bool
         Telemetry of keyframes becomes pose-graph priors.
+    join_candidates : int
+        Keyframes of other segments tried per new keyframe of a segment (the nearest by GPS,
+        else the most similar by place signature).
     """
 
     def __init__(self, store: KeyframeStore, registrar: Registrar, frame_size: tuple[int, int],
                  working_scale: float, params: MappingConfig, graph_params: PosegraphConfig,
-                 use_priors: bool = False) -> None:
+                 use_priors: bool = False, join_candidates: int = 4) -> None:
         self.store = store
         self.registrar = registrar
         self.frame_size = frame_size
@@ -78,6 +108,14 @@ class LoopCloser:
         # segment -> frame -> (keyframe, 3x3 measured: input px of frame -> of keyframe)
         self.relative: dict[int, dict[int, tuple[int, np.ndarray]]] = {}
         self.corrections = 0
+        self.join_candidates = join_candidates
+        self.joins: list[Join] = []
+        self._merged_into: dict[int, int] = {}  # joined segment -> the segment it joined
+        self._segment_of: dict[int, int] = {}  # keyframe -> its segment (after joins)
+        self._signature: dict[int, np.ndarray] = {}  # keyframe -> place signature
+        self._position: dict[int, tuple[float, float]] = {}  # keyframe -> (east, north) m, with GPS
+        self._to_small = scaling(working_scale)
+        self._from_small = np.linalg.inv(self._to_small)
         self._enu_origin: tuple[float, float] | None = None  # first GPS fix of the run
         # optimisation in a background thread: one at a time, on a snapshot of the graph
         self._executor = (ThreadPoolExecutor(1, "photomap-posegraph")
@@ -102,34 +140,97 @@ class LoopCloser:
             east_north = (float(east[0]), float(north[0]))
         return KeyframePriors(sample.yaw, sample.height_above_ground, east_north)
 
+    def _keep(self, index: int, segment: int, small: np.ndarray, image: np.ndarray,
+              priors: KeyframePriors | None) -> None:
+        self.store.put(index, small, image)
+        self._segment_of[index] = segment
+        self._signature[index] = place_signature(small)
+        if priors is not None and priors.east_north is not None:
+            self._position[index] = priors.east_north
+
     def on_anchor(self, step: TrackStep, small: np.ndarray, image: np.ndarray) -> None:
         """The earlier frame ``step.anchor`` became the reference of a new segment."""
-        self.store.put(step.anchor, small, image)
+        self._keep(step.anchor, step.segment, small, image, None)
         self._graph(step.segment).add_keyframe(step.anchor, np.vstack([step.anchor_pose, [0, 0, 1]]), None)
 
     def on_step(self, index: int, step: TrackStep, small: np.ndarray, image: np.ndarray,
-                sample: TelemetrySample | None = None) -> Correction | None:
-        """Record a tracked frame; returns a correction when an optimisation has finished.
+                sample: TelemetrySample | None = None) -> list[Update]:
+        """Record a tracked frame; returns what changed the map: a join of its segment to
+        another, and corrections of optimisations that finished.
 
         A finished background optimisation is returned after the frame is recorded, so that the
         frame itself is re-posed too.
         """
         if step.pose is None:
-            return self.poll()
+            return self._polled()
         if step.reference is not None:
             self.relative.setdefault(step.segment, {})[index] = (step.reference, step.relative)
         if not step.keyframe:
-            return self.poll()
-        self.store.put(index, small, image)
+            return self._polled()
+        priors = self._priors(sample)
+        self._keep(index, step.segment, small, image, priors)
         graph = self._graph(step.segment)
         edge = (step.reference, step.relative, step.confidence) if step.reference is not None else None
-        graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge, self._priors(sample))
+        graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge, priors)
+        updates: list[Update] = []
+        join = self._try_join(index, step.segment, small)
+        if join is not None:
+            updates.append(join)
+            graph = self.graphs[join.into]
         if graph.close_loops(small):
-            log.info("loop closed at frame %d (segment %d): %d loop edges", index, step.segment, graph.loops)
-            self._wanted.add(step.segment)
+            segment = join.into if join is not None else step.segment
+            log.info("loop closed at frame %d (segment %d): %d loop edges", index, segment, graph.loops)
+            self._wanted.add(segment)
         done = self.poll()
         started = self._start()
-        return started or done
+        return updates + [c for c in (done, started) if c is not None]
+
+    def _polled(self) -> list[Update]:
+        done = self.poll()
+        return [done] if done is not None else []
+
+    def _join_candidates(self, index: int, segment: int) -> list[int]:
+        """Keyframes of the other segments to try against keyframe ``index``, best first."""
+        others = [k for k, s in self._segment_of.items() if s != segment and s in self.graphs]
+        if not others:
+            return []
+        here = self._position.get(index)
+        if here is not None and all(k in self._position for k in others):
+            key = {k: np.hypot(self._position[k][0] - here[0], self._position[k][1] - here[1]) for k in others}
+            return sorted(others, key=key.get)[:self.join_candidates]
+        sig = self._signature[index]
+        key = {k: -place_similarity(sig, self._signature[k]) for k in others}
+        return sorted(others, key=key.get)[:self.join_candidates]
+
+    def _try_join(self, index: int, segment: int, small: np.ndarray) -> Join | None:
+        """Register keyframe ``index`` of ``segment`` against other segments; join the first match."""
+        candidates = self._join_candidates(index, segment)
+        if not candidates:
+            return None
+        prepared = self.registrar.prepare(small)
+        for match in candidates:
+            reg = self.registrar.register(self.registrar.prepare(self.store.small(match)), prepared)
+            if reg.confidence < self.params.loop_min_confidence:
+                continue
+            into = self._segment_of[match]
+            measured = self._from_small @ to_h(reg.matrix) @ self._to_small  # input px: index -> match
+            old = self.graphs[into].pose_of(match)
+            new = self.graphs[segment].pose_of(index)
+            transform = old @ measured @ np.linalg.inv(new)
+            self.graphs[into].absorb(self.graphs.pop(segment), transform,
+                                     (match, index, measured, reg.confidence))
+            self.relative.setdefault(into, {}).update(self.relative.pop(segment, {}))
+            for k, s in self._segment_of.items():
+                if s == segment:
+                    self._segment_of[k] = into
+            self._wanted = {into if s == segment else s for s in self._wanted}
+            self._merged_into[segment] = into
+            join = Join(segment, into, transform, index, match, float(reg.confidence))
+            self.joins.append(join)
+            log.info("segment %d joined segment %d: keyframe %d matches keyframe %d (confidence %.2f)",
+                     segment, into, index, match, reg.confidence)
+            return join
+        return None
 
     def _start(self) -> Correction | None:
         """Optimise a segment that needs it: in the background (None), or here and now."""
@@ -154,7 +255,12 @@ class LoopCloser:
         self._start()
         return correction
 
-    def _finish(self, segment: int, poses: np.ndarray, dropped: list[int]) -> Correction:
+    def _finish(self, segment: int, poses: np.ndarray, dropped: list[int]) -> Correction | None:
+        if segment not in self.graphs:  # joined into another segment while it was optimised
+            while segment in self._merged_into:
+                segment = self._merged_into[segment]
+            self._wanted.add(segment)
+            return None
         if dropped:
             log.warning("dropped %d loop closure(s) that disagree with the rest of the map", len(dropped))
         graph = self.graphs[segment]
@@ -182,6 +288,7 @@ class LoopCloser:
 
     def summary(self) -> dict:
         return {"keyframes": sum(len(g.keyframes) for g in self.graphs.values()),
+                "joins": len(self.joins),
                 "loop_edges": sum(g.loops for g in self.graphs.values()),
                 "rejected_loops": sum(g.rejected_loops for g in self.graphs.values()),
                 "corrections": self.corrections}

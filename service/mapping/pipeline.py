@@ -45,7 +45,7 @@ from photomap.io.tilestore import DiskTileStore
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.geo_outputs import write_geo_outputs
-from photomap.mapping.loopclosure import Correction, LoopCloser
+from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.outputs import remove_sidecars, write_png, write_sidecars, write_tiles
 from photomap.mapping.telemetry_join import TelemetryJoin
 
@@ -255,9 +255,14 @@ class MappingPipeline:
             self._warned.add(kind)
             log.warning(message)
 
+    @property
+    def _segment(self) -> int:
+        """The current map segment (0 before the first frame)."""
+        return max(self.tracker.segment, 0) if self.tracker is not None else 0
+
     def _skip(self, frame: Frame, status: str, t0: float) -> None:
         """A frame that cannot be mapped: a row, and an event for the sinks."""
-        segment = max(self.stats.segments - 1, 0)
+        segment = self._segment
         self._rows.append(PoseRow(frame.index, frame.t, None, status=status, segment=segment))
         w, h = self.frame_size or (frame.image.shape[1], frame.image.shape[0])
         self._emit(FrameEvent(frame.index, frame.t, self.source.live, frame.image, (w, h), status, None,
@@ -268,8 +273,7 @@ class MappingPipeline:
     def _process(self, frame: Frame) -> None:
         t0 = time.perf_counter()
         for missing in range(self._next_index, frame.index):  # gaps: dropped or undecodable
-            self._rows.append(PoseRow(missing, float("nan"), None, status="dropped",
-                                      segment=max(self.stats.segments - 1, 0)))
+            self._rows.append(PoseRow(missing, float("nan"), None, status="dropped", segment=self._segment))
         self._next_index = max(self._next_index, frame.index + 1)
         self.stats.frames_in += 1
         image = frame.image
@@ -287,6 +291,7 @@ class MappingPipeline:
                 image = self.telemetry.rectify(image, sample)
             small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
             t1 = time.perf_counter()
+            started = self.tracker.segments
             step = self.tracker.step(small, frame.index, sample)
             register_s = time.perf_counter() - t1
             self.stats.register_s += register_s
@@ -306,8 +311,8 @@ class MappingPipeline:
             log.debug("frame %d failed", frame.index, exc_info=True)
             self._skip(frame, "corrupt", t0)
             return
-        new_segment = step.segment >= self.stats.segments  # this frame started a map segment
-        self.stats.segments = step.segment + 1
+        new_segment = self.tracker.segments > started  # this frame started a map segment
+        self.stats.segments = self.tracker.segments
         messages = list(step.events)
         for event in step.events:
             log.warning(event)
@@ -332,21 +337,29 @@ class MappingPipeline:
         if self.loops is not None:
             if step.anchor is not None and pending is not None and pending[0] == step.anchor:
                 self.loops.on_anchor(step, pending[2], pending[1])
-            correction = self.loops.on_step(frame.index, step, small, image, sample)
-            if correction is not None:
-                self._apply(correction)
-                message = f"loop closed at frame {frame.index}: map corrected"
+            for update in self.loops.on_step(frame.index, step, small, image, sample):
+                if isinstance(update, Join):
+                    touched = self._join(update)
+                    message = (f"map segment {update.segment} joined segment {update.into} at frame "
+                               f"{frame.index} (confidence {update.confidence:.2f})")
+                    log.info(message)
+                else:
+                    self._apply(update)
+                    message = f"loop closed at frame {frame.index}: map corrected"
                 self.stats.events.append(message)
                 messages.append(message)
-                if correction.segment == step.segment:
-                    corrected_path = self._path(step.segment)
+                if update.segment == step.segment or getattr(update, "into", None) == self._segment:
+                    corrected_path = self._path(self._segment)
+            if self._segment != step.segment:  # joined: this frame now lives in another map
+                step.segment = self._segment
         self.stats.worker_s += time.perf_counter() - t0
         if self.sinks:
             link = self.telemetry.link_summary() if self.telemetry is not None else {}
             anchor = (step.anchor, step.anchor_pose.copy()) if step.anchor is not None else None
             self._emit(FrameEvent(
                 frame.index, frame.t, self.source.live, frame.image, self.frame_size, step.status,
-                None if step.pose is None else step.pose.copy(), float(step.confidence), step.segment,
+                None if self._rows[-1].M is None else np.array(self._rows[-1].M, float), float(step.confidence),
+                step.segment,
                 keyframe=step.keyframe, new_segment=new_segment, anchor=anchor, messages=tuple(messages),
                 touched=frozenset(touched), tiles=self.mosaics.get(step.segment),
                 register_ms=1000.0 * register_s, frame_ms=1000.0 * (time.perf_counter() - t0),
@@ -380,6 +393,28 @@ class MappingPipeline:
             self.tracker.correct(correction.latest)
         self._keyframes[correction.segment] = correction.keyframes
         self._dirty.add(correction.segment)
+
+    def _join(self, join: Join) -> set:
+        """Segment ``join.segment`` is part of ``join.into``: one map frame from now on.
+
+        Returns the tiles of the joined map (all changed, as far as a viewer knows)."""
+        t = join.transform
+        for row in self._rows:
+            if row.segment == join.segment:
+                if row.M is not None:
+                    row.M = (t @ np.vstack([row.M, [0.0, 0.0, 1.0]]))[:2]
+                row.segment = join.into
+        into = self._mosaic(join.into)
+        source = self.mosaics.pop(join.segment, None)
+        if source is not None:
+            into.merge(source, t)
+        if self.tracker.segment == join.segment:
+            self.tracker.rejoin(join.into, t)
+        self._keyframes.pop(join.segment, None)
+        if join.segment in self._dirty:
+            self._dirty.discard(join.segment)
+            self._dirty.add(join.into)
+        return set(into.tiles())
 
     def _map_relative(self, step: TrackStep, small: np.ndarray) -> None:
         """Snap a new keyframe to the map rendered at its predicted pose (less drift)."""
@@ -423,6 +458,10 @@ class MappingPipeline:
                     "video_start_unix": self._video_start_unix()})
         if self.loops is not None:
             out["loop_closure"] = self.loops.summary()
+            out["joins"] = [{"segment": j.segment, "into": j.into, "frame": j.frame, "match": j.match,
+                             "confidence": j.confidence} for j in self.loops.joins]
+        out["segments_started"] = out["segments"]
+        out["segments"] = len(self.mosaics) if self.mosaics else out["segments"]
         return out
 
     def _video_start_unix(self) -> float | None:
