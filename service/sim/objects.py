@@ -37,7 +37,6 @@ from photomap.sim.flight import Truth, apply_homography, build_pyramid, render_v
 # BGR top colours: roofs (terracotta, grey, dark grey, brown, light concrete) and tree greens
 ROOF_COLOURS = np.array([[60, 80, 170], [120, 120, 125], [70, 72, 78], [50, 75, 110], [175, 180, 180]], np.float32)
 CROWN_COLOURS = np.array([[25, 62, 30], [40, 88, 72], [30, 76, 45]], np.float32)
-WALL_SHADE = 0.55          # wall brightness relative to the top
 
 
 @dataclass(frozen=True)
@@ -91,8 +90,9 @@ def draw_objects(shape: tuple[int, int], objects: list[SceneObject], seed: int =
     """The layer image of the ``objects`` of the given ``kinds``: uint8 ``(h, w, 4)``, BGR
     premultiplied by alpha, alpha 255 on the tops (anti-aliased edges, ~1 px), 0 elsewhere.
 
-    Boxes have a gable (the two halves along their length differ in brightness) and a darker
-    rim; crowns are brighter in the middle; both carry a fine random texture.
+    Boxes have a gable (the two halves along their length differ in brightness, 1 and 0.85)
+    and a slightly darker rim (0.92); crowns are brighter in the middle; both carry a fine
+    random texture (~2.5 % rms). Walls (:class:`ObjectScene`) are darker still (0.2-0.6).
     """
     h, w = shape
     rng = np.random.default_rng([seed, 21])
@@ -119,7 +119,7 @@ def draw_objects(shape: tuple[int, int], objects: list[SceneObject], seed: int =
             u = dx * math.cos(a) + dy * math.sin(a)          # along the length
             v = -dx * math.sin(a) + dy * math.cos(a)         # across
             inside = np.minimum(ob.length / 2.0 - np.abs(u), ob.width / 2.0 - np.abs(v))
-            shade = np.where(v >= 0, 1.0, 0.82) * np.where(inside < 2.0, 0.8, 1.0)
+            shade = np.where(v >= 0, 1.0, 0.85) * np.where(inside < 2.0, 0.92, 1.0)
         alpha = np.clip(inside + 0.5, 0.0, 1.0)
         colour = np.asarray(ob.colour, np.float32) * (shade * tex)[..., None]
         a3 = alpha[..., None]
@@ -196,13 +196,13 @@ class ObjectScene:
         alt_px, hgt_px = alt_m / self.gsd, self.height_m / self.gsd
         h_top = top_homography(h, cam_x, cam_y, alt_px, hgt_px)
         if len(self._corners):
-            self._draw_walls(view, h, h_top)
+            self._draw_walls(view, h, h_top, cam_x, cam_y)
         _over(view, render_view(self.pyramid, h_top, (fh, fw)))
         return view
 
-    def _draw_walls(self, view: np.ndarray, h: np.ndarray, h_top: np.ndarray) -> None:
-        """Walls: one flat-shaded quad per box side, from its ground edge to its top edge (the
-        top drawn afterwards hides the sides facing away from the camera)."""
+    def _draw_walls(self, view: np.ndarray, h: np.ndarray, h_top: np.ndarray, cam_x: float, cam_y: float) -> None:
+        """Walls: one flat-shaded quad per box side facing the camera (whose centre is above
+        ``(cam_x, cam_y)``), from its ground edge to its top edge."""
         fh, fw = view.shape[:2]
         flat = self._corners.reshape(-1, 2)
         ground = apply_homography(np.linalg.inv(h), flat).reshape(-1, 4, 2)
@@ -216,10 +216,17 @@ class ObjectScene:
         frac = 16                                       # sub-pixel bits of the vertex coordinates
         for b in np.flatnonzero(seen):
             c = self._corners[b]
+            centre = c.mean(axis=0)
             for e in range(4):
                 f = (e + 1) % 4
-                normal = np.array([c[f, 1] - c[e, 1], -(c[f, 0] - c[e, 0])])     # outward in y-down
-                light = 0.45 + 0.2 * float(normal @ [0.6, -0.8]) / max(np.linalg.norm(normal), 1e-9)
+                mid = (c[e] + c[f]) / 2.0
+                normal = np.array([c[f, 1] - c[e, 1], -(c[f, 0] - c[e, 0])])
+                normal /= max(np.linalg.norm(normal), 1e-9)
+                if normal @ (mid - centre) < 0:
+                    normal = -normal                                            # outward
+                if normal @ ([cam_x, cam_y] - mid) <= 0:
+                    continue                                                    # faces away
+                light = 0.4 + 0.2 * float(normal @ [0.6, -0.8])                 # sun from the north-east
                 quad = np.array([ground[b, e], ground[b, f], top[b, f], top[b, e]])
                 colour = (*(self._colours[b] * light).tolist(), 255.0)
                 cv2.fillConvexPoly(canvas, np.rint(quad * frac).astype(np.int32), colour,
