@@ -286,6 +286,31 @@ def test_stills_exif_and_xmp_read_back(stills_flight):
     assert np.any((hdg > 100) & (hdg < 260))
 
 
+def test_stills_hold_yaw_keeps_the_picture_while_the_telemetry_turns(tmp_path):
+    out = simulate.simulate_flight(tmp_path / "hold", terrain="texture", terrain_size=(1024, 1024), size=(320, 240),
+                                   seed=6, gsd=0.1, altitude=(20.0, 20.0), speed=6.0, t0_unix=1_700_000_000.0,
+                                   boot_offset_s=100.0, mode="stills", strips=2, stills_per_strip=4,
+                                   forward_overlap=0.7, stills_yaw="hold")
+    gt = read_groundtruth(out / "groundtruth.csv")
+    meta = yaml.safe_load((out / "meta.yaml").read_text())
+    cam = Camera(meta["camera"]["width"], meta["camera"]["height"], meta["camera"]["fx"])
+    np.testing.assert_allclose(gt.columns["yaw_deg"], 90.0)                 # the picture never turns
+    assert all(0.65 <= _overlap(gt.H[i], gt.H[i + 1], cam) <= 0.75 for i in (0, 1, 2, 4, 5, 6))
+    msgs = _read_tlog(out / "telemetry.tlog")
+    att = [m for m in msgs if m.get_type() == "ATTITUDE"]
+    for k, path in enumerate(sorted((out / "stills").glob("*.jpg"))):
+        attrs = dict(re.findall(r'drone-dji:(\w+)="([^"]*)"', Image.open(path).info["xmp"].decode()))
+        heading = 90.0 if k < 4 else -90.0                                   # the aircraft turns around
+        assert float(attrs["FlightYawDegree"]) == pytest.approx(heading)
+        assert float(attrs["GimbalYawDegree"]) == pytest.approx(90.0)
+        t = meta["t0_unix"] + gt.t[k]
+        a = min(att, key=lambda m: abs(m._timestamp - t))
+        assert abs(a._timestamp - t) <= 0.011 and math.degrees(a.yaw) == pytest.approx(heading, abs=0.01)
+    imgs = [cv2.imread(str(p)) for p in sorted((out / "stills").glob("*.jpg"))]
+    err = _warp_error(imgs[4], imgs[3], relative_matrix(gt, 3, 4))           # across the turn
+    assert err < 4.0
+
+
 # --------------------------------------------------------------------------- bank in turns
 
 def test_coordinated_turns_bank_to_the_limit_and_the_tlog_agrees(tmp_path):

@@ -28,7 +28,7 @@ from photomap.sim.tlog_writer import RATES_HZ, write_tlog
 from photomap.errors import InputError, PhotomapError
 from photomap.sim.flight import PATTERNS, YAW_MODES, Camera, build_pyramid, iter_frames, pixel_to_latlon, plan_flight, split_params
 from photomap.sim.objects import ObjectScene, random_objects
-from photomap.sim.stills import SENSOR_WIDTH_MM, focal_35mm, plan_survey, subset, write_still
+from photomap.sim.stills import SENSOR_WIDTH_MM, SURVEY_YAW_MODES, focal_35mm, plan_survey, subset, write_still
 from photomap.sim.terrain import DEFAULT_GSD, PERIODIC, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
 from photomap.io.trajectory_files import GROUNDTRUTH_COLUMNS
 
@@ -75,8 +75,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                     terrain_stain: float = 0.3, objects: float = 0.0, object_height: float = 5.0,
                     object_size: tuple[float, float] = (4.0, 12.0), object_walls: bool = True,
                     mode: str = "video", strips: int = 4, stills_per_strip: int = 10,
-                    forward_overlap: float = 0.65, stills_quality: int = 92, stills_xmp: bool = True,
-                    **params) -> Path:
+                    forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
+                    stills_xmp: bool = True, **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
     Parameters
@@ -101,6 +101,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         stills with ``forward_overlap`` (:mod:`photomap.sim.stills`), written as
         ``stills/NNNNNN.jpg`` (JPEG ``stills_quality``, EXIF, DJI XMP if ``stills_xmp``) instead
         of a video; ``n_frames``, ``fps``, pattern and yaw settings then do not apply.
+        ``stills_yaw``: ``flip`` (the picture turns 180 degrees between strips) or ``hold`` (a
+        gimbal holds the camera's heading; the telemetry's yaw still flips).
     **params : :class:`photomap.sim.flight.Motion` and :class:`photomap.sim.flight.Effects` fields.
 
     Returns the output folder.
@@ -125,12 +127,14 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     valid = valid_mask(img)
     camera = Camera.from_hfov(size[0], size[1], hfov_deg)
     if stills:
-        truth, shots = plan_survey(valid, camera, gsd_eff, motion, strips=strips, per_strip=stills_per_strip,
-                                   forward_overlap=forward_overlap, seed=seed)
+        truth, shots, flight_yaw = plan_survey(valid, camera, gsd_eff, motion, strips=strips,
+                                               per_strip=stills_per_strip, forward_overlap=forward_overlap,
+                                               yaw_mode=stills_yaw, seed=seed)
         frames_truth = subset(truth, shots)
     else:
         truth = plan_flight(valid, n_frames, camera, fps, gsd_eff, motion, seed)
         frames_truth = truth
+        flight_yaw = truth.yaw_deg
     if t0_unix <= 0:
         t0_unix = round(time.time(), 3)
     overlay = None
@@ -161,8 +165,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
             write_still(media / f"{k:06d}.jpg", frame, t_unix=t0_unix + float(truth.t[i]), lat=float(lat[i]),
                         lon=float(lon[i]), amsl_m=origin_amsl + float(truth.alt_m[i]),
                         rel_alt_m=float(truth.alt_m[i]), camera=camera, roll=float(truth.roll_deg[i]),
-                        pitch=float(truth.pitch_deg[i]), yaw=float(truth.yaw_deg[i]), quality=stills_quality,
-                        xmp=stills_xmp)
+                        pitch=float(truth.pitch_deg[i]), yaw=float(truth.yaw_deg[i]),
+                        flight_yaw=float(flight_yaw[i]), quality=stills_quality, xmp=stills_xmp)
             if save_frames:
                 cv2.imwrite(str(frames_dir / f"{k:06d}.{frames_format}"), frame)
     else:
@@ -181,7 +185,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
 
     write_groundtruth(out / "groundtruth.csv", frames_truth)
     write_tlog(out / "telemetry.tlog", truth.t, lat, lon, truth.alt_m, truth.roll_deg, truth.pitch_deg,
-               truth.yaw_deg, t0_unix=t0_unix, boot_offset_s=boot_offset_s, home_amsl_m=origin_amsl,
+               flight_yaw, t0_unix=t0_unix, boot_offset_s=boot_offset_s, home_amsl_m=origin_amsl,
                fixed_wing=motion.max_bank > 0)
     meta = {
         "camera": {"model": "pinhole", "width": camera.width, "height": camera.height, "fx": camera.fx,
@@ -218,11 +222,14 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         meta["files"].update({"video": None, "stills": "stills/%06d.jpg"})
         meta["stills"] = {"strips": int(strips), "per_strip": int(stills_per_strip),
                           "forward_overlap": float(forward_overlap), "side_overlap": float(motion.side_overlap),
+                          "yaw": stills_yaw,
                           "altitude_m": float(truth.alt_m[0]), "quality": int(stills_quality), "xmp": bool(stills_xmp),
                           "focal_length_mm": camera.fx * SENSOR_WIDTH_MM / camera.width,
                           "focal_35mm": focal_35mm(camera), "sensor_width_mm": SENSOR_WIDTH_MM,
                           "note": "t = 0 at the first still; EXIF times are t0_unix + t (UTC); EXIF GPS = "
-                                  "camera nadir point; FocalLengthIn35mmFilm by the diagonal rule (43.27 mm)"}
+                                  "camera nadir point; FocalLengthIn35mmFilm by the diagonal rule (43.27 mm); "
+                                  "tlog ATTITUDE yaw and XMP FlightYawDegree = the aircraft's heading, "
+                                  "groundtruth yaw and XMP GimbalYawDegree = the camera's"}
     (out / "meta.yaml").write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
     log.info("simulated %d %s in %.1f s", len(frames_truth), "stills" if stills else "frames",
              time.perf_counter() - t_start)
@@ -282,6 +289,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--strips", type=int, metavar="N", help="stills mode: number of strips")
     a("--stills-per-strip", type=int, metavar="N", help="stills mode: stills per strip")
     a("--forward-overlap", type=float, metavar="F", help="stills mode: overlap of consecutive stills (0..1)")
+    a("--stills-yaw", choices=SURVEY_YAW_MODES, help="stills mode: flip (the picture turns 180 deg between "
+      "strips) or hold (a gimbal holds the camera heading; the telemetry yaw flips)")
 
 
 def main(args: argparse.Namespace, cfg: dict) -> int:
@@ -296,7 +305,8 @@ def main(args: argparse.Namespace, cfg: dict) -> int:
              "terrain_variation": "terrain_variation", "terrain_stain": "terrain_stain", "objects": "objects",
              "object_height": "object_height", "object_size": "object_size", "max_bank": "max_bank",
              "pitch_offset": "pitch_offset", "mode": "mode", "strips": "strips",
-             "stills_per_strip": "stills_per_strip", "forward_overlap": "forward_overlap"}
+             "stills_per_strip": "stills_per_strip", "forward_overlap": "forward_overlap",
+             "stills_yaw": "stills_yaw"}
     for flag, key in flags.items():
         value = getattr(args, flag, None)
         if value is not None:
@@ -319,7 +329,7 @@ def main(args: argparse.Namespace, cfg: dict) -> int:
         terrain_variation=c["terrain_variation"], terrain_stain=c["terrain_stain"], objects=c["objects"],
         object_height=c["object_height"], object_size=osize, object_walls=c["object_walls"], mode=c["mode"],
         strips=int(c["strips"]), stills_per_strip=int(c["stills_per_strip"]), forward_overlap=c["forward_overlap"],
-        stills_quality=int(c["stills_quality"]), stills_xmp=c["stills_xmp"])
+        stills_yaw=c["stills_yaw"], stills_quality=int(c["stills_quality"]), stills_xmp=c["stills_xmp"])
     if c["mode"] == "stills":
         n = yaml.safe_load((out / "meta.yaml").read_text(encoding="utf-8"))["frames"]
         print(f"simulated {n} stills into {out}/: stills/, groundtruth.csv, telemetry.tlog, meta.yaml"

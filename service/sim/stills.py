@@ -8,8 +8,11 @@ Survey geometry
 Strips run east-west (along terrain x), the first one eastwards, the next one ``spacing`` to the
 south, and so on; consecutive strips are joined by a half circle of radius ``spacing / 2``
 (right turn at the east end, left turn at the west end). The aircraft's heading follows the
-track and the camera's up axis is the heading, so the picture turns by exactly 180 degrees from
-one strip to the next. ``spacing = (1 - side_overlap) * width * s`` and the distance between
+track. With ``yaw_mode = "flip"`` the camera's up axis is the heading, so the picture turns by
+exactly 180 degrees from one strip to the next; with ``"hold"`` a gimbal keeps the camera's
+heading east on every strip (the picture never turns) while the aircraft, and the telemetry's
+yaw, turn around: the telemetry then disagrees with the images by 180 degrees on every other
+strip (as in real DJI logs, where the logged yaw flips and the picture does not). ``spacing = (1 - side_overlap) * width * s`` and the distance between
 consecutive stills is ``d = (1 - forward_overlap) * height * s``, with ``s`` terrain px per frame
 px at nadir (the frame's width is across the track, its height along it). Each strip holds
 ``per_strip`` stills, the first ``d / 2`` after the strip's start. The survey flies at the middle
@@ -36,6 +39,7 @@ from photomap.sim.flight import (Camera, Motion, Truth, _safe_rectangle, _smooth
 # many small drones); the focal length in pixels is exact through FocalPlaneXResolution.
 SENSOR_WIDTH_MM = 6.17
 FULL_FRAME_DIAGONAL_MM = 43.2666       # 36 x 24 mm
+SURVEY_YAW_MODES = ("flip", "hold")
 
 
 def subset(truth: Truth, idx: np.ndarray) -> Truth:
@@ -44,7 +48,8 @@ def subset(truth: Truth, idx: np.ndarray) -> Truth:
 
 
 def plan_survey(valid: np.ndarray, camera: Camera, gsd: float, motion: Motion, *, strips: int, per_strip: int,
-                forward_overlap: float, rate_hz: float = 20.0, seed: int = 0) -> tuple[Truth, np.ndarray]:
+                forward_overlap: float, yaw_mode: str = "flip", rate_hz: float = 20.0,
+                seed: int = 0) -> tuple[Truth, np.ndarray, np.ndarray]:
     """Plan a still-image survey over ``valid`` (bool, terrain shape), see the module docstring.
 
     Parameters
@@ -55,13 +60,20 @@ def plan_survey(valid: np.ndarray, camera: Camera, gsd: float, motion: Motion, *
         period_s; pattern and yaw settings do not apply.
     strips, per_strip : number of strips and of stills per strip.
     forward_overlap : overlap of consecutive stills along a strip, 0..1.
+    yaw_mode : ``flip`` (the camera turns with the aircraft) or ``hold`` (a gimbal keeps it
+        heading east).
     rate_hz : telemetry sample rate (the tlog interpolates between samples).
 
     Returns
     -------
-    truth : every sample (telemetry grid plus the still times, increasing ``t``).
+    truth : every sample (telemetry grid plus the still times, increasing ``t``); its yaw is
+        the camera's (the angle of H).
     stills : indices of the stills in ``truth``, in capture order.
+    flight_yaw : the aircraft's heading at every sample (deg, clockwise from north): the course;
+        equal to ``truth.yaw_deg`` with ``flip``.
     """
+    if yaw_mode not in SURVEY_YAW_MODES:
+        raise InputError(f"survey yaw mode must be one of {', '.join(SURVEY_YAW_MODES)}, got {yaw_mode!r}")
     if strips < 1 or per_strip < 2:
         raise InputError(f"a survey needs at least 1 strip of 2 stills, got {strips} x {per_strip}")
     if not 0.0 <= forward_overlap < 1.0:
@@ -116,7 +128,8 @@ def plan_survey(valid: np.ndarray, camera: Camera, gsd: float, motion: Motion, *
     x = np.where(on_strip, x, tx)
     y = np.where(on_strip, y, ty)
     course = np.where(on_strip, course, tc)
-    yaw = np.mod(course + 180.0, 360.0) - 180.0
+    flight_yaw = np.mod(course + 180.0, 360.0) - 180.0
+    yaw = flight_yaw if yaw_mode == "flip" else np.full(len(course), 90.0)
 
     t = t_all - t_first
     n = len(t)
@@ -136,7 +149,7 @@ def plan_survey(valid: np.ndarray, camera: Camera, gsd: float, motion: Motion, *
     bad = footprints_outside(subset(truth, stills), camera, valid, margin=2.0)
     if bad.size:
         raise InputError(f"planned stills leave the valid terrain at stills {bad[:5].tolist()}")
-    return truth, stills
+    return truth, stills, flight_yaw
 
 
 # --------------------------------------------------------------------------- EXIF / XMP
@@ -162,12 +175,13 @@ def focal_35mm(camera: Camera) -> float:
 
 
 def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: float, pitch: float, yaw: float,
-            camera: Camera) -> bytes:
+            camera: Camera, flight_yaw: float | None = None) -> bytes:
     """A DJI-style XMP packet (``drone-dji:`` attributes, values like ``"+39.80"``).
 
-    Flight angles are the airframe's MAVLink attitude (deg; yaw clockwise from north); gimbal
-    angles the camera's, in DJI's convention (pitch -90 = straight down): the simulated camera
-    is fixed to the airframe looking down, so ``GimbalPitchDegree = pitch - 90``.
+    Gimbal angles are the camera's (deg; yaw clockwise from north), in DJI's convention (pitch
+    -90 = straight down, so ``GimbalPitchDegree = pitch - 90`` for the camera's MAVLink-style
+    ``pitch``); flight angles the airframe's: the same roll and pitch, yaw ``flight_yaw``
+    (default: the camera's).
     ``CalibratedFocalLength`` and ``CalibratedOpticalCenterX/Y`` are in pixels (exact).
     """
     def f(v: float, nd: int = 2) -> str:
@@ -177,7 +191,8 @@ def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: fl
         "GpsLatitude": f(lat, 9), "GpsLongitude": f(lon, 9),
         "AbsoluteAltitude": f(amsl_m, 3), "RelativeAltitude": f(rel_alt_m, 3),
         "GimbalRollDegree": f(roll), "GimbalYawDegree": f(yaw), "GimbalPitchDegree": f(pitch - 90.0),
-        "FlightRollDegree": f(roll), "FlightYawDegree": f(yaw), "FlightPitchDegree": f(pitch),
+        "FlightRollDegree": f(roll), "FlightYawDegree": f(yaw if flight_yaw is None else flight_yaw),
+        "FlightPitchDegree": f(pitch),
         "CalibratedFocalLength": f"{camera.fx:.4f}", "CalibratedOpticalCenterX": f"{camera.cx:.4f}",
         "CalibratedOpticalCenterY": f"{camera.cy:.4f}",
     }
@@ -197,7 +212,7 @@ def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: fl
 
 def write_still(path: str | Path, bgr: np.ndarray, *, t_unix: float, lat: float, lon: float, amsl_m: float,
                 rel_alt_m: float, camera: Camera, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0,
-                quality: int = 92, xmp: bool = True) -> None:
+                flight_yaw: float | None = None, quality: int = 92, xmp: bool = True) -> None:
     """Write a uint8 BGR still as JPEG with EXIF and, if ``xmp``, DJI-style XMP (Pillow >= 11.1).
 
     EXIF: Make/Model, Orientation 1, DateTimeOriginal + SubSecTimeOriginal (milliseconds) +
@@ -246,7 +261,7 @@ def write_still(path: str | Path, bgr: np.ndarray, *, t_unix: float, lat: float,
     kwargs = {"quality": int(quality), "exif": exif}
     if xmp:
         kwargs["xmp"] = dji_xmp(rel_alt_m=rel_alt_m, amsl_m=amsl_m, lat=lat, lon=lon, roll=roll, pitch=pitch,
-                                yaw=yaw, camera=camera)
+                                yaw=yaw, camera=camera, flight_yaw=flight_yaw)
     try:
         Image.fromarray(np.ascontiguousarray(bgr[..., ::-1])).save(str(path), "JPEG", **kwargs)
     except OSError as exc:
