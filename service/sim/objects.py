@@ -151,8 +151,7 @@ def _over(dst: np.ndarray, premult: np.ndarray) -> None:
 
 
 def box_corners(ob: SceneObject) -> np.ndarray:
-    """The four corners ``(4, 2)`` of a box's footprint in terrain pixels, counter-clockwise in
-    the image (y down)."""
+    """The four corners ``(4, 2)`` of a box's footprint in terrain pixels, in order around it."""
     a = math.radians(ob.angle_deg)
     along, across = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
     signs = ((1, 1), (1, -1), (-1, -1), (-1, 1))
@@ -213,7 +212,7 @@ class ObjectScene:
         if not seen.any():
             return
         canvas = np.zeros((fh, fw, 4), np.uint8)        # premultiplied BGRA (LINE_AA blends into it)
-        frac = 16                                       # sub-pixel bits of the vertex coordinates
+        frac = 16                                       # vertices in 1/16 px (shift=4 fractional bits)
         for b in np.flatnonzero(seen):
             c = self._corners[b]
             centre = c.mean(axis=0)
@@ -232,6 +231,7 @@ class ObjectScene:
                 cv2.fillConvexPoly(canvas, np.rint(quad * frac).astype(np.int32), colour,
                                    lineType=cv2.LINE_AA, shift=4)
         _over(view, canvas.astype(np.float32))
+
     def overlay(self, truth: Truth):
         """A callable ``(k, view) -> view`` for :func:`photomap.sim.flight.iter_frames`."""
         def draw(k: int, view: np.ndarray) -> np.ndarray:
