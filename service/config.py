@@ -274,8 +274,26 @@ class SimulateConfig(_Section):
     t0_unix: float = _num(0.0, 0.0, None)
     boot_offset_s: float = _num(60.0, 0.0, None)
     video_codec: str = _choice("mp4v", "mp4v", "mjpg", "ffv1")
+    terrain_period: int = _num(80, 8, 4096)
+    terrain_variation: float = _num(0.1, 0.0, 1.0)
+    terrain_stain: float = _num(0.3, 0.0, 1.0)
+    objects: float = _num(0.0, 0.0, 0.9)
+    object_height: float = _num(5.0, 0.0, 10000.0)
+    object_size: tuple[float, float] = _num((4.0, 12.0), 0.0, 10000.0, lo_open=True)
+    object_walls: bool = True
+    max_bank: float = _num(0.0, 0.0, 80.0)
+    pitch_offset: float = _num(0.0, -80.0, 80.0)
+    mode: str = _choice("video", "video", "stills")
+    strips: int = _num(4, 1, 1000)
+    stills_per_strip: int = _num(10, 2, 100000)
+    forward_overlap: float = _num(0.65, 0.0, 1.0, hi_open=True)
+    stills_yaw: str = _choice("flip", "flip", "hold")
+    stills_quality: int = _num(92, 1, 100)
+    stills_xmp: bool = True
 
     def _check(self) -> None:
+        if self.object_size[0] > self.object_size[1]:
+            self._fail("object_size", f"must be [min, max] with min <= max; got {list(self.object_size)}")
         if self.altitude[0] > self.altitude[1]:
             self._fail("altitude", f"must be [min, max] with min <= max; got {list(self.altitude)}")
         for key in ("terrain_size", "size"):

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 import yaml
 
+from photomap.cli import simulate as simulate_cli
 from photomap.sim import simulate
 from photomap.config import load_config
 from photomap.io.trajectory_files import read_groundtruth
-from photomap.errors import InputError
+from photomap.errors import InputError, PhotomapError
 from photomap.sim.flight import (Camera, apply_homography, latlon_to_pixel, pixel_to_latlon, pose_homography,
                             relative_matrix, render_pair, simulate_sequence)
 from photomap.sim.terrain import load_terrain, procedural_terrain, valid_mask
@@ -229,8 +230,8 @@ def test_simulate_flight_files(tmp_path):
 
 def _cli(argv: list[str], overrides: list[str]) -> int:
     parser = argparse.ArgumentParser()
-    simulate.add_arguments(parser)
-    return simulate.main(parser.parse_args(argv), load_config(overrides=overrides))
+    simulate_cli.add_arguments(parser)
+    return simulate_cli.main(parser.parse_args(argv), load_config(overrides=overrides))
 
 
 def test_cli(tmp_path, capsys):
@@ -243,7 +244,7 @@ def test_cli(tmp_path, capsys):
     assert meta["motion"]["altitude"] == [5.0, 6.0]
     assert len(read_groundtruth(out / "groundtruth.csv").t) == 6
     for bad in (["--altitude", "6:5"], ["--size", "big"], ["--terrain", str(tmp_path / "missing.png")]):
-        with pytest.raises(InputError):
+        with pytest.raises(PhotomapError):  # a bad value (ConfigError) or a missing terrain (InputError)
             _cli(["--out", str(out), "--frames", "2", *bad], ["simulate.terrain_size=256x256"])
 
 

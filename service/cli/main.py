@@ -21,7 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("photomap.cli.demo", "simulate a flight over the bundled terrain, map it, print where the map is"),
     "run": ("photomap.cli.run", "map live from a camera (V4L2) until stopped"),
     "replay": ("photomap.cli.replay", "map a logged video or a folder of images"),
-    "simulate": ("photomap.sim.simulate", "fly a virtual camera over a terrain image: video, telemetry, ground truth"),
+    "simulate": ("photomap.cli.simulate", "fly a virtual camera over a terrain image: video, telemetry, ground truth"),
     "evaluate": ("photomap.eval.evaluate", "compare a run's trajectory with ground truth: errors, ATE, drift, plots"),
     "export": ("photomap.cli.export", "export a run for GIS and ground stations: GeoTIFF, web tiles, KML/GeoJSON, evo, report"),
 }

@@ -34,6 +34,8 @@ from photomap.geo.georef import enu_from_latlon, latlon_from_enu
 from photomap.geometry import similarity_matrix
 
 PATTERNS = ("random", "lawnmower", "figure8")
+GRAVITY = 9.80665            # m/s^2
+ROLL_RATE_MAX = 90.0         # deg/s: how fast a banking airframe can roll into and out of a turn
 YAW_MODES = ("random", "constant", "heading", "fixed")
 
 # --------------------------------------------------------------------------- camera and poses
@@ -156,6 +158,11 @@ class Motion:
         them with a peak relative rate ``scale_rate`` (1/s; d ln(alt)/dt, i.e. the scale change).
     tilt : roll and pitch amplitude, deg (0 = exact nadir, matrices are similarities).
     side_overlap : lawn-mower strip spacing as the overlap of neighbouring footprints (0..1).
+    max_bank : coordinated turns of a fixed-wing with the camera fixed to the airframe (no
+        gimbal): roll = atan(v * course_rate / g), clipped to +-max_bank deg, rolling at most
+        :data:`ROLL_RATE_MAX` deg/s, added to the random ``tilt`` roll. 0 = off.
+    pitch_offset : constant pitch added to every frame, deg (nose up > 0; a fixed-wing's
+        angle of attack). 0 = off.
     """
 
     pattern: str = "random"
@@ -168,6 +175,8 @@ class Motion:
     tilt: float = 0.0
     period_s: float = 10.0
     side_overlap: float = 0.3
+    max_bank: float = 0.0
+    pitch_offset: float = 0.0
 
     def check(self) -> None:
         if self.pattern not in PATTERNS:
@@ -183,6 +192,9 @@ class Motion:
             raise InputError(f"tilt must be in 0..45 deg, got {self.tilt}")
         if not 0 <= self.side_overlap < 1:
             raise InputError(f"side overlap must be in 0..1, got {self.side_overlap}")
+        if not 0 <= self.max_bank < 80 or not -45 < self.pitch_offset < 45:
+            raise InputError(f"max bank must be in 0..80 deg and pitch offset in -45..45 deg, got "
+                             f"{self.max_bank}, {self.pitch_offset}")
 
 
 @dataclass
@@ -386,11 +398,12 @@ def _walk(curve: np.ndarray, closed: bool, step: float, n: int) -> np.ndarray:
     return np.c_[np.interp(want, s, pts[:, 0]), np.interp(want, s, pts[:, 1])]
 
 
-def footprint_radius(camera: Camera, alt_px: float, tilt_deg: float) -> float:
+def footprint_radius(camera: Camera, alt_px: float, tilt_deg: float, extra_deg: float = 0.0) -> float:
     """Largest distance (terrain px) from the camera's ground point to a frame corner's ground
-    point, for any yaw and roll, pitch within +-tilt_deg."""
+    point, for any yaw and roll, pitch within +-tilt_deg, plus ``extra_deg`` of further
+    off-nadir angle (bank, pitch offset)."""
     corner = math.atan(math.hypot(camera.width / 2.0, camera.height / 2.0) / camera.fx)
-    off = corner + math.radians(2.0 * tilt_deg)
+    off = corner + math.radians(2.0 * tilt_deg + extra_deg)
     if off >= math.radians(85.0):
         raise InputError("tilt plus half the field of view reach the horizon: lower --tilt or the FOV")
     return alt_px * math.tan(off)
@@ -409,7 +422,7 @@ def plan_flight(valid: np.ndarray, n_frames: int, camera: Camera, fps: float, gs
     alt_lo, alt_hi = motion.altitude
     smax = alt_hi / (camera.fx * gsd)
     margin = 2.0 * max(smax, 1.0) + 4.0          # interpolation and pyramid kernel support
-    radius = footprint_radius(camera, alt_hi / gsd, motion.tilt) + margin
+    radius = footprint_radius(camera, alt_hi / gsd, motion.tilt, motion.max_bank + abs(motion.pitch_offset)) + margin
     rect = _safe_rectangle(valid, radius)
     step = motion.speed / (gsd * fps)
     spacing = (1.0 - motion.side_overlap) * min(camera.width, camera.height) * (alt_lo + alt_hi) / 2 / (camera.fx * gsd)
@@ -437,6 +450,10 @@ def plan_flight(valid: np.ndarray, n_frames: int, camera: Camera, fps: float, gs
 
     roll = motion.tilt * _smooth_random(t, motion.period_s, rng) if motion.tilt > 0 else np.zeros(n_frames)
     pitch = motion.tilt * _smooth_random(t, motion.period_s, rng) if motion.tilt > 0 else np.zeros(n_frames)
+    if motion.max_bank > 0:
+        roll = roll + coordinated_bank(pos * gsd, t, motion.max_bank)
+    if motion.pitch_offset:
+        pitch = pitch + motion.pitch_offset
 
     hs = np.stack([pose_homography(camera, px, py, a / gsd, math.radians(r), math.radians(p), math.radians(y))
                    for (px, py), a, r, p, y in zip(pos, alt, roll, pitch, yaw)])
@@ -448,6 +465,39 @@ def plan_flight(valid: np.ndarray, n_frames: int, camera: Camera, fps: float, gs
     if bad.size:
         raise InputError(f"planned footprints leave the valid terrain at frames {bad[:5].tolist()}")
     return truth
+
+
+def coordinated_bank(pos_m: np.ndarray, t: np.ndarray, max_bank: float,
+                     max_rate: float = ROLL_RATE_MAX, smooth_s: float = 0.25) -> np.ndarray:
+    """Roll (deg, right wing down > 0) of a coordinated turn along the path ``pos_m``.
+
+    ``pos_m`` is ``(n, 2)`` metres (east, south) at times ``t`` (s). The bank is
+    ``atan(v * course_rate / g)`` with ``v`` the ground speed and ``course_rate`` the turn rate
+    of the track (rad/s, smoothed by a Gaussian of ``smooth_s`` seconds against the polyline
+    corners of the planned path), clipped to ``+-max_bank`` and then followed at no more than
+    ``max_rate`` deg/s (the airframe needs time to roll into a turn). Zero when not moving.
+    """
+    from scipy.ndimage import gaussian_filter1d
+
+    n = len(t)
+    if n < 3:
+        return np.zeros(n)
+    vel = np.gradient(pos_m, t, axis=0)
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    course = np.unwrap(np.arctan2(vel[:, 0], -vel[:, 1]))            # clockwise from north
+    rate = np.gradient(course, t)
+    dt = float(np.median(np.diff(t)))
+    if smooth_s > 0:
+        rate = gaussian_filter1d(rate, smooth_s / dt, mode="nearest")
+    target = np.clip(np.degrees(np.arctan(speed * rate / GRAVITY)), -max_bank, max_bank)
+    target[speed < 1e-6] = 0.0
+    roll = np.empty(n)
+    cur = target[0]
+    for k in range(n):
+        step = max_rate * (t[k] - t[k - 1]) if k else 0.0
+        cur += np.clip(target[k] - cur, -step, step) if k else 0.0
+        roll[k] = cur
+    return roll
 
 
 def _heading_yaw(pos: np.ndarray, yaw0: float, max_step: float) -> np.ndarray:
@@ -540,13 +590,19 @@ def apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator, g
 
 
 def iter_frames(terrain: np.ndarray, truth: Truth, camera: Camera, effects: Effects, seed: int = 0,
-                period_s: float = 10.0, pyramid: list[np.ndarray] | None = None):
-    """Yield the uint8 BGR frames of ``truth`` one by one (deterministic for a seed)."""
+                period_s: float = 10.0, pyramid: list[np.ndarray] | None = None, overlay=None):
+    """Yield the uint8 BGR frames of ``truth`` one by one (deterministic for a seed).
+
+    ``overlay(k, view) -> view`` draws over the float BGR ground view of frame ``k`` before the
+    sensor effects (e.g. :meth:`photomap.sim.objects.ObjectScene.overlay`).
+    """
     if pyramid is None:
         pyramid = build_pyramid(terrain, float(truth.scale.max()) * 1.2)
     gain = 1.0 + effects.gain_drift * _smooth_random(truth.t, period_s, np.random.default_rng([seed, 2]))
     for k, hk in enumerate(truth.H):
         view = render_view(pyramid, hk, (camera.height, camera.width))
+        if overlay is not None:
+            view = overlay(k, view)
         yield apply_effects(view, effects, np.random.default_rng([seed, 3, k]), float(gain[k]))
 
 

@@ -1,20 +1,12 @@
-"""Fly a virtual down-looking camera over a terrain image and write the flight with its truth.
+"""The simulated flight, our ground truth: a pinhole camera flown over a terrain image.
 
-Writes into --out DIR: video.mp4 (mp4v; or --codec mjpg/ffv1), groundtruth.csv (the exact frame->terrain matrix of
-every frame), telemetry.tlog (MAVLink 2: HEARTBEAT, SYSTEM_TIME, ATTITUDE, GLOBAL_POSITION_INT,
-VFR_HUD, ALTITUDE, DISTANCE_SENSOR), meta.yaml (camera, terrain, georeference, parameters) and,
-with --save-frames, frames/NNNNNN.png. Defaults come from the `simulate:` config section.
-
-examples:
-  photomap simulate --out sim
-  photomap simulate --out sim --terrain grass --pattern lawnmower --frames 600 --noise 3
-  photomap simulate --out sim --size 320x240 --altitude 30:45 --tilt 2 --yaw-rate 30
+:func:`simulate_flight` writes into a folder: the video (or, in stills mode, JPEG stills with EXIF
+GPS/time/focal length and DJI XMP), ``groundtruth.csv`` (the exact frame->terrain matrix of every
+frame), ``telemetry.tlog`` (MAVLink 2) and ``meta.yaml`` (camera, terrain, georeference,
+parameters). The command is :mod:`photomap.cli.simulate`.
 """
-
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import csv
 import logging
 import time
@@ -28,7 +20,9 @@ from photomap.sim.tlog_writer import RATES_HZ, write_tlog
 
 from photomap.errors import InputError, PhotomapError
 from photomap.sim.flight import PATTERNS, YAW_MODES, Camera, build_pyramid, iter_frames, pixel_to_latlon, plan_flight, split_params
-from photomap.sim.terrain import DEFAULT_GSD, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
+from photomap.sim.objects import ObjectScene, random_objects
+from photomap.sim.stills import SENSOR_WIDTH_MM, SURVEY_YAW_MODES, focal_35mm, plan_survey, subset, write_still
+from photomap.sim.terrain import DEFAULT_GSD, PERIODIC, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
 from photomap.io.trajectory_files import GROUNDTRUTH_COLUMNS
 
 log = logging.getLogger(__name__)
@@ -61,13 +55,21 @@ def parse_range(text: str) -> tuple[float, float]:
 VIDEO_CODECS = {"mp4v": ("video.mp4", "mp4v"), "mjpg": ("video.avi", "MJPG"), "ffv1": ("video.mkv", "FFV1")}
 
 
+MODES = ("video", "stills")
+
+
 def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames: int = 300,
                     size: tuple[int, int] = (640, 480), fps: float = 30.0, seed: int = 0,
                     hfov_deg: float = 60.0, gsd: float = 0.0, terrain_zoom: float = 0.0,
                     terrain_size: tuple[int, int] = (4096, 4096), save_frames: bool = False,
                     frames_format: str = "png", origin_lat: float = 41.1, origin_lon: float = -81.7,
                     origin_amsl: float = 300.0, t0_unix: float = 0.0, boot_offset_s: float = 60.0,
-                    video_codec: str = "mp4v", **params) -> Path:
+                    video_codec: str = "mp4v", terrain_period: int = 80, terrain_variation: float = 0.1,
+                    terrain_stain: float = 0.3, objects: float = 0.0, object_height: float = 5.0,
+                    object_size: tuple[float, float] = (4.0, 12.0), object_walls: bool = True,
+                    mode: str = "video", strips: int = 4, stills_per_strip: int = 10,
+                    forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
+                    stills_xmp: bool = True, **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
     Parameters
@@ -82,6 +84,18 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     video_codec : ``mp4v`` (``video.mp4``: MPEG-4 part 2 at the wheel's fixed, low bitrate, a
         strong compression that wipes low-contrast texture), ``mjpg`` (``video.avi``) or ``ffv1``
         (``video.mkv``, lossless, like a camera recording at a high bitrate).
+    terrain_period, terrain_variation, terrain_stain : period (terrain px), per-tile/row
+        variation and stain of the ``tiles`` and ``rows`` terrains (:mod:`photomap.sim.periodic`).
+    objects : fraction of the ground under objects standing ``object_height`` metres above it
+        (box roofs and tree crowns, sides ``object_size`` = (min, max) metres; walls on the
+        boxes if ``object_walls``): parallax (:mod:`photomap.sim.objects`). 0 = none. The
+        truth stays the ground plane.
+    mode : ``video``, or ``stills``: a lawn-mower survey of ``strips`` x ``stills_per_strip``
+        stills with ``forward_overlap`` (:mod:`photomap.sim.stills`), written as
+        ``stills/NNNNNN.jpg`` (JPEG ``stills_quality``, EXIF, DJI XMP if ``stills_xmp``) instead
+        of a video; ``n_frames``, ``fps``, pattern and yaw settings then do not apply.
+        ``stills_yaw``: ``flip`` (the picture turns 180 degrees between strips) or ``hold`` (a
+        gimbal holds the camera's heading; the telemetry's yaw still flips).
     **params : :class:`photomap.sim.flight.Motion` and :class:`photomap.sim.flight.Effects` fields.
 
     Returns the output folder.
@@ -90,17 +104,41 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     out = Path(out_dir)
     if frames_format not in ("png", "jpg"):
         raise InputError(f"frames format must be png or jpg, got {frames_format!r}")
+    if mode not in MODES:
+        raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
+    stills = mode == "stills"
+    if not stills and video_codec not in VIDEO_CODECS:
+        raise InputError(f"video codec must be one of {', '.join(VIDEO_CODECS)}, got {video_codec!r}")
     name = str(terrain)
     procedural = name in PROCEDURAL
     zoom = 1.0 if procedural else (terrain_zoom or TERRAIN_ZOOM.get(name, 1.0))
     gsd_eff = (gsd or TERRAIN_GSD.get(name, DEFAULT_GSD)) / zoom
     t_start = time.perf_counter()
-    img = load_terrain(name, zoom=zoom, size=(terrain_size[1], terrain_size[0]), seed=seed)
+    periodic = ({"period": terrain_period, "variation": terrain_variation, "stain": terrain_stain}
+                if name in PERIODIC else {})
+    img = load_terrain(name, zoom=zoom, size=(terrain_size[1], terrain_size[0]), seed=seed, **periodic)
     valid = valid_mask(img)
     camera = Camera.from_hfov(size[0], size[1], hfov_deg)
-    truth = plan_flight(valid, n_frames, camera, fps, gsd_eff, motion, seed)
+    if stills:
+        truth, shots, flight_yaw = plan_survey(valid, camera, gsd_eff, motion, strips=strips,
+                                               per_strip=stills_per_strip, forward_overlap=forward_overlap,
+                                               yaw_mode=stills_yaw, seed=seed)
+        frames_truth = subset(truth, shots)
+    else:
+        truth = plan_flight(valid, n_frames, camera, fps, gsd_eff, motion, seed)
+        frames_truth = truth
+        flight_yaw = truth.yaw_deg
     if t0_unix <= 0:
         t0_unix = round(time.time(), 3)
+    overlay = None
+    scene_objects = []
+    if objects > 0:
+        scene_objects = random_objects(img.shape[:2], gsd_eff, cover=objects, size_m=tuple(object_size), seed=seed)
+        if object_height >= float(truth.alt_m.min()):
+            raise InputError(f"object height {object_height} m must be below the camera ({truth.alt_m.min():.1f} m)")
+        scene = ObjectScene(scene_objects, object_height, gsd_eff, shape=img.shape[:2], walls=object_walls,
+                            max_scale=float(frames_truth.scale.max()), seed=seed)
+        overlay = scene.overlay(frames_truth)
 
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -109,26 +147,39 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     frames_dir = out / "frames"
     if save_frames:
         frames_dir.mkdir(exist_ok=True)
-    if video_codec not in VIDEO_CODECS:
-        raise InputError(f"video codec must be one of {', '.join(VIDEO_CODECS)}, got {video_codec!r}")
-    name_, fourcc = VIDEO_CODECS[video_codec]
-    video_path = out / name_
-    writer = cv2.VideoWriter(str(video_path), cv2.VideoWriter_fourcc(*fourcc), fps, (camera.width, camera.height))
-    if not writer.isOpened():
-        raise PhotomapError(f"cannot write {video_path} ({fourcc} encoder unavailable or folder not writable)")
-    try:
-        pyramid = build_pyramid(img, float(truth.scale.max()) * 1.2)
-        for k, frame in enumerate(iter_frames(img, truth, camera, effects, seed, motion.period_s, pyramid)):
-            writer.write(frame)
+    lat, lon = pixel_to_latlon(truth.cam_x, truth.cam_y, gsd_eff, origin_lat, origin_lon)
+    pyramid = build_pyramid(img, float(frames_truth.scale.max()) * 1.2)
+    frames = iter_frames(img, frames_truth, camera, effects, seed, motion.period_s, pyramid, overlay=overlay)
+    if stills:
+        media = out / "stills"
+        media.mkdir(exist_ok=True)
+        for k, frame in enumerate(frames):
+            i = int(shots[k])
+            write_still(media / f"{k:06d}.jpg", frame, t_unix=t0_unix + float(truth.t[i]), lat=float(lat[i]),
+                        lon=float(lon[i]), amsl_m=origin_amsl + float(truth.alt_m[i]),
+                        rel_alt_m=float(truth.alt_m[i]), camera=camera, roll=float(truth.roll_deg[i]),
+                        pitch=float(truth.pitch_deg[i]), yaw=float(truth.yaw_deg[i]),
+                        flight_yaw=float(flight_yaw[i]), quality=stills_quality, xmp=stills_xmp)
             if save_frames:
                 cv2.imwrite(str(frames_dir / f"{k:06d}.{frames_format}"), frame)
-    finally:
-        writer.release()
+    else:
+        name_, fourcc = VIDEO_CODECS[video_codec]
+        media = out / name_
+        writer = cv2.VideoWriter(str(media), cv2.VideoWriter_fourcc(*fourcc), fps, (camera.width, camera.height))
+        if not writer.isOpened():
+            raise PhotomapError(f"cannot write {media} ({fourcc} encoder unavailable or folder not writable)")
+        try:
+            for k, frame in enumerate(frames):
+                writer.write(frame)
+                if save_frames:
+                    cv2.imwrite(str(frames_dir / f"{k:06d}.{frames_format}"), frame)
+        finally:
+            writer.release()
 
-    write_groundtruth(out / "groundtruth.csv", truth)
-    lat, lon = pixel_to_latlon(truth.cam_x, truth.cam_y, gsd_eff, origin_lat, origin_lon)
+    write_groundtruth(out / "groundtruth.csv", frames_truth)
     write_tlog(out / "telemetry.tlog", truth.t, lat, lon, truth.alt_m, truth.roll_deg, truth.pitch_deg,
-               truth.yaw_deg, t0_unix=t0_unix, boot_offset_s=boot_offset_s, home_amsl_m=origin_amsl)
+               flight_yaw, t0_unix=t0_unix, boot_offset_s=boot_offset_s, home_amsl_m=origin_amsl,
+               fixed_wing=motion.max_bank > 0)
     meta = {
         "camera": {"model": "pinhole", "width": camera.width, "height": camera.height, "fx": camera.fx,
                    "fy": camera.fy, "cx": camera.cx, "cy": camera.cy, "hfov_deg": camera.hfov_deg},
@@ -145,14 +196,36 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         "motion": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(motion).items()},
         "effects": asdict(effects),
         "telemetry_rates_hz": dict(RATES_HZ),
-        "files": {"video": video_path.name, "groundtruth": "groundtruth.csv", "telemetry": "telemetry.tlog",
+        "files": {"video": media.name, "groundtruth": "groundtruth.csv", "telemetry": "telemetry.tlog",
                   "frames": f"frames/%06d.{frames_format}" if save_frames else None},
         "conventions": "H maps frame pixels to terrain pixels (OpenCV pixel centres); yaw_deg = MAVLink "
                        "heading of the image's up direction = angle of H; scale = terrain px per frame px "
                        "at nadir; tlog position = camera nadir point, groundtruth x, y = frame centre",
     }
+    if periodic:
+        meta["terrain"].update(periodic)
+    if objects > 0:
+        meta["objects"] = {"cover": float(objects), "height_m": float(object_height),
+                           "size_m": [float(v) for v in object_size], "walls": bool(object_walls),
+                           "count": len(scene_objects),
+                           "note": "object tops on a plane height_m above the ground; truth = ground plane"}
+    if stills:
+        meta["frames"] = len(shots)
+        meta["fps"] = None
+        meta["files"].update({"video": None, "stills": "stills/%06d.jpg"})
+        meta["stills"] = {"strips": int(strips), "per_strip": int(stills_per_strip),
+                          "forward_overlap": float(forward_overlap), "side_overlap": float(motion.side_overlap),
+                          "yaw": stills_yaw,
+                          "altitude_m": float(truth.alt_m[0]), "quality": int(stills_quality), "xmp": bool(stills_xmp),
+                          "focal_length_mm": camera.fx * SENSOR_WIDTH_MM / camera.width,
+                          "focal_35mm": focal_35mm(camera), "sensor_width_mm": SENSOR_WIDTH_MM,
+                          "note": "t = 0 at the first still; EXIF times are t0_unix + t (UTC); EXIF GPS = "
+                                  "camera nadir point; FocalLengthIn35mmFilm by the diagonal rule (43.27 mm); "
+                                  "tlog ATTITUDE yaw and XMP FlightYawDegree = the aircraft's heading, "
+                                  "groundtruth yaw and XMP GimbalYawDegree = the camera's"}
     (out / "meta.yaml").write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
-    log.info("simulated %d frames in %.1f s", n_frames, time.perf_counter() - t_start)
+    log.info("simulated %d %s in %.1f s", len(frames_truth), "stills" if stills else "frames",
+             time.perf_counter() - t_start)
     return out
 
 
@@ -165,61 +238,3 @@ def write_groundtruth(path: str | Path, truth) -> None:
             row = [truth.t[k], truth.x[k], truth.y[k], truth.yaw_deg[k], truth.scale[k], truth.roll_deg[k],
                    truth.pitch_deg[k], truth.alt_m[k], *truth.H[k].ravel()]
             w.writerow([k, *(f"{v:.12g}" for v in row)])
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``photomap simulate``; unset ones fall back to the ``simulate:`` config."""
-    a = parser.add_argument
-    a("--out", required=True, metavar="DIR", help="output folder (created)")
-    a("--terrain", metavar="NAME|PATH", help="aukerman, grass, sand, texture or an image file")
-    a("--zoom", type=float, metavar="F", help="upsampling of an image terrain (0 = automatic)")
-    a("--gsd", type=float, metavar="M", help="metres per stored terrain pixel (0 = automatic)")
-    a("--frames", type=int, metavar="N", help="number of frames")
-    a("--size", metavar="WxH", help="frame size, e.g. 640x480")
-    a("--fps", type=float, help="frames per second")
-    a("--seed", type=int, help="random seed")
-    a("--hfov", type=float, metavar="DEG", help="horizontal field of view")
-    a("--pattern", choices=PATTERNS, help="flight pattern")
-    a("--speed", type=float, metavar="M/S", help="ground speed")
-    a("--yaw-mode", choices=YAW_MODES, help="how the yaw moves")
-    a("--yaw-rate", type=float, metavar="DEG/S", help="peak yaw rate")
-    a("--altitude", metavar="MIN:MAX", help="altitude range above ground, metres")
-    a("--scale-rate", type=float, metavar="1/S", help="peak relative altitude change per second")
-    a("--tilt", type=float, metavar="DEG", help="roll/pitch amplitude")
-    a("--noise", type=float, metavar="SIGMA", help="Gaussian noise, grey levels")
-    a("--blur", type=float, metavar="SIGMA", help="Gaussian blur, pixels")
-    a("--gain-drift", type=float, metavar="F", help="peak slow brightness gain change (fraction)")
-    a("--jpeg", type=int, metavar="Q", help="JPEG round trip quality (0 = off)")
-    a("--save-frames", action="store_true", default=None, help="also write frames/ as images")
-    a("--codec", choices=sorted(VIDEO_CODECS), help="video codec: mp4v (video.mp4, strong compression), "
-      "mjpg (video.avi) or ffv1 (video.mkv, lossless)")
-
-
-def main(args: argparse.Namespace, cfg: dict) -> int:
-    """``photomap simulate``: merge flags over the config, simulate, print where the files are."""
-    c = dataclasses.asdict(cfg.simulate)
-    flags = {"terrain": "terrain", "zoom": "terrain_zoom", "gsd": "gsd", "frames": "frames", "size": "size",
-             "fps": "fps", "seed": "seed", "hfov": "hfov_deg", "pattern": "pattern", "speed": "speed",
-             "yaw_mode": "yaw_mode", "yaw_rate": "yaw_rate", "altitude": "altitude", "scale_rate": "scale_rate",
-             "tilt": "tilt", "noise": "noise", "blur": "blur", "gain_drift": "gain_drift",
-             "jpeg": "jpeg_quality", "save_frames": "save_frames", "codec": "video_codec"}
-    for flag, key in flags.items():
-        value = getattr(args, flag, None)
-        if value is not None:
-            c[key] = value
-    altitude = c["altitude"]
-    altitude = parse_range(altitude) if isinstance(altitude, str) else tuple(float(v) for v in altitude)
-    ts = parse_size(c["terrain_size"])
-    out = simulate_flight(
-        args.out, terrain=c["terrain"], n_frames=int(c["frames"]), size=parse_size(c["size"]), fps=c["fps"],
-        seed=c["seed"], hfov_deg=c["hfov_deg"], gsd=c["gsd"], terrain_zoom=c["terrain_zoom"], terrain_size=ts,
-        save_frames=c["save_frames"], frames_format=c["frames_format"], origin_lat=c["origin_lat"],
-        origin_lon=c["origin_lon"], origin_amsl=c["origin_amsl"], t0_unix=c["t0_unix"],
-        boot_offset_s=c["boot_offset_s"], pattern=c["pattern"], speed=c["speed"], yaw_mode=c["yaw_mode"],
-        yaw_rate=c["yaw_rate"], yaw0=c["yaw0"], altitude=altitude, scale_rate=c["scale_rate"], tilt=c["tilt"],
-        period_s=c["period_s"], side_overlap=c["side_overlap"], gain_drift=c["gain_drift"], blur=c["blur"],
-        noise=c["noise"], jpeg_quality=int(c["jpeg_quality"]), video_codec=c["video_codec"])
-    video = VIDEO_CODECS[c["video_codec"]][0]
-    print(f"simulated {c['frames']} frames into {out}/: {video}, groundtruth.csv, telemetry.tlog, meta.yaml"
-          + (", frames/" if c["save_frames"] else ""))
-    return 0

@@ -5,7 +5,8 @@ x points east and y points south (image up = north). :func:`valid_mask` tells wh
 real ground: orthophotos have a white (or black, or transparent) no-data border.
 
 Procedural terrains are FFT-filtered Gaussian noise (``float32``, one inverse real FFT per
-field), so they never repeat inside the image (the noise is periodic only over the whole size).
+field), so ``grass``, ``sand`` and ``texture`` never repeat inside the image (the noise is periodic
+only over the whole size); ``tiles`` and ``rows`` (:mod:`photomap.sim.periodic`) repeat on purpose.
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ from photomap.errors import InputError
 log = logging.getLogger(__name__)
 
 BUNDLED = {"aukerman": Path(__file__).resolve().parent / "data" / "aukerman.png"}
-PROCEDURAL = ("grass", "sand", "texture")
+PROCEDURAL = ("grass", "sand", "texture", "tiles", "rows")
+PERIODIC = ("tiles", "rows")        # procedural with a period (see photomap.sim.periodic)
 TERRAIN_NAMES = tuple(BUNDLED) + PROCEDURAL
 # Ground sampling distance (metres per pixel of the image as stored) and the upsampling that
 # makes a camera footprint fit many times. aukerman's gsd is an estimate from the widths of
@@ -33,8 +35,9 @@ TERRAIN_ZOOM = {"aukerman": 4.0}
 
 
 def load_terrain(name_or_path: str | Path, zoom: float = 1.0, size: tuple[int, int] = (4096, 4096),
-                 seed: int = 0) -> np.ndarray:
-    """Load a terrain by name (``aukerman``, ``grass``, ``sand``, ``texture``) or image path.
+                 seed: int = 0, **periodic) -> np.ndarray:
+    """Load a terrain by name (``aukerman``, ``grass``, ``sand``, ``texture``, ``tiles``, ``rows``)
+    or image path.
 
     Parameters
     ----------
@@ -43,6 +46,8 @@ def load_terrain(name_or_path: str | Path, zoom: float = 1.0, size: tuple[int, i
         aukerman orthophoto into 4212x3240 terrain pixels (each then ``gsd / zoom`` metres).
     size : ``(h, w)`` of a procedural terrain (``zoom`` does not apply to it).
     seed : seed of a procedural terrain.
+    **periodic : ``period``, ``variation``, ``stain`` of ``tiles`` and ``rows`` (see
+        :mod:`photomap.sim.periodic`); ignored by the other terrains.
 
     Returns
     -------
@@ -50,7 +55,7 @@ def load_terrain(name_or_path: str | Path, zoom: float = 1.0, size: tuple[int, i
     """
     key = str(name_or_path)
     if key in PROCEDURAL:
-        return procedural_terrain(key, size=size, seed=seed)
+        return procedural_terrain(key, size=size, seed=seed, **(periodic if key in PERIODIC else {}))
     path = BUNDLED.get(key, Path(key))
     if not path.is_file():
         raise InputError(f"terrain {key!r} is neither one of {', '.join(TERRAIN_NAMES)} nor an image file")
@@ -122,7 +127,7 @@ def _low_res_field(shape: tuple[int, int], rng: np.random.Generator, beta: float
     return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
 
 
-def procedural_terrain(kind: str, size: tuple[int, int] = (4096, 4096), seed: int = 0) -> np.ndarray:
+def procedural_terrain(kind: str, size: tuple[int, int] = (4096, 4096), seed: int = 0, **periodic) -> np.ndarray:
     """Generate a procedural terrain, uint8 BGR of shape ``(h, w, 3)``.
 
     kinds
@@ -132,12 +137,17 @@ def procedural_terrain(kind: str, size: tuple[int, int] = (4096, 4096), seed: in
     ``sand``: beige, smooth (amplitude ~ f^-2: low frequencies only), Michelson contrast 25 %
         between the 0.5th and 99.5th luminance percentiles; featureless.
     ``texture``: rich, natural-image-like texture (amplitude ~ f^-1) with colour variation.
+    ``tiles``, ``rows``: periodic floor tiles and crop rows; ``**periodic`` = ``period``,
+        ``variation``, ``stain`` (see :func:`photomap.sim.periodic.tiles_terrain`).
     """
     if kind not in PROCEDURAL:
         raise InputError(f"unknown procedural terrain {kind!r} (known: {', '.join(PROCEDURAL)})")
     h, w = int(size[0]), int(size[1])
     if h < 16 or w < 16:
         raise InputError(f"procedural terrain size must be at least 16x16, got {w}x{h}")
+    if kind in PERIODIC:
+        from photomap.sim.periodic import rows_terrain, tiles_terrain
+        return (tiles_terrain if kind == "tiles" else rows_terrain)((h, w), seed, **periodic)
     rng = np.random.default_rng([seed, PROCEDURAL.index(kind)])
     if kind == "grass":
         fine = _noise_field((h, w), rng, beta=0.3, f_low=0.08)

@@ -51,7 +51,7 @@ class _TimestampedFile:
 def write_tlog(path: str | Path, t: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray,
                rel_alt_m: np.ndarray, roll_deg: np.ndarray, pitch_deg: np.ndarray, yaw_deg: np.ndarray,
                *, t0_unix: float, boot_offset_s: float = 60.0, home_amsl_m: float = 0.0,
-               pad_s: float = 1.0, sysid: int = 1, compid: int = 1) -> dict[str, int]:
+               pad_s: float = 1.0, sysid: int = 1, compid: int = 1, fixed_wing: bool = False) -> dict[str, int]:
     """Write a ``.tlog`` for a vehicle state sampled at times ``t``.
 
     Parameters
@@ -63,6 +63,8 @@ def write_tlog(path: str | Path, t: np.ndarray, lat_deg: np.ndarray, lon_deg: np
     boot_offset_s : autopilot uptime at ``t = 0`` (``time_boot_ms = (t + boot_offset_s) * 1000``).
     home_amsl_m : ground altitude above mean sea level (AMSL altitudes = home + relative).
     pad_s : telemetry starts ``pad_s`` before the first sample and ends ``pad_s`` after the last.
+    fixed_wing : HEARTBEAT says MAV_TYPE_FIXED_WING in AUTO (ArduPlane custom mode 10) instead of
+        MAV_TYPE_QUADROTOR in GUIDED (ArduCopter custom mode 4).
 
     Returns
     -------
@@ -112,9 +114,10 @@ def write_tlog(path: str | Path, t: np.ndarray, lat_deg: np.ndarray, lon_deg: np
             heading_deg = math.degrees(y) % 360.0
             if name == "HEARTBEAT":
                 msg = mav.heartbeat_encode(
-                    mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                    mavlink2.MAV_TYPE_FIXED_WING if fixed_wing else mavlink2.MAV_TYPE_QUADROTOR,
+                    mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
                     mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink2.MAV_MODE_FLAG_SAFETY_ARMED,
-                    4, mavlink2.MAV_STATE_ACTIVE)             # custom mode 4 = GUIDED (ArduCopter)
+                    10 if fixed_wing else 4, mavlink2.MAV_STATE_ACTIVE)  # AUTO (Plane) / GUIDED (Copter)
             elif name == "SYSTEM_TIME":
                 msg = mav.system_time_encode(sink.t_us, boot_ms)
             elif name == "ATTITUDE":
