@@ -387,7 +387,7 @@ class Viewer:
         self.mode, self.arg = mode, arg
         self.url: str | None = None
         self.address: tuple[str, int] | None = None  # serve: where the server listens
-        self.connect_hint: str | None = None  # serve: how an operator connects
+        self.connect_hint: str | None = None  # serve on loopback: the SSH tunnel to open first
         self.stats = ViewerStats()
         self._tile_period, self._camera_period = 1.0 / tile_hz, 1.0 / camera_hz
         self._max_tiles, self._camera_px = int(max_tiles), int(camera_px)
@@ -504,10 +504,10 @@ class Viewer:
         local = f"rerun+http://{_url_host(address)}:{port}/proxy"
         if ip.is_loopback:
             self.url = local
-            self.connect_hint = (f"this machine only; from the ground station open an SSH tunnel "
-                                 f"`ssh -N -L {port}:{_url_host(address)}:{port} USER@THIS-HOST`, then "
-                                 f"`rerun rerun+http://127.0.0.1:{port}/proxy`")
-            log.info("viewer: serving on %s:%d (%s)", _url_host(address), port, self.connect_hint)
+            tunnel = f"ssh -N -L {port}:{_url_host(address)}:{port} USER@{socket.gethostname() or 'THIS-HOST'}"
+            self.connect_hint = f"from another machine: `{tunnel}` first"
+            log.info("viewer: serving on %s:%d, this machine only (from another machine: %s, then "
+                     "rerun %s)", _url_host(address), port, tunnel, self.url)
             return
         if ip.is_unspecified:
             lan = _lan_address()
@@ -515,7 +515,6 @@ class Viewer:
             where = "every interface"
         else:
             self.url, where = local, _url_host(address)
-        self.connect_hint = f"on {where}, port {port}"
         log.warning("viewer: serving on %s:%d (%s) WITHOUT authentication: anyone who can reach this "
                     "port can watch the camera and the map and can also write into the live view; "
                     "prefer the default 127.0.0.1 with an SSH tunnel or a VPN address",
