@@ -359,7 +359,8 @@ def test_serve_listens_on_loopback_unless_told_otherwise(caplog):
     assert viewer.address == ("127.0.0.1", port) and viewer.url == f"rerun+http://127.0.0.1:{port}/proxy"
     assert _wait_for(lambda: _listeners(port)), "nothing listens"
     assert _listeners(port) == {"127.0.0.1"}  # not reachable from the network
-    assert "ssh -N -L" in viewer.connect_hint and "ssh -N -L" in caplog.text and not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert "ssh -N -L" in viewer.connect_hint and "ssh -N -L" in caplog.text
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     viewer.close()
     assert _wait_for(lambda: not _listeners(port)), "the server outlived close() with no client"
 
@@ -378,7 +379,8 @@ def test_serve_restarts_at_once_after_a_stop_with_a_viewer_connected(tmp_path):
     port = _free_port()
     service = subprocess.Popen(
         [sys.executable, "-c", "import sys; from photomap.live.viewer import Viewer; "
-                               f"v = Viewer('serve', '{port}'); print('up', flush=True); sys.stdin.read(); v.close()"],
+                               f"v = Viewer('serve', '{port}'); print('up', flush=True); "
+                               "sys.stdin.read(); v.close()"],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     client = None
     try:

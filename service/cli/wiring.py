@@ -46,7 +46,7 @@ def add_viewer_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--viewer", metavar="MODE",
                         help="live view in rerun (needs the viewer extra): none, spawn, serve[=PORT] "
                              "(on 127.0.0.1: an operator tunnels in with `ssh -L PORT:127.0.0.1:PORT` "
-                             "and runs `rerun rerun+http://127.0.0.1:PORT/proxy`), serve=ADDR:PORT "
+                             "and runs `rerun --connect rerun+http://127.0.0.1:PORT/proxy`), serve=ADDR:PORT "
                              "(e.g. 0.0.0.0:9876: open to the network, without authentication, and "
                              "clients can also write into the view), connect=URL, save=FILE.rrd "
                              "(default: viewer.mode)")
@@ -190,7 +190,7 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
     view = Viewer.from_config(cfg.viewer, viewer)
     if view.url:
         hint = f" ({view.connect_hint})" if view.connect_hint else ""
-        print(f"viewer: connect with `rerun {view.url}`{hint}")
+        print(f"viewer: connect with `rerun --connect {view.url}`{hint}")
     bar_shown = progress and stderr_is_terminal()
     tick, close_bar = progress_sink(total, progress)
     sinks = [tick]

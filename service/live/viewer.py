@@ -94,7 +94,8 @@ def parse_viewer_mode(text: str) -> tuple[str, str | None]:
     """Split a viewer mode string (config ``viewer.mode`` or ``--viewer MODE``).
 
     Returns ``(mode, arg)``: ``("none", None)``, ``("spawn", None)``, ``("serve", None)``,
-    ``("serve", "PORT")`` or ``("serve", "ADDR:PORT")`` (see :func:`parse_serve_address`), ``("connect", URL)`` (``connect`` alone means the local viewer,
+    ``("serve", "PORT")`` or ``("serve", "ADDR:PORT")`` (see :func:`parse_serve_address`),
+    ``("connect", URL)`` (``connect`` alone means the local viewer,
     ``rerun+http://127.0.0.1:9876/proxy``), ``("save", "FILE.rrd")``.
     Raises :class:`ConfigError` for anything else.
     """
@@ -341,8 +342,8 @@ class Viewer:
         ``WAYLAND_DISPLAY``) one warning and the run carries on without a viewer); ``serve``
         (a gRPC server in this process on ``127.0.0.1:port``, or on the address ``arg`` gives,
         keeping at most ``server_memory_limit`` for viewers that connect late; the operator runs
-        ``rerun rerun+http://HOST:PORT/proxy``, through an SSH tunnel for the default address;
-        **any client that reaches the server can also write into the stream**, see the module
+        ``rerun --connect rerun+http://HOST:PORT/proxy``, through an SSH tunnel for the default
+        address; **any client that reaches the server can also write into the stream**, see the module
         docstring);
         ``connect`` (push to ``arg``, a viewer or ``rerun --serve-grpc`` proxy that must
         **already listen**: if nothing answers, one warning and no viewer, because rerun's
@@ -440,7 +441,7 @@ class Viewer:
         if mode == "spawn" and not _has_display():
             log.warning("viewer: no display (DISPLAY/WAYLAND_DISPLAY unset), so no local viewer is "
                         "spawned; the run carries on without one (use --viewer serve and connect "
-                        "from another machine)")
+                        "through an SSH tunnel)")
             return
         if mode == "connect" and not _listening(arg):
             log.warning("viewer: nothing listens at %s, so the run carries on without a viewer "
@@ -507,7 +508,7 @@ class Viewer:
             tunnel = f"ssh -N -L {port}:{_url_host(address)}:{port} USER@{socket.gethostname() or 'THIS-HOST'}"
             self.connect_hint = f"from another machine: `{tunnel}` first"
             log.info("viewer: serving on %s:%d, this machine only (from another machine: %s, then "
-                     "rerun %s)", _url_host(address), port, tunnel, self.url)
+                     "rerun --connect %s)", _url_host(address), port, tunnel, self.url)
             return
         if ip.is_unspecified:
             lan = _lan_address()
@@ -519,7 +520,7 @@ class Viewer:
                     "port can watch the camera and the map and can also write into the live view; "
                     "prefer the default 127.0.0.1 with an SSH tunnel or a VPN address",
                     _url_host(address), port, where)
-        log.info("viewer: connect with: rerun %s", self.url)
+        log.info("viewer: connect with: rerun --connect %s", self.url)
 
     # ------------------------------------------------------------------ worker side
     def on_frame(self, event: FrameEvent) -> None:
