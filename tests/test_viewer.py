@@ -8,6 +8,7 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 import warnings
@@ -27,7 +28,8 @@ from photomap.core.mosaic import TiledMosaic  # noqa: E402
 from photomap.mapping.events import FrameEvent  # noqa: E402
 from photomap.mapping.pipeline import MappingPipeline  # noqa: E402
 from photomap.geometry import frame_centre  # noqa: E402
-from photomap.live.viewer import Viewer, footprint_tiles, frame_outline, parse_viewer_mode  # noqa: E402
+from photomap.live.viewer import (Viewer, _port_free, footprint_tiles, frame_outline,  # noqa: E402
+                                  parse_serve_address, parse_viewer_mode)
 
 W, H = 160, 120
 N_FRAMES = 40
@@ -126,6 +128,8 @@ def _rerun_exe() -> Path:
     (" Spawn ", ("spawn", None)),
     ("serve", ("serve", None)),
     ("serve=9877", ("serve", "9877")),
+    ("serve=0.0.0.0:9877", ("serve", "0.0.0.0:9877")),
+    ("serve=[::1]:9877", ("serve", "[::1]:9877")),
     ("connect", ("connect", "rerun+http://127.0.0.1:9876/proxy")),
     ("connect=rerun+http://10.0.0.5:9876/proxy", ("connect", "rerun+http://10.0.0.5:9876/proxy")),
     ("save=flight/run.rrd", ("save", "flight/run.rrd")),
@@ -135,11 +139,27 @@ def test_parse_viewer_mode(text, expected):
 
 
 @pytest.mark.parametrize("text", ["", "show", "spawn=1", "serve=0", "serve=99999", "serve=abc",
+                                  "serve=drone.local:9876", "serve=10.0.0.300:9876", "serve=0.0.0.0:",
+                                  "serve=0.0.0.0:0", "serve=::1:9876", "serve=[10.0.0.1]:9876",
+                                  "serve=[::1]9876",
                                   "connect=http://host:9876/proxy", "connect=rerun+http://host:9876/",
                                   "connect=rerun+http://host:port/proxy", "save", "save=run.mp4"])
 def test_parse_viewer_mode_rejects_garbage(text):
     with pytest.raises(ConfigError, match="viewer mode"):
         parse_viewer_mode(text)
+
+
+@pytest.mark.parametrize("arg, expected", [
+    (None, ("127.0.0.1", 9876)),  # the default: this machine only
+    ("9877", ("127.0.0.1", 9877)),
+    ("localhost:9877", ("127.0.0.1", 9877)),
+    ("0.0.0.0", ("0.0.0.0", 9876)),
+    ("10.8.0.1:9000", ("10.8.0.1", 9000)),
+    ("[::]:9877", ("::", 9877)),
+    ("[::1]", ("::1", 9876)),
+])
+def test_parse_serve_address(arg, expected):
+    assert parse_serve_address(arg, 9876) == expected
 
 
 # --------------------------------------------------------------------------- geometry
@@ -315,6 +335,83 @@ def test_connect_to_nothing_warns_and_carries_on(caplog):
     viewer.close()
 
 
+def _listeners(port: int) -> set[str]:
+    """Local addresses of the TCP sockets listening on ``port`` (any process)."""
+    import psutil
+
+    return {c.laddr.ip for c in psutil.net_connections(kind="tcp")
+            if c.status == psutil.CONN_LISTEN and c.laddr.port == port}
+
+
+def _wait_for(predicate, timeout: float = 15.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.1)
+    return predicate()
+
+
+def test_serve_listens_on_loopback_unless_told_otherwise(caplog):
+    port = _free_port()
+    with caplog.at_level(logging.INFO, logger="photomap.live.viewer"):
+        viewer = Viewer("serve", str(port))
+    assert viewer.address == ("127.0.0.1", port) and viewer.url == f"rerun+http://127.0.0.1:{port}/proxy"
+    assert _wait_for(lambda: _listeners(port)), "nothing listens"
+    assert _listeners(port) == {"127.0.0.1"}  # not reachable from the network
+    assert "ssh -N -L" in viewer.connect_hint and "ssh -N -L" in caplog.text
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    viewer.close()
+    assert _wait_for(lambda: not _listeners(port)), "the server outlived close() with no client"
+
+    port = _free_port()
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="photomap.live.viewer"):
+        viewer = Viewer("serve", f"0.0.0.0:{port}")  # exposed deliberately
+    assert _wait_for(lambda: _listeners(port)) and _listeners(port) == {"0.0.0.0"}
+    assert "WITHOUT authentication" in caplog.text and "write into the live view" in caplog.text
+    viewer.close()
+
+
+def test_serve_restarts_at_once_after_a_stop_with_a_viewer_connected(tmp_path):
+    """A run stopped while a viewer is connected leaves the server's side of that connection in
+    TIME_WAIT (~60 s); the next run must still get the port."""
+    port = _free_port()
+    service = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from photomap.live.viewer import Viewer; "
+                               f"v = Viewer('serve', '{port}'); print('up', flush=True); "
+                               "sys.stdin.read(); v.close()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    client = None
+    try:
+        assert service.stdout.readline().strip() == "up"
+        client = subprocess.Popen([str(_rerun_exe()), "--save", str(tmp_path / "got.rrd"), "--port", "auto",
+                                   "--bind", "127.0.0.1", f"rerun+http://127.0.0.1:{port}/proxy"],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        import psutil
+
+        def conns(status: str) -> list:
+            return [c for c in psutil.net_connections(kind="tcp")
+                    if c.status == status and c.laddr.port == port]
+        assert _wait_for(lambda: conns(psutil.CONN_ESTABLISHED), 30.0), "the viewer never connected"
+        service.stdin.close()  # the service stops, its viewer still connected
+        assert service.wait(30.0) == 0
+    finally:
+        if service.poll() is None:
+            service.kill()
+        if client is not None:
+            os.killpg(client.pid, signal.SIGKILL)
+            client.wait()
+    assert conns(psutil.CONN_TIME_WAIT), "no TIME_WAIT on the server's side: the test proves nothing"
+    with socket.socket() as s:  # a bind without SO_REUSEADDR (the old check) fails here ...
+        with pytest.raises(OSError):
+            s.bind(("127.0.0.1", port))
+    assert _port_free(port, "127.0.0.1")  # ... the check the service makes does not
+    viewer = Viewer("serve", str(port))  # the restart gets its port
+    assert _wait_for(lambda: _listeners(port) == {"127.0.0.1"})
+    viewer.close()
+
+
 def test_serve_refuses_a_port_in_use():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -363,6 +460,9 @@ def test_serve_client_receives_and_its_death_does_not_stop_the_run(tmp_path):
     assert result["p"].stats.frames_in == N_FRAMES
     assert viewer.stats.frames == N_FRAMES and viewer.stats.errors == 0
     assert _has_entity(got, "/camera/image")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # no footer: the client was killed
+        assert RrdReader(str(got)).blueprints(), "the served stream carries no default blueprint"
 
 
 def test_telemetry_series_are_shown(tmp_path):

@@ -13,6 +13,7 @@ import logging
 import sys
 
 from photomap import __version__
+from photomap.cli.oplog import LOG_FORMATS, setup_logging
 from photomap.config import load_config
 from photomap.errors import PhotomapError
 
@@ -37,6 +38,23 @@ def _common(parser: argparse.ArgumentParser) -> None:
     g.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     g.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     g.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    g.add_argument("--log-format", choices=LOG_FORMATS, default="text",
+                   help="log lines on stderr as text (default) or json: one object per line with "
+                        "time, level, logger, message and the record's fields (journald, log shippers)")
+    g.add_argument("--status-interval", type=_seconds, default=5.0, metavar="SECONDS",
+                   help="run, replay: log a status line (fps, frames, dropped, segments, latency, "
+                        "telemetry link) at INFO every SECONDS; 0 = never. A replay on a terminal "
+                        "shows its progress bar instead (default 5)")
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -56,15 +74,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _setup_logging(verbose: int, quiet: bool) -> None:
+def _setup_logging(verbose: int, quiet: bool, log_format: str = "text") -> None:
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 0 else logging.INFO)
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        datefmt="%H:%M:%S", stream=sys.stderr)
+    setup_logging(level, log_format)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    _setup_logging(args.verbose, args.quiet)
+    _setup_logging(args.verbose, args.quiet, args.log_format)
     try:
         cfg = load_config(args.config, args.overrides)
         return int(args._module.main(args, cfg) or 0)

@@ -36,12 +36,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool = False,
            realtime: bool = False, mavlink: str | None = None,
-           video_start: float | None = None, viewer: str | None = None, geo: str | None = None) -> dict:
+           video_start: float | None = None, viewer: str | None = None, geo: str | None = None,
+           status_interval: float = 0.0) -> dict:
     """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary.
 
     ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, or a live link (then use
     ``realtime``). Without it, stills use their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a
-    geo.txt file).
+    geo.txt file). ``status_interval`` > 0: a status line every that many seconds when no
+    progress bar is shown (see :func:`photomap.cli.wiring.map_source`).
     """
     source = open_capture(str(input_spec), cfg.capture)
     total = getattr(source, "frame_count", None) or len(getattr(source, "paths", ()) or ()) or None
@@ -54,7 +56,8 @@ def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool 
         join, cfg = open_stills_telemetry(source, cfg, geo)
     try:
         return map_source(source, cfg, out_dir, input_name=str(input_spec), progress=progress,
-                          total=total, realtime=realtime, telemetry=join, reader=reader, viewer=viewer)
+                          total=total, realtime=realtime, telemetry=join, reader=reader, viewer=viewer,
+                          status_interval=status_interval)
     finally:
         if reader is not None:
             reader.stop()
@@ -65,6 +68,6 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         cfg = cfg.updated({"telemetry": {"time_offset": args.time_offset}})
     summary = replay(args.input, args.out, cfg, progress=not (args.no_progress or args.quiet),
                      realtime=args.realtime, mavlink=args.mavlink, video_start=args.video_start,
-                     viewer=args.viewer, geo=args.geo)
+                     viewer=args.viewer, geo=args.geo, status_interval=getattr(args, "status_interval", 0.0))
     print_summary(summary, args.out)
     return 0 if summary["registered"] > 0 else 1

@@ -52,7 +52,7 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         source = open_capture(args.camera, cfg.capture)
         print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")
         summary = map_source(source, cfg, out, input_name=str(args.camera), telemetry=join, reader=reader,
-                             viewer=args.viewer)
+                             viewer=args.viewer, status_interval=getattr(args, "status_interval", 0.0))
     finally:
         if reader is not None:
             reader.stop()

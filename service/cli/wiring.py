@@ -18,6 +18,7 @@ from typing import Callable
 import yaml
 from tqdm import tqdm
 
+from photomap.cli.oplog import StatusReporter
 from photomap.config import CaptureConfig, Config
 from photomap.drivers.capture import open_source
 from photomap.drivers.frames import FrameSource
@@ -44,8 +45,11 @@ def add_telemetry_arguments(parser: argparse.ArgumentParser) -> None:
 def add_viewer_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--viewer", metavar="MODE",
                         help="live view in rerun (needs the viewer extra): none, spawn, serve[=PORT] "
-                             "(an operator runs `rerun rerun+http://HOST:PORT/proxy`), "
-                             "connect=URL, save=FILE.rrd (default: viewer.mode)")
+                             "(on 127.0.0.1: an operator tunnels in with `ssh -L PORT:127.0.0.1:PORT` "
+                             "and runs `rerun --connect rerun+http://127.0.0.1:PORT/proxy`), serve=ADDR:PORT "
+                             "(e.g. 0.0.0.0:9876: open to the network, without authentication, and "
+                             "clients can also write into the view), connect=URL, save=FILE.rrd "
+                             "(default: viewer.mode)")
 
 
 # ---------------------------------------------------------------------------------- frames
@@ -127,9 +131,22 @@ def open_stills_telemetry(source: FrameSource, cfg: Config, geo: str | None = No
 
 
 # ---------------------------------------------------------------------------------- sinks
+def stderr_is_terminal() -> bool:
+    """True when stderr is a terminal (not a file, a pipe or journald)."""
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # replaced or closed stream
+        return False
+
+
 def progress_sink(total: int | None, enabled: bool) -> tuple[FrameSink, Callable[[], None]]:
-    """A progress bar on stderr (one tick per frame) and its close function."""
-    bar = tqdm(total=total, unit="frame", disable=not enabled, file=sys.stderr, dynamic_ncols=True)
+    """A progress bar on stderr (one tick per frame) and its close function.
+
+    Only on a terminal: redirected to a file or journald, its ``\r`` redraws would make one
+    endless line, so it is off there (the status line of :func:`map_source` says the same).
+    """
+    bar = tqdm(total=total, unit="frame", disable=not (enabled and stderr_is_terminal()), file=sys.stderr,
+               dynamic_ncols=True)
     return (lambda event: bar.update(1)), bar.close
 
 
@@ -160,18 +177,27 @@ def statustext_sink(send: Callable[[str], None]) -> FrameSink:
 def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_name: str = "",
                progress: bool = False, total: int | None = None, realtime: bool = False,
                telemetry: TelemetryJoin | None = None, reader: TelemetryReader | None = None,
-               viewer: str | None = None) -> dict:
+               viewer: str | None = None, status_interval: float = 0.0) -> dict:
     """Run the mapping pipeline over ``source`` and write the outputs; returns the run summary.
 
     SIGINT/SIGTERM (when called from the main thread) stop capture, drain the queue and write
     the outputs. ``viewer`` is a ``--viewer`` mode string (default: the ``viewer.mode`` config);
     ``reader`` is the live telemetry link (STATUSTEXT goes out on it when configured).
+    ``progress``: a progress bar, on a terminal only. ``status_interval`` > 0: a status line at
+    INFO every that many seconds (:class:`~photomap.cli.oplog.StatusReporter`), unless the
+    progress bar is shown. At the end the run's counts are logged at INFO (as fields in JSON lines).
     """
     view = Viewer.from_config(cfg.viewer, viewer)
     if view.url:
-        print(f"viewer: connect with `rerun {view.url}`")
+        hint = f" ({view.connect_hint})" if view.connect_hint else ""
+        print(f"viewer: connect with `rerun --connect {view.url}`{hint}")
+    bar_shown = progress and stderr_is_terminal()
     tick, close_bar = progress_sink(total, progress)
     sinks = [tick]
+    status = None
+    if status_interval and status_interval > 0 and not bar_shown:
+        status = StatusReporter(status_interval, telemetry=telemetry is not None)
+        sinks.append(status.on_frame)
     if view.enabled:
         sinks.append(view.on_frame)
     if cfg.telemetry.send_statustext and reader is not None and source.live:
@@ -180,6 +206,8 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
         sinks.append(pacing_sink())
     pipeline = MappingPipeline(source, cfg, out_dir, sinks=sinks, input_name=input_name, telemetry=telemetry)
     previous = {}
+    if status is not None:
+        status.start()
     if threading.current_thread() is threading.main_thread():
         def handler(signum, _frame):
             log.warning("%s: stopping, writing the map", signal.Signals(signum).name)
@@ -189,11 +217,23 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
     try:
         summary = pipeline.run()
     finally:
+        if status is not None:
+            status.close()
         close_bar()
         view.close()
         for sig, old in previous.items():
             signal.signal(sig, old)
+    _log_summary(summary, out_dir)
     return summary
+
+
+def _log_summary(summary: dict, out_dir: str | Path) -> None:
+    """The run's counts at INFO, one line (and fields, for JSON log lines)."""
+    keys = ("frames_in", "registered", "skipped", "dropped", "segments", "ms_per_frame", "fps")
+    fields = {k: summary.get(k) for k in keys}
+    fields["out"] = str(out_dir)
+    log.info("run finished: %s frames in, %s registered, %s skipped, %s dropped, %s segment(s); "
+             "outputs in %s", *(fields[k] for k in keys[:5]), out_dir, extra=fields)
 
 
 def print_summary(summary: dict, out_dir: str | Path) -> None:

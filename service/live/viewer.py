@@ -41,10 +41,18 @@ integer coordinates at pixel centres):
     camera reconnects, viewer overload.
 
 Timelines: ``frame`` (the frame index) and ``capture_time`` (seconds since the first frame).
+
+Serve mode and the network: the gRPC server listens on ``127.0.0.1`` unless an address is given
+(``serve=ADDR:PORT``). It has no authentication, and it is read *and write*: any client that
+reaches it can watch the camera and the map, and can also log into the stream (rerun's proxy
+forwards what an SDK sends to every viewer), e.g. fake ``events``. rerun 0.41 has no read-only
+mode, so the only protection is who can reach the port: keep the default and tunnel
+(``ssh -N -L 9876:127.0.0.1:9876 USER@DRONE``) or bind to a VPN address.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import math
 import os
@@ -70,10 +78,11 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
+DEFAULT_SERVE_ADDRESS = "127.0.0.1"
 COLOR_BY = ("confidence", "segment")
 _URL_SCHEMES = ("rerun", "rerun+http", "rerun+https")
-_USAGE = ("expected none, spawn, serve, serve=PORT, connect, connect=rerun+http://HOST:PORT/proxy "
-          "or save=FILE.rrd")
+_USAGE = ("expected none, spawn, serve, serve=PORT, serve=ADDR:PORT, connect, "
+          "connect=rerun+http://HOST:PORT/proxy or save=FILE.rrd")
 _SEGMENT_COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40),
                    (148, 103, 189), (140, 86, 75), (227, 119, 194), (188, 189, 34)]
 _STOP = object()
@@ -84,8 +93,9 @@ TileKey = tuple[int, int]
 def parse_viewer_mode(text: str) -> tuple[str, str | None]:
     """Split a viewer mode string (config ``viewer.mode`` or ``--viewer MODE``).
 
-    Returns ``(mode, arg)``: ``("none", None)``, ``("spawn", None)``, ``("serve", None)`` or
-    ``("serve", "PORT")``, ``("connect", URL)`` (``connect`` alone means the local viewer,
+    Returns ``(mode, arg)``: ``("none", None)``, ``("spawn", None)``, ``("serve", None)``,
+    ``("serve", "PORT")`` or ``("serve", "ADDR:PORT")`` (see :func:`parse_serve_address`),
+    ``("connect", URL)`` (``connect`` alone means the local viewer,
     ``rerun+http://127.0.0.1:9876/proxy``), ``("save", "FILE.rrd")``.
     Raises :class:`ConfigError` for anything else.
     """
@@ -99,8 +109,7 @@ def parse_viewer_mode(text: str) -> tuple[str, str | None]:
     if mode == "serve":
         if not sep:
             return mode, None
-        if not arg.isdigit() or not 0 < int(arg) < 65536:
-            raise ConfigError(f"viewer mode serve=PORT needs a port 1-65535, got {raw!r}")
+        parse_serve_address(arg, 9876)  # raises ConfigError
         return mode, arg
     if mode == "connect":
         url = arg if sep else DEFAULT_CONNECT_URL
@@ -119,6 +128,50 @@ def parse_viewer_mode(text: str) -> tuple[str, str | None]:
             raise ConfigError(f"viewer mode save needs a file name ending in .rrd, got {raw!r}")
         return mode, arg
     raise ConfigError(f"unknown viewer mode {raw!r}: {_USAGE}")
+
+
+def parse_serve_address(arg: str | None, default_port: int) -> tuple[str, int]:
+    """The ``(address, port)`` serve mode listens on, from the part after ``serve=``.
+
+    ``None`` or ``""``: ``127.0.0.1`` and ``default_port`` (this machine only). ``PORT``:
+    ``127.0.0.1:PORT``. ``ADDR`` or ``ADDR:PORT``: an IPv4 address (``0.0.0.0`` = every interface),
+    ``localhost``, or an IPv6 address in brackets (``[::1]:9876``, ``[::]`` = every interface).
+    The address is returned without brackets. Raises :class:`ConfigError` for anything else.
+    """
+    text = (arg or "").strip()
+    bad = ConfigError(f"viewer mode serve needs PORT, ADDR or ADDR:PORT (an IP address, [IPv6] in brackets, "
+                      f"port 1-65535), got 'serve={text}'")
+    if not text:
+        return DEFAULT_SERVE_ADDRESS, int(default_port)
+    if text.isdigit():
+        host, port_text = DEFAULT_SERVE_ADDRESS, text
+    elif text.startswith("["):
+        host, sep, rest = text[1:].partition("]")
+        if not sep or (rest and not rest.startswith(":")):
+            raise bad
+        port_text = rest[1:] if rest else str(default_port)
+        try:
+            if ipaddress.ip_address(host).version != 6:
+                raise bad
+        except ValueError:
+            raise bad from None
+    else:
+        host, sep, port_text = text.partition(":")
+        port_text = port_text if sep else str(default_port)
+        if host.lower() == "localhost":
+            host = DEFAULT_SERVE_ADDRESS
+        try:
+            ipaddress.IPv4Address(host)
+        except ValueError:
+            raise bad from None
+    if not port_text.isdigit() or not 0 < int(port_text) < 65536:
+        raise bad
+    return host, int(port_text)
+
+
+def _url_host(address: str) -> str:
+    """``address`` as the host part of a URL (IPv6 in brackets)."""
+    return f"[{address}]" if ":" in address else address
 
 
 def confidence_color(confidence: float) -> tuple[int, int, int]:
@@ -167,11 +220,18 @@ def _has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def _port_free(port: int) -> bool:
-    """True if nothing listens on TCP ``port`` on any interface (where serve_grpc binds)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+def _port_free(port: int, address: str = "0.0.0.0") -> bool:
+    """True if nothing listens on TCP ``address:port`` (or on a wider address that covers it).
+
+    With ``SO_REUSEADDR``, as the server itself binds: connections of a stopped run that linger in
+    TIME_WAIT do not count (without it a restart within ~60 s of a stop with a viewer connected
+    failed), while a listening socket still does.
+    """
+    family = socket.AF_INET6 if ":" in address else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            s.bind(("0.0.0.0", port))
+            s.bind((address, port))
         except OSError:
             return False
     return True
@@ -280,14 +340,18 @@ class Viewer:
     mode : str
         ``none``; ``spawn`` (a local viewer window; without a display (no ``DISPLAY`` or
         ``WAYLAND_DISPLAY``) one warning and the run carries on without a viewer); ``serve``
-        (a gRPC server on ``port``, **all interfaces**, keeping at most ``server_memory_limit``
-        for viewers that connect late; the operator runs ``rerun rerun+http://HOST:PORT/proxy``);
+        (a gRPC server in this process on ``127.0.0.1:port``, or on the address ``arg`` gives,
+        keeping at most ``server_memory_limit`` for viewers that connect late; the operator runs
+        ``rerun --connect rerun+http://HOST:PORT/proxy``, through an SSH tunnel for the default
+        address; **any client that reaches the server can also write into the stream**, see the module
+        docstring);
         ``connect`` (push to ``arg``, a viewer or ``rerun --serve-grpc`` proxy that must
         **already listen**: if nothing answers, one warning and no viewer, because rerun's
         client gives up for good after a few seconds and never reconnects); ``save`` (write
         the recording to the ``.rrd`` file ``arg``). Strings as in :func:`parse_viewer_mode`.
     arg : str or None
-        Port (serve), URL (connect) or file (save).
+        ``PORT``, ``ADDR`` or ``ADDR:PORT`` (serve, :func:`parse_serve_address`), URL (connect)
+        or file (save).
     params : ViewerConfig
         The ``viewer`` settings: serve mode's ``port`` (``arg`` wins) and ``server_memory_limit``
         (e.g. ``"256MB"``); ``queue_size`` items (one per frame) waiting for the viewer thread
@@ -323,6 +387,8 @@ class Viewer:
         port, server_memory_limit = params.port, params.server_memory_limit
         self.mode, self.arg = mode, arg
         self.url: str | None = None
+        self.address: tuple[str, int] | None = None  # serve: where the server listens
+        self.connect_hint: str | None = None  # serve on loopback: the SSH tunnel to open first
         self.stats = ViewerStats()
         self._tile_period, self._camera_period = 1.0 / tile_hz, 1.0 / camera_hz
         self._max_tiles, self._camera_px = int(max_tiles), int(camera_px)
@@ -375,7 +441,7 @@ class Viewer:
         if mode == "spawn" and not _has_display():
             log.warning("viewer: no display (DISPLAY/WAYLAND_DISPLAY unset), so no local viewer is "
                         "spawned; the run carries on without one (use --viewer serve and connect "
-                        "from another machine)")
+                        "through an SSH tunnel)")
             return
         if mode == "connect" and not _listening(arg):
             log.warning("viewer: nothing listens at %s, so the run carries on without a viewer "
@@ -389,11 +455,12 @@ class Viewer:
         from photomap.live.blueprint import default_blueprint
 
         if mode == "serve":
-            port = int(arg) if arg else port
             if not 0 < port < 65536:
                 raise ConfigError(f"viewer port must be 1-65535, got {port}")
-            if not _port_free(port):
-                raise ConfigError(f"viewer port {port} is already in use; choose another with "
+            address, port = parse_serve_address(arg, port)
+            if not _port_free(port, address):
+                raise ConfigError(f"viewer port {_url_host(address)}:{port} is already in use (or the "
+                                  f"address is not this machine's); choose another with "
                                   f"--viewer serve=PORT or --set viewer.port=PORT")
         if mode == "save":
             path = Path(arg).expanduser()
@@ -407,15 +474,7 @@ class Viewer:
         if mode == "spawn":
             rec.spawn(port=port, default_blueprint=blueprint)
         elif mode == "serve":
-            try:
-                url = rec.serve_grpc(grpc_port=port, server_memory_limit=memory_limit,
-                                     default_blueprint=blueprint)
-            except RuntimeError as exc:  # e.g. "Bad server_memory_limit"
-                raise ConfigError(f"viewer serve: {exc}") from None
-            lan = _lan_address()
-            self.url = url.replace("127.0.0.1", lan) if lan else url
-            log.info("viewer: serving on port %d (all interfaces); connect with: rerun %s%s", port,
-                     self.url, f" (on this machine: rerun {url})" if lan else "")
+            self._serve(rr, rec, address, port, memory_limit, blueprint)
         elif mode == "connect":
             rec.connect_grpc(arg, default_blueprint=blueprint)
             self.url = arg
@@ -429,6 +488,39 @@ class Viewer:
         rec.log("telemetry/heading_deg", rr.SeriesLines(names=["vision", "autopilot"]), static=True)
         self._thread = threading.Thread(target=self._run, name="photomap-viewer", daemon=True)
         self._thread.start()
+
+    def _serve(self, rr: Any, rec: Any, address: str, port: int, memory_limit: str, blueprint: Any) -> None:
+        """Host the gRPC server in this process on ``address:port``.
+
+        ``RecordingStream.serve_grpc`` always listens on every interface; the sink it wraps,
+        ``GrpcServerSink``, takes the address (rerun 0.41).
+        """
+        try:
+            sink = rr.GrpcServerSink(_url_host(address), port, server_memory_limit=memory_limit)
+            rec.set_sinks(sink, default_blueprint=blueprint)
+        except (RuntimeError, ValueError) as exc:  # "Bad server_memory_limit: ...", a bad address
+            raise ConfigError(f"viewer serve: {exc}") from None
+        self.address = (address, port)
+        ip = ipaddress.ip_address(address)
+        local = f"rerun+http://{_url_host(address)}:{port}/proxy"
+        if ip.is_loopback:
+            self.url = local
+            tunnel = f"ssh -N -L {port}:{_url_host(address)}:{port} USER@{socket.gethostname() or 'THIS-HOST'}"
+            self.connect_hint = f"from another machine: `{tunnel}` first"
+            log.info("viewer: serving on %s:%d, this machine only (from another machine: %s, then "
+                     "rerun --connect %s)", _url_host(address), port, tunnel, self.url)
+            return
+        if ip.is_unspecified:
+            lan = _lan_address()
+            self.url = f"rerun+http://{lan}:{port}/proxy" if lan else f"rerun+http://127.0.0.1:{port}/proxy"
+            where = "every interface"
+        else:
+            self.url, where = local, _url_host(address)
+        log.warning("viewer: serving on %s:%d (%s) WITHOUT authentication: anyone who can reach this "
+                    "port can watch the camera and the map and can also write into the live view; "
+                    "prefer the default 127.0.0.1 with an SSH tunnel or a VPN address",
+                    _url_host(address), port, where)
+        log.info("viewer: connect with: rerun --connect %s", self.url)
 
     # ------------------------------------------------------------------ worker side
     def on_frame(self, event: FrameEvent) -> None:
