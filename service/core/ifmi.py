@@ -46,6 +46,8 @@ __all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar"]
 _EPS = 1e-12
 _REFINE_SAMPLES = 16384  # the refinement samples about this many pixels on a regular grid
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
+_EXPECTED_PEAK = 0.35  # a peak at the expected shift wins over higher ones at this fraction of the best
+_CLEAR_PEAK = 0.15  # ... and at least this high (well above noise, which scores ~0)
 
 
 def _matrix_params(m: np.ndarray) -> tuple[float, float, tuple[float, float]]:
@@ -559,6 +561,15 @@ class Registrar:
             return d
 
         top = cands[0].peak
+        if prior.shift is not None:
+            # periodic ground: a peak one period off can be higher than the true one (it overlaps
+            # more); a clear peak where the motion model expects the frame wins
+            floor = max(_EXPECTED_PEAK * top, _CLEAR_PEAK)
+            near = [c for c in cands if c.peak >= floor and math.hypot(
+                c.shift[0] - prior.shift[0], c.shift[1] - prior.shift[1]) <= prior.shift_tol]
+            if near:
+                chosen = min(near, key=distance)
+                return [chosen] + [c for c in cands if c is not chosen]
         close = [c for c in cands if c.peak >= 0.7 * top]
         rest = [c for c in cands if c.peak < 0.7 * top]
         return sorted(close, key=distance) + rest
