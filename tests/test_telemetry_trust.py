@@ -128,12 +128,13 @@ def test_rectified_frame_mask_fill_and_pose_columns():
     view = join.rectify_frame(image, sample, index=4)
     hmg = rectifying_homography(277.0, W, H, sample.roll, sample.pitch)
     assert np.allclose(view.homography, hmg)
-    # the mask is 255 exactly where the source of the view pixel lies inside the input frame
+    # the mask is 0 wherever bilinear interpolation would read outside the input frame (source
+    # beyond its outer pixel centres), and 255 wherever the source is 2 px or more inside
     ys, xs = np.mgrid[0:H, 0:W]
     src = np.linalg.solve(hmg, np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)]))
     sx, sy = (src[:2] / src[2]).reshape(2, H, W)
-    inside = (sx >= 0.01) & (sx <= W - 1.01) & (sy >= 0.01) & (sy <= H - 1.01)
-    outside = (sx < -0.01) | (sx > W - 0.99) | (sy < -0.01) | (sy > H - 0.99)
+    inside = (sx >= 2.0) & (sx <= W - 3.0) & (sy >= 2.0) & (sy <= H - 3.0)
+    outside = (sx < 0.0) | (sx > W - 1.0) | (sy < 0.0) | (sy > H - 1.0)
     assert outside.mean() > 0.02                                      # 12 deg: slivers to fill
     assert (view.mask[inside] == 255).all() and (view.mask[outside] == 0).all()
     # outside pixels hold the mean of the inside ones (neutral for registration: no black edge)
@@ -379,6 +380,11 @@ def test_gps_fit_checks_scale_and_rotation_against_camera_and_compass():
     assert "against the compass" in turned.problem
     assert join.fit_segment(W, H, poses, moved(factor=1.1, turn_deg=5.0)).problem is None  # within tolerance
     assert join.verdict(None, scaled) == "gps_mismatch" and join.problems[0].startswith("gps_mismatch")
+    # a compass whose logged yaw flips by 180 deg now and then (DJI strip ends) cannot judge the rotation
+    flipped = [TelemetrySample(t=s.t, lat=s.lat, lon=s.lon, height_above_ground=s.height_above_ground,
+                               yaw=s.yaw + (math.pi if (k // 40) % 2 else 0.0))
+               for k, s in enumerate(moved(turn_deg=60.0))]
+    assert "compass" not in (join.fit_segment(W, H, poses, flipped).problem or "")
 
 
 def test_time_sync_tells_refused_from_undecided():

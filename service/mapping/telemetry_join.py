@@ -42,7 +42,7 @@ from photomap.config import Config
 from photomap.drivers.frames import Frame
 from photomap.geo.georef import (Georeference, fit_georeference, focal_px, map_heading_deg, metres_per_pixel,
                                  nadir_pixel, rectifying_homography, telemetry_prior)
-from photomap.geometry import frame_centre, wrap_deg
+from photomap.geometry import frame_centre, pose_angle_deg, wrap_deg
 from photomap.core.ifmi import Prior
 from photomap.telemetry.samples import TelemetrySample
 from photomap.telemetry.timesync import sync_time_offset
@@ -97,6 +97,15 @@ class SegmentFit:
     camera_mpp: float | None = None
     compass_heading_deg: float | None = None
     problem: str | None = None
+
+
+def _consistent_compass(poses: list[np.ndarray], samples: list[TelemetrySample], min_resultant: float = 0.9) -> bool:
+    """Whether yaw minus pose angle is about constant over the frames (the compass can judge the
+    GPS fit's rotation): the mean resultant length of those angles is at least ``min_resultant``
+    (logged yaw flips by 180 deg, as at a DJI's strip ends, make it small)."""
+    d = [s.yaw - math.radians(pose_angle_deg(p)) for p, s in zip(poses, samples)
+         if s.yaw is not None and math.isfinite(s.yaw)]
+    return bool(d) and float(np.hypot(np.cos(d).mean(), np.sin(d).mean())) >= min_resultant
 
 
 def frame_ranges(frames: list[int], limit: int = 6) -> str:
@@ -268,11 +277,9 @@ class TelemetryJoin:
         warped = cv2.warpPerspective(image, hmg, (w, h), flags=cv2.INTER_LINEAR,
                                      borderMode=cv2.BORDER_REPLICATE)
         mask = self._warp_mask(hmg, w, h)
-        outside = mask == 0
-        if outside.any():
-            inside = ~outside
-            fill = warped[inside].mean(axis=0) if inside.any() else 0.0
-            warped[outside] = np.round(fill).astype(warped.dtype)
+        if cv2.countNonZero(mask) < mask.size:
+            fill = cv2.mean(warped, mask=mask)[:1 if warped.ndim == 2 else warped.shape[2]]
+            warped[mask == 0] = np.round(fill).astype(warped.dtype)
         return Rectified(warped, mask, hmg)
 
     def rectify(self, image: np.ndarray, s: TelemetrySample | None) -> np.ndarray:
@@ -281,11 +288,18 @@ class TelemetryJoin:
 
     @staticmethod
     def _warp_mask(hmg: np.ndarray, w: int, h: int) -> np.ndarray:
-        """255 where every input pixel that bilinear interpolation reads lies inside the frame."""
-        full = np.full((h, w), 255, np.uint8)
-        warped = cv2.warpPerspective(full, hmg, (w, h), flags=cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return np.where(warped == 255, np.uint8(255), np.uint8(0))
+        """255 where the view pixel's source lies inside the input frame, else 0.
+
+        The frame's outer pixel centres, moved 1 px in, map to a quadrilateral (convex for any
+        tilt that keeps the horizon out of the frame), filled with 1/16 px precision; filling
+        covers up to about half a pixel beyond it, so bilinear interpolation of a valid view
+        pixel never reads outside the frame.
+        """
+        quad = np.array([[1.0, 1.0, 1.0], [w - 2.0, 1.0, 1.0], [w - 2.0, h - 2.0, 1.0], [1.0, h - 2.0, 1.0]]) @ hmg.T
+        pts = np.round(quad[:, :2] / quad[:, 2:] * 16.0).astype(np.int32)
+        mask = np.zeros((h, w), np.uint8)
+        cv2.fillConvexPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
+        return mask
 
     def homography(self, index: int) -> np.ndarray | None:
         """3x3 input pixels -> pixels of the view the map got of frame ``index`` (None: the input)."""
@@ -407,7 +421,8 @@ class TelemetryJoin:
             if max(ratio, 1.0 / ratio) > self._max_scale_ratio:
                 fit.problem = (f"the GPS track makes {geo.metres_per_px:.3g} m per map pixel, the camera "
                                f"and height {camera_mpp:.3g} m (x{ratio:.2f})")
-        if fit.problem is None and geo.scale_source == "gps" and heading is not None:
+        if fit.problem is None and geo.scale_source == "gps" and heading is not None \
+                and _consistent_compass(poses, samples):
             off = float(wrap_deg(geo.heading_deg - heading))
             if abs(off) > self._max_heading_error:
                 fit.problem = f"the GPS track is turned {off:.0f} deg against the compass"
