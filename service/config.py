@@ -222,6 +222,7 @@ class TelemetryConfig(_Section):
     prior_scale_tol: float = _num(0.05, 0.0, 10.0, lo_open=True)
     rectify_tilt: bool = True
     time_offset: float = 0.0
+    max_disagreements_in_a_row: int = _num(10, 0, None)
 
 
 @dataclass(frozen=True)
@@ -342,6 +343,9 @@ class GeorefConfig(_Section):
     timesync_window_s: float = _num(10.0, 0.0, 3600.0)
     timesync_min_correlation: float = _num(0.9, 0.0, 1.0)
     timesync_min_yaw_rate: float = _num(2.0, 0.0, 3600.0)
+    min_inlier_fraction: float = _num(0.7, 0.0, 1.0)
+    max_scale_ratio: float = _num(1.3, 1.0, None, lo_open=True)
+    max_heading_error_deg: float = _num(20.0, 0.0, 180.0)
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,10 @@
 """Trajectories of a run and their errors against ground truth (pure: arrays in, numbers out).
 
 Conventions (DESIGN.md section 3): pixel coordinates are OpenCV's (x right, y down, origin at the
-centre of the top-left pixel). An estimated pose ``M`` (2x3) maps frame pixels to the pixels of its
-segment's map; a true pose ``H`` (3x3, possibly projective) maps frame pixels to terrain pixels.
-Both are taken at the input video's resolution, so one frame-centre pixel ``centre`` serves both.
+centre of the top-left pixel). An estimated pose ``M`` (2x3, or 3x3 for a frame the run rectified:
+see :func:`input_pose`) maps frame pixels to the pixels of its segment's map; a true pose ``H``
+(3x3, possibly projective) maps frame pixels to terrain pixels. Both are taken at the input
+video's resolution, so one frame-centre pixel ``centre`` serves both.
 
 The estimated map of a segment is anchored to the terrain at the segment's first posed frame
 ``f0``: ``terrain_from_map = H[f0] @ inv(M[f0])``. Angles of a (possibly projective) transform are
@@ -19,11 +20,12 @@ from typing import Sequence
 import numpy as np
 
 from photomap.core.records import GLUED, STATUSES, GroundTruth, PoseRow
+from photomap.geo.georef import rectifying_homography
 from photomap.geometry import (angle_scale, apply_h, frame_centre, local_linear, pose_angle_deg, pose_scale,
                                to_h, umeyama, wrap_deg)
 
 __all__ = ["evaluate_trajectory", "segment_metrics", "pair_errors", "anchored_poses", "path_length",
-           "infer_centre", "summary", "TRANSLATION_OK_PX", "ROTATION_OK_DEG",
+           "infer_centre", "input_pose", "summary", "TRANSLATION_OK_PX", "ROTATION_OK_DEG",
            "SCALE_OK_PCT"]
 
 TRANSLATION_OK_PX = 1.0
@@ -104,8 +106,8 @@ def segment_metrics(M_est: np.ndarray, H_true: np.ndarray, centre: Sequence[floa
 
     Parameters
     ----------
-    M_est : ndarray (N, 2, 3)
-        Estimated poses (frame -> segment map px), in frame order.
+    M_est : ndarray (N, 2, 3) or (N, 3, 3)
+        Estimated poses (input frame -> segment map px), in frame order.
     H_true : ndarray (N, 3, 3)
         True poses (frame -> terrain px) of the same frames.
     centre : (float, float)
@@ -127,7 +129,8 @@ def segment_metrics(M_est: np.ndarray, H_true: np.ndarray, centre: Sequence[floa
         ``ate`` (``rmse_px``, ``pct``, ``scale`` of the fitted similarity), ``heading_deg`` and
         ``scale_pct`` (anchored error summaries with ``final``) and ``per_frame`` (lists).
     """
-    M_est = np.asarray(M_est, dtype=float)[..., :2, :].reshape(-1, 2, 3)
+    M_est = np.asarray(M_est, dtype=float)
+    M_est = M_est.reshape(-1, *M_est.shape[-2:])
     H_true = to_h(np.asarray(H_true, dtype=float).reshape(-1, 3, 3))
     n = len(M_est)
     if n == 0 or len(H_true) != n:
@@ -202,6 +205,22 @@ def infer_centre(rows: Sequence[PoseRow]) -> tuple[float, float]:
     return round(2 * float(c[0])) / 2, round(2 * float(c[1])) / 2
 
 
+def input_pose(row: PoseRow, centre: Sequence[float]) -> np.ndarray:
+    """3x3 map of the row's *input* frame pixels to map pixels.
+
+    A row whose frame the run rectified to its nadir view (columns ``rect_roll_deg``,
+    ``rect_pitch_deg``, ``rect_fx_px``) has a pose ``M`` of that view's pixels; its input frame
+    maps by ``M @ rectifying_homography(...)`` (projective). Other rows: ``M`` itself.
+    """
+    M = to_h(np.asarray(row.M, dtype=float)[:2])
+    ex = row.extra
+    roll, pitch, fx = ex.get("rect_roll_deg"), ex.get("rect_pitch_deg"), ex.get("rect_fx_px")
+    if not all(isinstance(v, float) and math.isfinite(v) for v in (roll, pitch, fx)):
+        return M
+    w, h = int(round(2 * centre[0] + 1)), int(round(2 * centre[1] + 1))
+    return M @ rectifying_homography(fx, w, h, math.radians(roll), math.radians(pitch))
+
+
 def evaluate_trajectory(rows: Sequence[PoseRow], truth: GroundTruth,
                         centre: Sequence[float]) -> dict:
     """Join a run's rows with the truth by frame index and compute every segment's metrics.
@@ -230,7 +249,7 @@ def evaluate_trajectory(rows: Sequence[PoseRow], truth: GroundTruth,
     for seg, seg_rows in sorted(by_segment.items()):
         first, last = seg_rows[0].frame, seg_rows[-1].frame
         span = order[(sorted_frames >= first) & (sorted_frames <= last)]
-        res = segment_metrics(np.array([np.asarray(r.M)[:2] for r in seg_rows]),
+        res = segment_metrics(np.array([input_pose(r, centre) for r in seg_rows]),
                               np.array([truth.H[index[r.frame]] for r in seg_rows]),
                               centre, frames=[r.frame for r in seg_rows],
                               path_px=path_length(truth.H[span], centre))

@@ -136,6 +136,26 @@ def nadir_homography(fx: float, cx: float, cy: float, roll: float, pitch: float)
     return h / h[2, 2]
 
 
+def rectifying_homography(fx: float, width: int, height: int, roll: float, pitch: float) -> np.ndarray:
+    """3x3 homography mapping pixels of a tilted frame to its *recentred* nadir view.
+
+    :func:`nadir_homography` (principal point at the frame centre ``c = ((w-1)/2, (h-1)/2)``)
+    followed by the translation that brings the image of ``c`` back to ``c``. The result is
+    still an exact nadir view (same focal length, so same metres per pixel as the nadir camera;
+    the nadir point moves off-centre), but its centre pixel sees the same ground as the tilted
+    frame's centre pixel and it covers nearly the same ground as the tilted frame, so a frame of
+    the same size loses only the keystone slivers. Consequently the pose of the rectified frame
+    (a similarity) maps the tilted frame's centre exactly; the full map of the tilted frame's
+    pixels is ``pose @ rectifying_homography(...)``.
+    """
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    h = nadir_homography(fx, cx, cy, roll, pitch)
+    q = h @ [cx, cy, 1.0]
+    shift = np.array([[1.0, 0.0, cx - q[0] / q[2]], [0.0, 1.0, cy - q[1] / q[2]], [0.0, 0.0, 1.0]])
+    out = shift @ h
+    return out / out[2, 2]
+
+
 def nadir_pixel(fx: float, cx: float, cy: float, roll: float, pitch: float) -> tuple[float, float]:
     """Pixel of a tilted frame that sees the ground point straight below the camera.
 

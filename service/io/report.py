@@ -185,6 +185,10 @@ def time_sync_verdict(summary: dict) -> tuple[str, bool | None]:
     offset = tel.get("time_offset_s") or 0.0
     if not check:
         return (f"not checked (too little yaw motion, or too few frames); offset used {offset:+.2f} s", None)
+    if check.get("refused"):
+        best = check.get("best_correlation")
+        return ("refused: the yaw rates of video and telemetry do not match (" + str(check["refused"])
+                + (f", best correlation {best:.2f}" if best is not None else "") + ")", False)
     res, corr = float(check["residual_offset_s"]), float(check.get("correlation") or float("nan"))
     if abs(res) <= SYNC_TOLERANCE_S:
         return (f"in sync: residual {res:+.3f} s (yaw-rate correlation {corr:.2f}); offset used {offset:+.2f} s", True)
@@ -283,6 +287,11 @@ def report_html(run_dir: str | Path) -> str:
                                                 f"{_fmt(s.get('frames_in'), 'd')}; priors used "
                                                 f"{_fmt(tel.get('priors_used'), 'd')}, rectified "
                                                 f"{_fmt(tel.get('rectified'), 'd')}"))
+        status = tel.get("status")
+        if status:
+            css = "ok" if status == "ok" else "warn"
+            text = status if status == "ok" else f"refused: {'; '.join(tel.get('problems') or [status])}"
+            georef.append(("telemetry", f'<span class="{css}">{html.escape(text)}</span>'))
     ms, reg = s.get("ms_per_frame"), s.get("ms_register_per_frame")
     timing = [("per frame (worker)", _fmt(ms, ".1f", " ms")),
               ("  registration", _fmt(reg, ".1f", " ms")),

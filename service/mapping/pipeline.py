@@ -287,8 +287,10 @@ class MappingPipeline:
             return
         try:
             sample = self.telemetry.sample(frame) if self.telemetry else None
+            mask = None  # validity of a rectified view's pixels (None: all valid)
             if sample is not None:
-                image = self.telemetry.rectify(image, sample)
+                view = self.telemetry.rectify_frame(image, sample, frame.index)
+                image, mask = view.image, view.mask
             small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
             t1 = time.perf_counter()
             started = self.tracker.segments
@@ -301,7 +303,7 @@ class MappingPipeline:
             if step.anchor is not None:
                 touched |= self._anchor(step)
             if step.pose is not None:
-                touched |= self._mosaic(step.segment).add(image, step.pose)
+                touched |= self._mosaic(step.segment).add(image, step.pose, mask)
             pending = self._pending
             self._pending = (frame.index, image, small) if step.status == LOW_CONFIDENCE else None
         except Exception as exc:  # never lose the map for one bad frame
@@ -330,6 +332,7 @@ class MappingPipeline:
         row = PoseRow(frame.index, frame.t, step.pose, step.confidence, step.status, step.segment)
         if sample is not None:
             row.extra["alt_m"] = sample.height_above_ground
+            row.extra.update(self.telemetry.row_columns(frame.index))  # which pixels the pose maps
             if step.pose is not None:
                 self.telemetry.keep(frame.index, sample)
         self._rows.append(row)
@@ -443,8 +446,12 @@ class MappingPipeline:
                 self.stats.confidence_sum += 1.0
                 break
         if self._pending is not None and self._pending[0] == step.anchor:
-            return self._mosaic(step.segment).add(self._pending[1], step.anchor_pose)
+            return self._mosaic(step.segment).add(self._pending[1], step.anchor_pose, self._view_mask(step.anchor))
         return set()
+
+    def _view_mask(self, index: int) -> np.ndarray | None:
+        """Valid pixels of the image the map got of frame ``index`` (None: all of them)."""
+        return self.telemetry.mask(index) if self.telemetry is not None else None
 
     # ------------------------------------------------------------------ outputs
     def summary(self) -> dict:
@@ -495,7 +502,7 @@ class MappingPipeline:
             for index, pose in self._keyframes.get(segment, ()):
                 image = self.loops.store.image(index)
                 if image is not None:
-                    mosaic.add(image, pose[:2])
+                    mosaic.add(image, pose[:2], self._view_mask(index))
         self._dirty.clear()
 
     def _largest_segments(self) -> list[int]:
@@ -519,16 +526,27 @@ class MappingPipeline:
         write_json(self.out_dir / "run.json", summary)
 
     def _georeference(self, summary: dict, maps: list[dict]) -> None:
-        """Metric scale and georeference per segment; world files beside the mosaics."""
+        """Metric scale and georeference per segment, world files beside the mosaics, when the
+        telemetry fits the images (else none: ``run.json`` ``telemetry.status`` says why)."""
         join = self.telemetry
         w, h = self.frame_size or (0, 0)
+        main = maps[0]["segment"] if maps else 0
+        posed = [r for r in self._rows if r.glued and r.segment == main]
+        check = join.time_offset_check([r.t for r in posed], [pose_angle_deg(np.asarray(r.M)) for r in posed])
+        fits = {}
+        for info in maps:
+            rows = [r for r in self._rows if r.glued and r.segment == info["segment"] and join.kept(r.frame)]
+            fits[info["segment"]] = join.fit_segment(w, h, [np.asarray(r.M) for r in rows],
+                                                     [join.kept(r.frame) for r in rows], [r.frame for r in rows])
+        trusted = join.verdict(check, fits.get(main)) == "ok"
         geo_out = {}
         for info in maps:
             seg = info["segment"]
-            rows = [r for r in self._rows if r.glued and r.segment == seg and join.kept(r.frame)]
-            mpp, geo = join.georeference(w, h, [np.asarray(r.M) for r in rows],
-                                         [join.kept(r.frame) for r in rows])
-            entry: dict = {"metres_per_pixel": mpp}
+            fit = fits[seg]
+            geo = fit.geo if trusted and fit.problem is None else None
+            if fit.problem and trusted:
+                log.info("segment %d not georeferenced: %s", seg, fit.problem)
+            entry: dict = {"metres_per_pixel": fit.metres_per_px if trusted else None}
             if geo is not None:
                 world_file = write_sidecars(self.out_dir, info, geo)
                 entry.update({"crs": f"EPSG:{geo.epsg}", "map_to_crs": geo.map_to_crs.tolist(),
@@ -542,14 +560,16 @@ class MappingPipeline:
                         r.extra["lat"], r.extra["lon"] = float(lat[0]), float(lon[0])
             info["georeference"] = entry
             geo_out[seg] = entry
-        head = geo_out.get(maps[0]["segment"]) if maps else None
+        if not trusted:  # nothing from telemetry that does not fit stays in the trajectory
+            for r in self._rows:
+                for key in ("lat", "lon", "alt_m"):
+                    r.extra.pop(key, None)
+        head = geo_out.get(main) if maps else None
         summary["metres_per_pixel"] = head["metres_per_pixel"] if head else None
         summary["georeference"] = head if head and "crs" in head else None
-        posed = [r for r in self._rows if r.glued and r.segment == (maps[0]["segment"] if maps else 0)]
-        check = join.time_offset_check([r.t for r in posed], [pose_angle_deg(np.asarray(r.M)) for r in posed])
-        summary["telemetry"] = {**asdict(join.stats), "link": join.link_summary(),
-                                "time_offset_s": join.offset, "time_offset_check": check}
-        if check is not None and abs(check["residual_offset_s"]) > 0.2:
+        summary["telemetry"] = {**join.summary(), "time_offset_check": check}
+        if trusted and check is not None and check["residual_offset_s"] is not None \
+                and abs(check["residual_offset_s"]) > 0.2:
             log.warning("telemetry seems %.2f s off the video (yaw-rate correlation %.2f): "
                         "consider --time-offset %.2f", check["residual_offset_s"],
                         check["correlation"], join.offset + check["residual_offset_s"])

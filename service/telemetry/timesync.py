@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -76,12 +77,46 @@ def _pearson(a: np.ndarray, b: np.ndarray, min_n: int) -> float:
     return float(a @ b) / d if d > 0 else math.nan
 
 
+UNDECIDED = ("too_few_samples", "no_yaw_motion")
+"""Reasons of :func:`sync_time_offset` that mean "cannot be told" (not evidence of a mismatch)."""
+
+
+@dataclass(frozen=True)
+class TimeSync:
+    """Result of :func:`sync_time_offset`.
+
+    offset_s, correlation : the estimate (None when refused). reason : None when accepted, else
+    ``too_few_samples`` or ``no_yaw_motion`` (undecided: the data cannot tell) or
+    ``no_overlap``, ``weak_correlation``, ``window_edge`` (refused: the yaw rates do not match
+    within the window). best_correlation : the best correlation found (None when none was).
+    """
+
+    offset_s: float | None
+    correlation: float | None
+    reason: str | None = None
+    best_correlation: float | None = None
+
+    @property
+    def refused(self) -> bool:
+        """The yaw rates were compared and do not match (telemetry from elsewhere, or far off)."""
+        return self.reason is not None and self.reason not in UNDECIDED
+
+
 def estimate_time_offset(frame_t: Sequence[float], pose_angle_deg: Sequence[float],
-                         tel_t: Sequence[float], tel_yaw: Sequence[float], *,
-                         nominal_s: float = 0.0, window_s: float = 10.0, step_s: float = 0.02,
-                         smooth_s: float = 0.1, min_correlation: float = 0.9,
-                         min_rate_deg_s: float = 2.0, max_gap_s: float = 1.0,
-                         max_rate_deg_s: float = 360.0) -> tuple[float, float] | None:
+                         tel_t: Sequence[float], tel_yaw: Sequence[float], **kwargs
+                         ) -> tuple[float, float] | None:
+    """Offset (s) with ``telemetry_time = video_time + offset`` and its correlation, or None
+    when refused (see :func:`sync_time_offset`, which says why)."""
+    found = sync_time_offset(frame_t, pose_angle_deg, tel_t, tel_yaw, **kwargs)
+    return None if found.reason is not None else (found.offset_s, found.correlation)
+
+
+def sync_time_offset(frame_t: Sequence[float], pose_angle_deg: Sequence[float],
+                     tel_t: Sequence[float], tel_yaw: Sequence[float], *,
+                     nominal_s: float = 0.0, window_s: float = 10.0, step_s: float = 0.02,
+                     smooth_s: float = 0.1, min_correlation: float = 0.9,
+                     min_rate_deg_s: float = 2.0, max_gap_s: float = 1.0,
+                     max_rate_deg_s: float = 360.0) -> TimeSync:
     """Offset (s) with ``telemetry_time = video_time + offset``, and its correlation.
 
     Parameters
@@ -97,8 +132,8 @@ def estimate_time_offset(frame_t: Sequence[float], pose_angle_deg: Sequence[floa
         vision yaw rate's standard deviation is below this (the yaw barely changes).
     max_gap_s : consecutive samples farther apart are a gap, not interpolated across.
 
-    Returns ``(offset_s, correlation)``, or None (logged) when refused: too little data, the yaw
-    barely changes, the correlation is weak, or the best lag is at the window's edge.
+    Returns a :class:`TimeSync`; refused (logged, with its reason) when there is too little
+    data, the yaw barely changes, the correlation is weak, or the best lag is at the window's edge.
     """
     ft, fa = np.asarray(frame_t, float), np.asarray(pose_angle_deg, float)
     tt, ty = np.asarray(tel_t, float), np.degrees(np.asarray(tel_yaw, float))
@@ -110,14 +145,14 @@ def estimate_time_offset(frame_t: Sequence[float], pose_angle_deg: Sequence[floa
     wt, wr = _rates(tt, ty, max_gap_s, max_rate_deg_s)
     if len(vt) < 10 or len(wt) < 10:
         log.info("time sync: too few samples (vision %d, telemetry %d rates)", len(vt), len(wt))
-        return None
+        return TimeSync(None, None, "too_few_samples")
     grid = np.arange(vt[0], vt[-1], step_s)
     sigma = smooth_s / step_s
     v = _smooth(_resample(vt, vr, grid, max_gap_s), sigma)
     if not np.nanstd(v) >= min_rate_deg_s:
         log.info("time sync refused: the yaw barely changes (rate std %.2f deg/s < %.2f)",
                  float(np.nanstd(v)), min_rate_deg_s)
-        return None
+        return TimeSync(None, None, "no_yaw_motion")
     n_lag = int(round(window_s / step_s))
     tel_grid = grid[0] + nominal_s + np.arange(-n_lag, len(grid) + n_lag) * step_s
     w = _smooth(_resample(wt, wr, tel_grid, max_gap_s), sigma)
@@ -125,16 +160,16 @@ def estimate_time_offset(frame_t: Sequence[float], pose_angle_deg: Sequence[floa
     corr = np.array([_pearson(v, w[k:k + len(grid)], min_n) for k in range(2 * n_lag + 1)])
     if not np.isfinite(corr).any():
         log.info("time sync refused: telemetry and video do not overlap within +-%.1f s", window_s)
-        return None
+        return TimeSync(None, None, "no_overlap")
     k = int(np.nanargmax(corr))
     best = float(corr[k])
     if best < min_correlation:
         log.info("time sync refused: best correlation %.2f < %.2f", best, min_correlation)
-        return None
+        return TimeSync(None, None, "weak_correlation", best)
     if k == 0 or k == len(corr) - 1 or not np.isfinite(corr[k - 1:k + 2]).all():
         log.info("time sync refused: best lag at the edge of the +-%.1f s window", window_s)
-        return None
+        return TimeSync(None, None, "window_edge", best)
     c0, c1, c2 = corr[k - 1:k + 2]
     den = c0 - 2.0 * c1 + c2
     frac = 0.5 * (c0 - c2) / den if den < 0 else 0.0
-    return float(nominal_s + (k - n_lag + frac) * step_s), best
+    return TimeSync(float(nominal_s + (k - n_lag + frac) * step_s), best, None, best)
