@@ -1,4 +1,4 @@
-"""Pose and pixel conventions shared by every layer (DESIGN.md section 3).
+"""Pose and pixel conventions shared by every layer (docs/architecture.md, "Conventions").
 
 - Pixel coordinates are OpenCV's: x right, y down, origin at the centre of the top-left pixel;
   the centre of a ``w`` x ``h`` frame is ``((w - 1) / 2, (h - 1) / 2)``.

@@ -9,7 +9,7 @@ without telemetry: final position error and ATE as % of the path, per mode:
 - map-relative: keyframes, each also registered against the map rendered at its predicted pose;
 - loop closure: keyframes + revisits registered against old keyframes + pose graph.
 
-    python tools/bench_drift.py [--frames 480] [--quick] [--out docs/benchmarks.md]
+    python -m tools.bench_drift [--frames 480] [--quick] [--out docs/benchmarks.md]
 
 Prints a markdown table; with --out, replaces the section between the drift markers of that file.
 """

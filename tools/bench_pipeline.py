@@ -15,7 +15,7 @@ without ``mosaic.max_tiles_in_memory``, each configuration in a fresh process so
 freed memory does not inflate the next one's peak. A thread samples the process RSS (psutil)
 every 50 ms.
 
-    python tools/bench_pipeline.py [--quick] [--frames N] [--long-frames N] [--max-tiles N] [--out FILE]
+    python -m tools.bench_pipeline [--quick] [--frames N] [--long-frames N] [--max-tiles N] [--out FILE]
 
 ``--quick`` is a smoke test (< 1 min) that only prints unless ``--out`` is given; the full run
 (about 10 minutes on 2 cores) replaces the section between ``<!-- pipeline:start -->`` and
@@ -318,7 +318,7 @@ def render_report(args: argparse.Namespace, n_decoded: int, decode_s: float, rep
              f"{os.cpu_count()} cores, {cv2.getNumThreads()} OpenCV threads, {elapsed:.0f} s; 1-minute load "
              f"average {load[0]:.1f} at the start and {load[1]:.1f} at the end: above 0 means other "
              "processes shared the cores and the speeds are lower bounds). Rerun it after a change to the "
-             "pipeline, the registration or the map: `python tools/bench_pipeline.py` (about 10 minutes "
+             "pipeline, the registration or the map: `python -m tools.bench_pipeline` (about 10 minutes "
              "on 2 cores); it rewrites only this section.", "",
              "### Replay throughput", "",
              f"A simulated {SIZE[0]}x{SIZE[1]} flight of {args.frames} frames (`simulate_flight`, aukerman, "

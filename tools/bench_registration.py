@@ -8,13 +8,13 @@ the success rate, median errors, RMS rotation error, ms per pair and the drift o
 trajectory; then iFMI's ms per pair at several frame sizes (against the original paper's C/C++
 timings) and a calibration of iFMI's confidence (correct pairs against no-overlap and noise pairs).
 
-    python tools/bench_registration.py [--quick] [--frames N] [--out docs/benchmarks.md]
+    python -m tools.bench_registration [--quick] [--frames N] [--out docs/benchmarks.md]
 
 ``--quick`` is a smoke test (< 1 min) that only prints unless ``--out`` is given; the full run
 replaces its section of ``docs/benchmarks.md``, keeping the hand-written intro and the other tools' sections.
 
 Conventions: a result matrix maps pixels of the new frame ``b`` to pixels of the reference ``a``
-(DESIGN.md section 3). The translation error is the distance between the estimated and the true
+(:mod:`photomap.geometry`). The translation error is the distance between the estimated and the true
 position of ``b``'s centre in ``a``; rotation and scale errors compare with the rotation and scale
 of the true (projective, under tilt) relative transform at that centre. A method that returns
 nothing is scored as the identity (what a chained trajectory would use).
@@ -58,7 +58,7 @@ simulated flights with exact ground truth (`service/flight.py`), and how fast it
 machine. The registration section is written by `tools/bench_registration.py`; rerun it after a
 change to the registration (about 10 minutes on 2 cores):
 
-    python tools/bench_registration.py --out docs/benchmarks.md
+    python -m tools.bench_registration --out docs/benchmarks.md
 
 Success means translation error < 1 px, rotation error < 0.5 deg and scale error < 1 %. The
 translation error is the error of the new frame's centre in the reference frame; rotation and scale
@@ -489,7 +489,7 @@ def targets_table(runs: list[Run], timings: dict[tuple[int, int], dict[str, floa
 
 def render_report(flights: list[Flight], runs: list[Run], timings, cal: Calibration, args, elapsed: float) -> str:
     lines = ["## Machine", ""] + machine_info() + [
-        f"- run: `python tools/bench_registration.py{' --quick' if args.quick else ''} --frames {args.frames}` "
+        f"- run: `python -m tools.bench_registration{' --quick' if args.quick else ''} --frames {args.frames}` "
         f"(seed {SEED}), {elapsed / 60:.1f} min", "",
         "## Sequences", "",
         "| sequence | frames | what | motion per pair: median (max) shift, rotation, scale change |",

@@ -13,7 +13,7 @@ viewer callback inside the worker, the viewer thread's CPU time, and the process
 difference to the run without a viewer includes rerun's own encoder and sink threads.
 Target: viewer CPU < 15 % of the worker's time.
 
-    python tools/bench_viewer.py [--frames 600] [--fps 30] [--as-fast-as-possible]
+    python -m tools.bench_viewer [--frames 600] [--fps 30] [--as-fast-as-possible]
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Peer registration methods wrapped for the registration benchmark (``tools/bench_registration.py``).
 
 Every method registers a new grey frame ``b`` to a reference ``a`` and returns the 2x3 matrix that
-maps pixels of ``b`` to pixels of ``a`` (OpenCV pixel coordinates, DESIGN.md section 3), or ``None``
+maps pixels of ``b`` to pixels of ``a`` (OpenCV pixel coordinates, :mod:`photomap.geometry`), or ``None``
 when it finds nothing. Each is split as a user would run it on a video: :meth:`prepare` does the
 per-frame work that can be reused for the next pair (feature detection), :meth:`register` the
 per-pair work. Methods that cannot reuse anything (imreg_dft, ECC) do everything in

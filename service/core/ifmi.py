@@ -19,7 +19,7 @@ Every cross-power spectrum is weighted by a Gaussian low-pass, which turns the P
 sampled Gaussian; fitting a Gaussian to the 3 samples around the maximum (a parabola on their
 logarithms) then locates it without the ~0.1 px bias of a plain parabola.
 
-Conventions (DESIGN.md section 3): OpenCV pixel coordinates (x right, y down, origin at the centre
+Conventions (:mod:`photomap.geometry`): OpenCV pixel coordinates (x right, y down, origin at the centre
 of the top-left pixel). A registration result ``matrix`` is 2x3 and maps pixels of the new frame
 ``b`` to pixels of the reference ``a``: ``p_a = matrix @ [x_b, y_b, 1]``; ``angle_deg`` and ``scale``
 are read from it as ``degrees(atan2(m10, m00))`` and ``sqrt(det)``, ``shift`` is its last column.

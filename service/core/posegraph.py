@@ -6,7 +6,7 @@ with a pose graph whose constraints are the iFMI registrations weighted by their
 module is that graph, solved by sparse Levenberg-Marquardt (or ``scipy.optimize.least_squares``)
 with a robust loss so that one wrong loop closure cannot wreck the map.
 
-Conventions (DESIGN.md section 3): OpenCV pixel coordinates (x right, y down, origin at the
+Conventions (:mod:`photomap.geometry`): OpenCV pixel coordinates (x right, y down, origin at the
 centre of the top-left pixel). A node pose ``T_i`` (3x3) maps pixels of keyframe ``i`` to map
 pixels. It is a similarity parametrised as ``(x, y, theta, log s)``::
 

@@ -1,6 +1,6 @@
 """Trajectories of a run and their errors against ground truth (pure: arrays in, numbers out).
 
-Conventions (DESIGN.md section 3): pixel coordinates are OpenCV's (x right, y down, origin at the
+Conventions (:mod:`photomap.geometry`): pixel coordinates are OpenCV's (x right, y down, origin at the
 centre of the top-left pixel). An estimated pose ``M`` (2x3, or 3x3 for a frame the run rectified:
 see :func:`input_pose`) maps frame pixels to the pixels of its segment's map; a true pose ``H``
 (3x3, possibly projective) maps frame pixels to terrain pixels. Both are taken at the input

@@ -5,7 +5,7 @@ Pure computations (arrays in, arrays out); the pipeline joins telemetry and writ
 Conventions
 -----------
 - Pixels: OpenCV (x right, y down, origin at the centre of the top-left pixel). A pose is a 2x3
-  matrix mapping frame pixels to map pixels (see ``DESIGN.md``).
+  matrix mapping frame pixels to map pixels (see :mod:`photomap.geometry`).
 - Angles: telemetry in radians (MAVLink ``ATTITUDE``: yaw = heading of the image's up direction,
   clockwise from north); registration angles in degrees, ``atan2(m10, m00)`` in y-down pixels,
   so a clockwise yaw change is a positive angle.

@@ -3,7 +3,7 @@
 Every writer is atomic: it writes a temporary file in the target's folder and ``os.replace``-s it
 over the target, so a periodic checkpoint of a live run never leaves a half-written file.
 Readers accept extra columns and raise :class:`InputError` with the file and line on bad input.
-Formats: DESIGN.md section 4; conventions: :mod:`photomap.eval.metrics`.
+Formats: README, "What a run writes"; conventions: :mod:`photomap.geometry`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Live operator view of a mapping run in rerun (DESIGN.md section 6).
+"""Live operator view of a mapping run in rerun (README, "Watching live").
 
 :meth:`Viewer.on_frame` is a sink of :class:`photomap.mapping.pipeline.MappingPipeline`: it gets
 a :class:`~photomap.mapping.events.FrameEvent` per frame in the pipeline's worker thread and only
@@ -7,7 +7,7 @@ they are due) into a bounded queue; a viewer thread JPEG-encodes and logs. When 
 (slow network, stuck sink) the *oldest* queued item is dropped and counted: viewer data is
 dropped, frames never are, and the worker never waits on rerun.
 
-Entities (map coordinates follow DESIGN.md section 3: OpenCV map pixels, x right, y down,
+Entities (map coordinates follow :mod:`photomap.geometry`: OpenCV map pixels, x right, y down,
 integer coordinates at pixel centres):
 
 ``map/tiles/{segment}/{ty}_{tx}``

@@ -10,7 +10,7 @@ and the outputs are written.
 State has one owner: the pipeline owns the trajectory rows, the maps (one per segment) and the
 tracker; the loop closer returns corrections that the pipeline applies; sinks only read events.
 
-Files written to the output folder (DESIGN.md section 4): ``mosaic.png`` (BGRA, transparent where
+Files written to the output folder (README, "What a run writes"): ``mosaic.png`` (BGRA, transparent where
 the map is empty; the largest segment; other segments as ``mosaic_segment{N}.png``),
 ``trajectory.csv``, ``trajectory.tum`` and ``run.json``. All are written atomically.
 """
