@@ -21,6 +21,8 @@ from typing import Any, Callable, Iterator, Protocol, runtime_checkable
 
 import numpy as np
 
+from photomap.errors import InputError
+
 _CAMERA_PATH = re.compile(r"^/dev/video\d+$")
 _GLOB_CHARS = re.compile(r"[*?\[]")
 
@@ -169,7 +171,12 @@ def open_source(
             capture_factory=capture_factory,
         )
     text = str(spec)
-    if Path(text).is_dir() or (_GLOB_CHARS.search(text) and not Path(text).exists()):
+    try:
+        is_dir = Path(text).is_dir()
+        is_glob = bool(_GLOB_CHARS.search(text)) and not Path(text).exists()
+    except OSError as exc:  # e.g. a parent folder we may not enter
+        raise InputError(f"cannot access {text}: {exc.strerror or exc}") from None
+    if is_dir or is_glob:
         from photomap.drivers.images import ImageFolderSource
 
         return ImageFolderSource(text, rate=image_rate)
