@@ -103,7 +103,7 @@ def open_telemetry(spec: str, cfg: dict, *, source=None, input_spec: str = "",
         if not Path(spec).is_file():
             raise InputError(f"telemetry log not found: {spec}")
         buffer, stats = load_tlog(spec, max_gap=tcfg["max_gap"], max_hold=tcfg["max_hold"],
-                                  link_timeout=tcfg["link_timeout"])
+                                  link_timeout=tcfg["link_timeout"], system_id=tcfg["system_id"])
         if video_start is None:
             video_start = meta.get("t0_unix") or getattr(source, "creation_time", None)
         if video_start is None and getattr(source, "exif_times", None):
@@ -119,7 +119,7 @@ def open_telemetry(spec: str, cfg: dict, *, source=None, input_spec: str = "",
     buffer = TelemetryBuffer(max_gap=tcfg["max_gap"], max_hold=tcfg["max_hold"], horizon=tcfg["horizon"])
     reader = TelemetryReader(spec, buffer, link_timeout=tcfg["link_timeout"],
                              send_heartbeat=tcfg["send_heartbeat"] and live, baud=tcfg["baud"],
-                             source_system=tcfg["source_system"]).start()
+                             source_system=tcfg["source_system"], system_id=tcfg["system_id"]).start()
     if not live and not realtime:
         log.warning("a live telemetry link with a replay as fast as possible cannot be joined in "
                     "time: use --realtime")
@@ -133,7 +133,10 @@ def open_telemetry(spec: str, cfg: dict, *, source=None, input_spec: str = "",
 def _link_summary(spec: str, stats) -> dict:
     return {"source": spec, "messages": stats.total, "gaps": stats.gaps,
             "link_lost": stats.link_lost, "link_regained": stats.link_regained,
-            "rejected_samples": sum(stats.rejected.values()), "parse_errors": stats.receive_errors}
+            "rejected_samples": sum(stats.rejected.values()), "parse_errors": stats.receive_errors,
+            "system_id": stats.system_id,
+            "other_systems": {str(k): v for k, v in sorted(stats.other_systems.items())},
+            "span": list(stats.span) if stats.span else None}
 
 
 def map_source(source, cfg: dict, out_dir: str | Path, *, input_name: str = "",
