@@ -15,6 +15,7 @@ import pytest
 
 from photomap.cli.main import main
 from photomap.config import load_config
+from photomap.drivers.camera import CameraSource
 from photomap.drivers.images import ImageFolderSource
 from photomap.drivers.video import VideoFileSource
 from photomap.errors import ConfigError, InputError
@@ -139,6 +140,60 @@ def test_pipeline_stop_or_error_releases_the_decoder_in_its_thread(flight, watch
     for t in decode:
         t.join(10)
     assert not any(t.is_alive() for t in decode)
+
+
+class BlockingCamera:
+    """A fake V4L2 capture: frames until ``stuck`` is set, then a read that blocks until
+    ``unstick`` is set (a driver hung in VIDIOC_DQBUF). Records releases under a running read."""
+
+    def __init__(self) -> None:
+        self.reading = 0
+        self.stuck = threading.Event()
+        self.unstick = threading.Event()
+        self.in_stuck_read = threading.Event()
+        self.released = threading.Event()
+        self.violations: list[str] = []
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        return True
+
+    def read(self):
+        self.reading += 1
+        try:
+            if self.stuck.is_set():
+                self.in_stuck_read.set()
+                self.unstick.wait(30)
+            threading.Event().wait(0.002)
+            return True, np.zeros((4, 6, 3), np.uint8)
+        finally:
+            self.reading -= 1
+
+    def release(self):
+        if self.reading:
+            self.violations.append("release during read")
+        self.released.set()
+
+
+def test_camera_close_lets_the_capture_thread_release(caplog):
+    cams = [BlockingCamera() for _ in range(10)]
+    for cam in cams:  # close at once, from another thread, while the thread reads
+        src = CameraSource(0, capture_factory=lambda device, cam=cam: cam, join_timeout=10.0)
+        threading.Event().wait(0.01)
+        src.close()
+        assert cam.released.is_set() and cam.violations == []
+    cam = BlockingCamera()
+    cam.stuck.set()
+    src = CameraSource(1, capture_factory=lambda device: cam, join_timeout=0.2)
+    assert cam.in_stuck_read.wait(10)
+    with caplog.at_level(logging.WARNING, logger="photomap.drivers.camera"):
+        src.close()  # returns after join_timeout; the stuck thread keeps its capture
+    assert not cam.released.is_set() and list(src) == []
+    assert any("did not stop" in r.getMessage() for r in caplog.records)
+    cam.unstick.set()  # the driver returns: the thread releases its own capture and ends
+    assert cam.released.wait(10) and cam.violations == []
 
 
 def test_band_high_error_is_one_line_and_exits(flight, tmp_path, capsys):
