@@ -61,10 +61,12 @@ class Material:
 
 
 def make_material(folder: Path, *, frames: int = 60, size: tuple[int, int] = (320, 240),
-                  seed: int = 3) -> Material:
-    """Simulate a small flight (video and stills) into ``folder``."""
-    simulate_flight(folder, n_frames=frames, size=size, fps=15.0, seed=seed, save_frames=True)
-    return Material(folder / "video.mp4", folder / "frames", frames)
+                  seed: int = 3, codec: str = "mp4v") -> Material:
+    """Simulate a small flight (video with ``codec``: mp4v, mjpg or ffv1; and stills) into ``folder``."""
+    simulate_flight(folder, n_frames=frames, size=size, fps=15.0, seed=seed, save_frames=True,
+                    video_codec=codec)
+    video = next(p for p in folder.glob("video.*"))
+    return Material(video, folder / "frames", frames)
 
 
 @dataclass
@@ -283,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--frames", type=int, default=60, help="frames of the simulated flight")
     parser.add_argument("--size", default="640x480", help="frame size of the simulated flight, WxH")
+    parser.add_argument("--codec", default="mp4v", choices=("mp4v", "mjpg", "ffv1"),
+                        help="video codec of the simulated flight")
     parser.add_argument("--span", type=float, default=1.5,
                         help="signals land up to this many seconds after mapping starts")
     parser.add_argument("--timeout", type=float, default=60.0,
@@ -293,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="photomap-soak-"))
     work.mkdir(parents=True, exist_ok=True)
     w, h = (int(v) for v in args.size.lower().split("x"))
-    material = make_material(work / "flight", frames=args.frames, size=(w, h))
+    material = make_material(work / "flight", frames=args.frames, size=(w, h), codec=args.codec)
     started = time.monotonic()
     results = soak(material, work, args.runs, args.seed, jobs=args.jobs, timeout=args.timeout,
                    kinds=tuple(args.kinds.split(",")), span=args.span)
