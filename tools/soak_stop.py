@@ -134,10 +134,15 @@ def run_once(material: Material, kind: str, out: Path, delay: float, *,
 def check_run(kind: str, rc: int, err: str, out: Path, material: Material) -> list[str]:
     """What is wrong with one finished run (empty when nothing)."""
     problems = []
-    python_startup = rc in (-signal.SIGINT, -signal.SIGTERM) or (
+    # died of the signal itself: while Python started (before photomap's main(), no outputs) or
+    # after main() returned (outputs complete); either is fine
+    by_signal = rc in (-signal.SIGINT, -signal.SIGTERM) or (
         rc == 1 and err.rstrip().endswith("KeyboardInterrupt"))
-    if not out.exists() and python_startup and not kind.endswith("SIGKILL"):
-        return problems  # interrupted while Python itself started, before photomap's main() ran
+    if by_signal and not kind.endswith("SIGKILL"):
+        if not out.exists():
+            return problems
+        if "error" not in kind:
+            return check_complete(out, material)
     if "Traceback" in err:
         problems.append("traceback on stderr: " + err.strip().splitlines()[-1])
     if "error" in kind:
@@ -189,8 +194,10 @@ def check_complete(out: Path, material: Material) -> list[str]:
         return problems
     try:
         summary = json.loads((out / "run.json").read_text())
-        rows = read_trajectory_csv(out / "trajectory.csv")
-    except (OSError, ValueError, InputError) as exc:
+        # no frame seen (stopped at once): no frame size, no trajectory
+        rows = (read_trajectory_csv(out / "trajectory.csv")
+                if summary["frames_in"] or (out / "trajectory.csv").exists() else [])
+    except (OSError, ValueError, KeyError, InputError) as exc:
         return [f"missing or unreadable output: {exc}"]
     if not summary.get("complete"):
         problems.append("run.json not complete")
@@ -260,15 +267,17 @@ def report(results: list[Result]) -> str:
             lines.append(f"run {i} ({r.kind}, delay {r.delay:+.2f} s, exit {r.rc}): {p}")
     hangs = sum(r.hang for r in results)
     bad = sum(bool(r.problems) and not r.hang for r in results)
-    exits = [r.exit_s for r in results if r.exit_s is not None and "SIGKILL" not in r.kind]
+    signalled = [r for r in results if r.exit_s is not None and ("SIGINT" in r.kind or "SIGTERM" in r.kind)]
+    exits = [r.exit_s for r in signalled]
     codes = Counter((r.kind, r.rc) for r in results)
     part = [r for r in results if "SIGKILL" not in r.kind and "error" not in r.kind]
     n_frames = max((r.frames_in or 0 for r in results), default=0)
     lines.append(f"runs {len(results)}, hangs {hangs}, bad outputs {bad}, "
                  f"temporary files left by SIGKILL {sum(r.tmp_files for r in results)}")
     if exits:
+        slowest = max(signalled, key=lambda r: r.exit_s)
         lines.append(f"seconds from signal to exit: median {statistics.median(exits):.2f}, "
-                     f"max {max(exits):.2f}")
+                     f"max {max(exits):.2f} ({slowest.kind}, delay {slowest.delay:+.2f} s)")
     if part:
         mid = sum(r.frames_in is not None and 0 < r.frames_in < n_frames for r in part)
         lines.append(f"SIGINT/SIGTERM runs stopped part-way through the flight (complete map of the "
