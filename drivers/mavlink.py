@@ -11,7 +11,7 @@ From a tlog: the recorded receipt time of each message (``_timestamp``).
 
 One vehicle: the reader follows one MAVLink system, the configured ``system_id`` or (0, auto)
 the sender of the first autopilot HEARTBEAT (``autopilot != MAV_AUTOPILOT_INVALID``; a ground
-station's heartbeat does not count). Messages of other systems are counted per system id and
+station's, an antenna tracker's or a peripheral's heartbeat does not count). Messages of other systems are counted per system id and
 ignored, so a second vehicle (or a GCS) on the link never mixes into the telemetry. Messages
 that arrive before the first autopilot HEARTBEAT wait (up to ``LOCK_WAIT`` s of data) and are
 used once their system is known; without any autopilot HEARTBEAT the system sending most is
@@ -58,6 +58,12 @@ LOCK_WAIT = 3.0
 _PENDING_MAX = 5000
 #: Bytes of text in one STATUSTEXT.
 STATUSTEXT_BYTES = 50
+#: HEARTBEAT types that are never the vehicle, even with an autopilot (an ArduPilot antenna
+#: tracker, a ground station, peripherals with their own system id).
+_NOT_VEHICLES = frozenset(getattr(mavlink, f"MAV_TYPE_{n}") for n in (
+    "GCS", "ANTENNA_TRACKER", "ONBOARD_CONTROLLER", "CAMERA", "GIMBAL", "ADSB", "OSD", "LOG",
+    "ODID", "FLARM", "BATTERY", "SERVO", "GPS", "IMU", "WINCH", "GRIPPER", "PARACHUTE",
+    "ILLUMINATOR", "CHARGING_STATION") if hasattr(mavlink, f"MAV_TYPE_{n}"))
 _SERIAL_RE = re.compile(r"^(?P<dev>/dev/\S+?|COM\d+)(?:,(?:baud=)?(?P<baud>\d+))?$", re.IGNORECASE)
 
 
@@ -74,6 +80,14 @@ def check_id(value: Any, key: str, *, auto: bool = False) -> int:
         allowed = "0 (auto) or 1..255" if auto else "1..255"
         raise ConfigError(f"{key} must be a MAVLink id, {allowed}; got {value!r}")
     return value
+
+
+def is_vehicle_heartbeat(msg: Any) -> bool:
+    """True for the HEARTBEAT of a vehicle's autopilot: ``autopilot != MAV_AUTOPILOT_INVALID``
+    and not a ground station, antenna tracker or peripheral type."""
+    return (msg.get_type() == "HEARTBEAT"
+            and getattr(msg, "autopilot", mavlink.MAV_AUTOPILOT_INVALID) != mavlink.MAV_AUTOPILOT_INVALID
+            and getattr(msg, "type", mavlink.MAV_TYPE_GCS) not in _NOT_VEHICLES)
 
 
 def statustext_chunks(text: str, size: int = STATUSTEXT_BYTES) -> list[bytes]:
@@ -312,7 +326,7 @@ class _Ingest:
         src = msg.get_srcSystem()
         if st.system_id is None:
             if msg.get_type() == "HEARTBEAT":
-                if getattr(msg, "autopilot", mavlink.MAV_AUTOPILOT_INVALID) != mavlink.MAV_AUTOPILOT_INVALID:
+                if is_vehicle_heartbeat(msg):
                     self._follow(src, "its autopilot HEARTBEAT came first")
                     self.message(msg, t)
                 else:
@@ -324,7 +338,7 @@ class _Ingest:
             return
         if src != st.system_id:
             st.other_systems[src] += 1
-            if msg.get_type() != "HEARTBEAT" or getattr(msg, "autopilot", 0) != mavlink.MAV_AUTOPILOT_INVALID:
+            if msg.get_type() != "HEARTBEAT" or is_vehicle_heartbeat(msg):
                 # telemetry or an autopilot: a second vehicle (a ground station's heartbeat is normal)
                 self._once(f"system {src} also sends telemetry, ignored",
                            f"following system {st.system_id} only (telemetry.system_id)")

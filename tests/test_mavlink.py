@@ -608,3 +608,26 @@ def test_long_statustext_arrives_whole(text):
     assert len({m.id for m in got}) == 1 and got[0].id != 0
     assert [m.chunk_seq for m in got] == list(range(len(got)))
     assert b"".join(m._text_raw.rstrip(b"\x00") for m in got).decode() == text
+
+
+def test_an_antenna_tracker_is_not_the_vehicle(tmp_path):
+    """An ArduPilot antenna tracker has an autopilot too: its HEARTBEAT must not win the lock."""
+    path = tmp_path / "tracker.tlog"
+    with open(path, "wb") as f:
+        w = _TlogWriter(f)
+        tracker = mavlink2.MAVLink(w, srcSystem=2, srcComponent=1)
+        vehicle = mavlink2.MAVLink(w, srcSystem=1, srcComponent=1)
+        for k in range(20):
+            w.t_us = round((T0 + k / 10) * 1e6)
+            if k % 10 == 0:
+                tracker.send(tracker.heartbeat_encode(mavlink.MAV_TYPE_ANTENNA_TRACKER,
+                                                      mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4))
+                tracker.send(tracker.attitude_encode(1000 + k * 100, 0, 0, OTHER_YAW, 0, 0, 0))
+            if k % 10 == 1:
+                vehicle.send(vehicle.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR,
+                                                      mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4))
+            vehicle.send(vehicle.attitude_encode(1000 + k * 100, 0, 0, true_yaw(k / 10), 0, 0, 0))
+    buf, stats = load_tlog(path, max_gap=1.0, max_hold=0.3)
+    assert stats.system_id == 1 and stats.other_systems[2] == 4
+    assert [buf.at(T0 + k / 10).yaw for k in range(20)] == pytest.approx(
+        [true_yaw(k / 10) for k in range(20)], abs=1e-6)
