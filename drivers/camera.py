@@ -44,6 +44,11 @@ class CameraSource(SourceBase):
     is called; the first frame after that counts in ``stats.reconnects``. The back-off only
     resets once a frame arrives. The consumer just sees a gap in ``t`` (no frames meanwhile).
 
+    Threads: the capture thread owns the capture (handed the first one, opening the later
+    ones): it alone reads and releases it, when it ends. ``close()`` only signals and waits at
+    most ``join_timeout`` s for the thread; a driver stuck in ``read()`` keeps its (daemon)
+    thread and capture, never the process. Every wait is bounded.
+
     Parameters
     ----------
     device : str or int
@@ -115,7 +120,7 @@ class CameraSource(SourceBase):
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._error: Exception | None = None
-        self._cap = self._open()
+        self._cap: Any | None = self._open()
         if self._cap is None:
             raise InputError(f"cannot open camera {device}: no such device, or it is busy")
         self._thread = threading.Thread(target=self._run, name=f"capture {device}", daemon=True)
@@ -143,6 +148,8 @@ class CameraSource(SourceBase):
         outage: Iterator[float] | None = None  # back-off delays while the camera is lost
         try:
             while not self._stop.is_set():
+                if self._cap is None:  # stopped while reopening
+                    break
                 ok, image = self._cap.read()
                 t = self._clock()
                 if self._stop.is_set():
@@ -170,6 +177,7 @@ class CameraSource(SourceBase):
             with self._cond:
                 self._stop.set()
                 self._cond.notify_all()
+            self._release()  # the reading thread releases its capture, never another thread
 
     def _push(self, frame: Frame) -> None:
         with self._cond:
@@ -186,7 +194,7 @@ class CameraSource(SourceBase):
         The back-off continues over ``delays`` (shared by the whole outage), so a camera that
         opens but still delivers nothing is retried less and less often.
         """
-        self._cap.release()
+        self._release()
         for delay in delays:
             if self._stop.wait(delay):
                 return
@@ -196,11 +204,20 @@ class CameraSource(SourceBase):
                 return
             log.debug("camera %s: reopening failed", self._name)
 
+    def _release(self) -> None:
+        """Release the current capture (capture thread only; idempotent)."""
+        cap, self._cap = self._cap, None
+        if cap is not None:
+            try:
+                cap.release()
+            except Exception as exc:  # a failing driver must not stop the thread's cleanup
+                log.warning("camera %s: release failed: %s", self._name, exc)
+
     def __iter__(self) -> Iterator[Frame]:
         while True:
             with self._cond:
                 while not self._queue and not self._stop.is_set():
-                    self._cond.wait()
+                    self._cond.wait(0.5)  # bounded: notify is the fast path, not the only one
                 if not self._queue:
                     break
                 frame = self._queue.popleft()
@@ -209,7 +226,10 @@ class CameraSource(SourceBase):
             raise self._error
 
     def close(self) -> None:
-        """Stop the capture thread, release the camera; pending frames are discarded."""
+        """Stop the capture thread (it releases the camera); pending frames are discarded.
+
+        Only signals and waits at most ``join_timeout`` s; safe from any thread.
+        """
         with self._cond:
             self._stop.set()
             self._queue.clear()
@@ -217,7 +237,5 @@ class CameraSource(SourceBase):
         if self._thread is not threading.current_thread():
             self._thread.join(self._join_timeout)
         if self._thread.is_alive():
-            log.warning("camera %s: capture thread did not stop within %.1f s",
-                        self._name, self._join_timeout)
-        else:
-            self._cap.release()
+            log.warning("camera %s: capture thread did not stop within %.1f s; left to exit "
+                        "with the process", self._name, self._join_timeout)

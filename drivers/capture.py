@@ -21,6 +21,7 @@ from photomap.drivers.camera import CameraSource
 from photomap.drivers.frames import FrameSource
 from photomap.drivers.images import ImageFolderSource
 from photomap.drivers.video import VideoFileSource
+from photomap.errors import InputError
 
 _CAMERA_PATH = re.compile(r"^/dev/video\d+$")
 _GLOB_CHARS = re.compile(r"[*?\[]")
@@ -85,7 +86,12 @@ def open_source(
             capture_factory=capture_factory,
         )
     text = str(spec)
-    if Path(text).is_dir() or (_GLOB_CHARS.search(text) and not Path(text).exists()):
+    try:
+        is_dir = Path(text).is_dir()
+        is_glob = bool(_GLOB_CHARS.search(text)) and not Path(text).exists()
+    except OSError as exc:  # e.g. a parent folder we may not enter
+        raise InputError(f"cannot access {text}: {exc.strerror or exc}") from None
+    if is_dir or is_glob:
         return ImageFolderSource(text, rate=image_rate)
     return VideoFileSource(text)
 

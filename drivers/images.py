@@ -20,6 +20,8 @@ log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 _GLOB_CHARS = re.compile(r"[*?\[]")
+#: Stills with a side shorter than this (pixels) are skipped: too small to register.
+MIN_SIDE = 16
 
 __all__ = ["IMAGE_SUFFIXES", "ImageFolderSource", "exif_time", "list_images", "parse_exif_datetime"]
 
@@ -36,13 +38,22 @@ def exif_time(path: str | Path) -> float | None:
 
 
 def list_images(folder_or_glob: str | Path) -> list[Path]:
-    """Still images (jpg, jpeg, png, tif, tiff; any case) of a folder or glob, sorted by path."""
+    """Still images (jpg, jpeg, png, tif, tiff; any case) of a folder or glob, sorted by path.
+
+    Raises
+    ------
+    InputError
+        The folder cannot be listed (permissions, I/O error).
+    """
     text = str(folder_or_glob)
-    if Path(text).is_dir():
-        candidates = Path(text).iterdir()
-    else:
-        candidates = (Path(p) for p in glob.glob(text))
-    paths = [p for p in candidates if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+    try:
+        if Path(text).is_dir():
+            candidates = list(Path(text).iterdir())
+        else:
+            candidates = [Path(p) for p in glob.glob(text)]
+        paths = [p for p in candidates if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
+    except OSError as exc:
+        raise InputError(f"cannot read image folder {text}: {exc.strerror or exc}") from None
     return sorted(paths, key=str)
 
 
@@ -52,8 +63,10 @@ class ImageFolderSource(SourceBase):
     ``Frame.t`` is the EXIF capture time (seconds since the Unix epoch, see
     :func:`parse_exif_datetime`) when *every* still carries one; otherwise ``index / rate``
     for all of them (one warning), so a run never mixes two clocks. ``Frame.index`` is the
-    position in the sorted list: a corrupt or unreadable file is skipped (one warning each,
-    counted in ``stats.corrupt``) and leaves a gap.
+    position in the sorted list: an unusable file (unreadable, not an image, or smaller than
+    ``MIN_SIDE`` pixels on a side: too small to register) is skipped with one logged line,
+    counted in ``stats.corrupt``, and leaves a gap; so the first *usable* still is the first
+    frame (the one that sets the map's frame size).
 
     Parameters
     ----------
@@ -108,6 +121,11 @@ class ImageFolderSource(SourceBase):
             image = cv2.imread(str(path), cv2.IMREAD_ANYCOLOR)
             if image is None:
                 log.warning("skipping %s: not a readable image", path)
+                self.stats.corrupt += 1
+                continue
+            if min(image.shape[:2]) < MIN_SIDE:
+                log.warning("skipping %s: %dx%d pixels, too small to register (less than %d on a "
+                            "side)", path, image.shape[1], image.shape[0], MIN_SIDE)
                 self.stats.corrupt += 1
                 continue
             self.stats.read += 1

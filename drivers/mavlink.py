@@ -9,6 +9,14 @@ Time base: samples are stamped with host UNIX seconds. Live: the host clock at r
 as ``time.time()`` once at start plus ``time.monotonic()`` elapsed, so it never steps back.
 From a tlog: the recorded receipt time of each message (``_timestamp``).
 
+One vehicle: the reader follows one MAVLink system, the configured ``system_id`` or (0, auto)
+the sender of the first autopilot HEARTBEAT (``autopilot != MAV_AUTOPILOT_INVALID``; a ground
+station's, an antenna tracker's or a peripheral's heartbeat does not count). Messages of other systems are counted per system id and
+ignored, so a second vehicle (or a GCS) on the link never mixes into the telemetry. Messages
+that arrive before the first autopilot HEARTBEAT wait (up to ``LOCK_WAIT`` s of data) and are
+used once their system is known; without any autopilot HEARTBEAT the system sending most is
+followed, with a warning.
+
 This module sets ``MAVLINK20=1`` before importing pymavlink, so that every connection in
 the process speaks MAVLink 2 (pymavlink switches process-wide anyway on the first v2 frame).
 """
@@ -20,7 +28,7 @@ import os
 import re
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,7 +40,7 @@ if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # pymavlink was imported bef
     mavutil.set_dialect(mavutil.current_dialect)
 
 from photomap.config import TelemetryConfig  # noqa: E402
-from photomap.errors import InputError  # noqa: E402
+from photomap.errors import ConfigError, InputError  # noqa: E402
 from photomap.telemetry.samples import MESSAGE_TYPES, TelemetryBuffer, TelemetrySample  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -44,7 +52,62 @@ _NET_PREFIXES = ("udpin", "udpout", "udp", "udpbcast", "tcp", "tcpin")
 _DATAFLASH_SUFFIXES = (".bin", ".log", ".px4log")
 #: Seconds within which an identical frame of the same source is a duplicate.
 DUPLICATE_WINDOW = 0.05
+#: Seconds of data (message time) that wait for an autopilot HEARTBEAT before the system
+#: sending most is followed anyway.
+LOCK_WAIT = 3.0
+#: Messages held while waiting for the autopilot HEARTBEAT (beyond: the fallback decides).
+_PENDING_MAX = 5000
+#: Bytes of text in one STATUSTEXT.
+STATUSTEXT_BYTES = 50
+#: HEARTBEAT types that are never the vehicle, even with an autopilot (an ArduPilot antenna
+#: tracker, a ground station, peripherals with their own system id).
+_NOT_VEHICLES = frozenset(getattr(mavlink, f"MAV_TYPE_{n}") for n in (
+    "GCS", "ANTENNA_TRACKER", "ONBOARD_CONTROLLER", "CAMERA", "GIMBAL", "ADSB", "OSD", "LOG",
+    "ODID", "FLARM", "BATTERY", "SERVO", "GPS", "IMU", "WINCH", "GRIPPER", "PARACHUTE",
+    "ILLUMINATOR", "CHARGING_STATION") if hasattr(mavlink, f"MAV_TYPE_{n}"))
 _SERIAL_RE = re.compile(r"^(?P<dev>/dev/\S+?|COM\d+)(?:,(?:baud=)?(?P<baud>\d+))?$", re.IGNORECASE)
+
+
+def check_id(value: Any, key: str, *, auto: bool = False) -> int:
+    """``value`` as a MAVLink system/component id (1..255; 0 too when ``auto``).
+
+    Raises
+    ------
+    ConfigError
+        Naming ``key`` (the config key or parameter the value came from).
+    """
+    low = 0 if auto else 1
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= 255:
+        allowed = "0 (auto) or 1..255" if auto else "1..255"
+        raise ConfigError(f"{key} must be a MAVLink id, {allowed}; got {value!r}")
+    return value
+
+
+def is_vehicle_heartbeat(msg: Any) -> bool:
+    """True for the HEARTBEAT of a vehicle's autopilot: ``autopilot != MAV_AUTOPILOT_INVALID``
+    and not a ground station, antenna tracker or peripheral type."""
+    return (msg.get_type() == "HEARTBEAT"
+            and getattr(msg, "autopilot", mavlink.MAV_AUTOPILOT_INVALID) != mavlink.MAV_AUTOPILOT_INVALID
+            and getattr(msg, "type", mavlink.MAV_TYPE_GCS) not in _NOT_VEHICLES)
+
+
+def statustext_chunks(text: str, size: int = STATUSTEXT_BYTES) -> list[bytes]:
+    """UTF-8 ``text`` cut into STATUSTEXT payloads of at most ``size`` bytes (MAVLink 2 chunking).
+
+    Every chunk but the last is exactly ``size`` bytes (a NUL in a chunk marks the last one, and
+    MAVLink pads a shorter text with NULs); when the text fills its last chunk exactly, an
+    empty chunk ends the sequence. At most 256 chunks (``chunk_seq`` is a uint8): longer text
+    is cut. A text that fits one message is one chunk.
+    """
+    data = text.encode("utf-8")
+    if len(data) <= size:
+        return [data]
+    chunks = [data[i:i + size] for i in range(0, len(data), size)]
+    if len(chunks[-1]) == size:
+        chunks.append(b"")
+    if len(chunks) > 256:
+        chunks = chunks[:255] + [b""]
+    return chunks
 
 
 class Link:
@@ -60,6 +123,7 @@ class Link:
         #: "udpin", "udpout", "udp", "udpbcast", "tcp", "tcpin", "serial" or "tlog".
         self.kind = kind
         self._send_lock = threading.Lock()
+        self._status_id = 0  # id of the last chunked STATUSTEXT (1..65535)
 
     @property
     def is_log(self) -> bool:
@@ -91,11 +155,25 @@ class Link:
                                          mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE)
 
     def send_status(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
-        """Send a STATUSTEXT (``severity`` is a MAV_SEVERITY_*; text cut to MAVLink's 50 bytes)."""
+        """Send a STATUSTEXT (``severity`` is a MAV_SEVERITY_*).
+
+        Text longer than 50 bytes goes as a MAVLink 2 chunk sequence (same nonzero ``id``,
+        ``chunk_seq`` 0, 1, ...; see :func:`statustext_chunks`), which QGroundControl, MAVSDK
+        and Mission Planner reassemble. A send error (network down) is logged, never raised.
+        """
         if self.is_log:
             return
-        with self._send_lock:
-            self.conn.mav.statustext_send(severity, text.encode("utf-8")[:50])
+        chunks = statustext_chunks(text)
+        try:
+            with self._send_lock:
+                if len(chunks) == 1:
+                    self.conn.mav.statustext_send(severity, chunks[0])
+                    return
+                self._status_id = self._status_id % 65535 + 1
+                for seq, chunk in enumerate(chunks):
+                    self.conn.mav.statustext_send(severity, chunk, id=self._status_id, chunk_seq=seq)
+        except OSError as exc:
+            log.warning("MAVLink %s: STATUSTEXT not sent: %s", self.spec, exc)
 
     def close(self) -> None:
         """Close the connection (idempotent)."""
@@ -118,8 +196,11 @@ def open_link(spec: str, *, baud: int = 57600, source_system: int = 1,
 
     ``baud`` is used for a serial device whose string names none. ``source_system`` and
     ``source_component`` identify what *we* send. Raises :class:`InputError` on a bad string,
-    a missing file or device, a refused TCP connection, or pyserial missing.
+    a missing file or device, a refused TCP connection, or pyserial missing;
+    :class:`ConfigError` on an id outside 1..255 (``telemetry.source_system``).
     """
+    check_id(source_system, "telemetry.source_system")
+    check_id(source_component, "MAVLink source_component")
     spec = str(spec).strip()
     if not spec:
         raise InputError("empty MAVLink connection string")
@@ -186,10 +267,24 @@ class LinkStats:
     link_regained: int = 0
     #: Frames the MAVLink parser failed on (garbage, bad CRC).
     receive_errors: int = 0
+    #: The MAVLink system followed (None until known); ``messages`` counts only its messages.
+    system_id: int | None = None
+    #: Messages of other systems (ignored), by system id.
+    other_systems: Counter = field(default_factory=Counter)
+    #: Time (s, the samples' time base) of the first and the last message of the followed system.
+    first_t: float | None = None
+    last_t: float | None = None
 
     @property
     def total(self) -> int:
         return sum(self.messages.values())
+
+    @property
+    def span(self) -> tuple[float, float] | None:
+        """``(first_t, last_t)`` of the followed system's messages, or None before any."""
+        if self.first_t is None or self.last_t is None:
+            return None
+        return self.first_t, self.last_t
 
 
 def _autopilot_time(msg: Any) -> int | None:
@@ -201,29 +296,88 @@ def _autopilot_time(msg: Any) -> int | None:
 
 
 class _Ingest:
-    """Feeds messages into a buffer: dedupes, counts, logs each kind of problem once."""
+    """Feeds one system's messages into a buffer: dedupes, counts, logs each kind of problem once.
 
-    def __init__(self, buffer: TelemetryBuffer, stats: LinkStats, link_timeout: float) -> None:
+    ``system_id`` 0 follows the first autopilot HEARTBEAT's system (see the module doc).
+    """
+
+    def __init__(self, buffer: TelemetryBuffer, stats: LinkStats, link_timeout: float, *,
+                 system_id: int = 0, name: str = "") -> None:
         self.buffer = buffer
         self.stats = stats
         self.link_timeout = link_timeout
+        self.name = name
         self.last_t: float | None = None
         self.lost = False
+        stats.system_id = system_id or None
+        self._pending: deque[tuple[Any, float]] = deque()  # before the system is known
         self._previous: dict[tuple, tuple] = {}
         self._warned: set[str] = set()
         self._bad: set[str] = set()
         self._recovered: set[str] = set()
 
+    @property
+    def waiting(self) -> int:
+        """Messages held until the system to follow is known."""
+        return len(self._pending)
+
     def message(self, msg: Any, t: float) -> None:
+        """Take one received message (``t``: its time in the buffer's time base)."""
+        st = self.stats
+        src = msg.get_srcSystem()
+        if st.system_id is None:
+            if msg.get_type() == "HEARTBEAT":
+                if is_vehicle_heartbeat(msg):
+                    self._follow(src, "its autopilot HEARTBEAT came first")
+                    self.message(msg, t)
+                else:
+                    st.other_systems[src] += 1  # a ground station or a peripheral: never followed
+                return
+            self._pending.append((msg, t))
+            if t - self._pending[0][1] > LOCK_WAIT or len(self._pending) >= _PENDING_MAX:
+                self.settle()
+            return
+        if src != st.system_id:
+            st.other_systems[src] += 1
+            if msg.get_type() != "HEARTBEAT" or is_vehicle_heartbeat(msg):
+                # telemetry or an autopilot: a second vehicle (a ground station's heartbeat is normal)
+                self._once(f"system {src} also sends telemetry, ignored",
+                           f"following system {st.system_id} only (telemetry.system_id)")
+            return
+        self._take(msg, t)
+
+    def settle(self) -> None:
+        """No autopilot HEARTBEAT so far: follow the system that sent most of the waiting messages."""
+        if self.stats.system_id is not None or not self._pending:
+            return
+        counts = Counter(m.get_srcSystem() for m, _ in self._pending)
+        src = counts.most_common(1)[0][0]
+        log.warning("MAVLink %s: no autopilot HEARTBEAT in %d messages: following system %d, the "
+                    "one sending most (set telemetry.system_id to choose)", self.name,
+                    len(self._pending), src)
+        self._follow(src, "it sent most")
+
+    def _follow(self, src: int, why: str) -> None:
+        """Lock to system ``src``; the waiting messages are taken (or ignored) in order."""
+        self.stats.system_id = src
+        log.info("MAVLink %s: following system %d (%s)", self.name, src, why)
+        pending, self._pending = self._pending, deque()
+        for msg, t in pending:
+            self.message(msg, t)
+
+    def _take(self, msg: Any, t: float) -> None:
         st = self.stats
         mtype = msg.get_type()
         st.messages[mtype] += 1
+        if st.first_t is None:
+            st.first_t = t
+        st.last_t = t if st.last_t is None else max(st.last_t, t)
         if self.last_t is not None and not self.lost and t - self.last_t > self.link_timeout:
             self.lose(t, f"no message for {t - self.last_t:.1f} s")
         if self.lost:
             self.lost = False
             st.link_regained += 1
-            log.info("MAVLink data again (%s)", mtype)
+            log.info("MAVLink %s: data again (%s)", self.name, mtype)
         self.last_t = t
         if mtype == "HEARTBEAT":
             return
@@ -270,7 +424,7 @@ class _Ingest:
         self.buffer.mark_gap(min(self.last_t + self.buffer.max_hold, t_now))
         self.stats.gaps += 1
         self.stats.link_lost += 1
-        log.warning("MAVLink link lost: %s", why)
+        log.warning("MAVLink %s: link lost: %s", self.name, why)
 
     def _once(self, kind: str, consequence: str) -> None:
         if kind not in self._warned:
@@ -279,22 +433,27 @@ class _Ingest:
 
 
 def load_tlog(path: str | Path, *, max_gap: float = 2.0, max_hold: float = 0.5,
-              link_timeout: float = 2.0) -> tuple[TelemetryBuffer, LinkStats]:
+              link_timeout: float = 2.0, system_id: int = 0) -> tuple[TelemetryBuffer, LinkStats]:
     """Read a whole ``.tlog`` into a buffer with no horizon (for replay).
 
     Samples are stamped with the recorded receipt times (UNIX seconds). A silence longer
-    than ``link_timeout`` in the log is marked as a gap. Returns the buffer and its stats.
+    than ``link_timeout`` in the log is marked as a gap. Only one system is read:
+    ``system_id`` (``telemetry.system_id``), or 0 for the first autopilot HEARTBEAT's.
+    Returns the buffer and its stats (``stats.span``: the followed system's first and last
+    message time, e.g. to see that a log ends before the video).
     """
+    check_id(system_id, "telemetry.system_id", auto=True)
     link = open_link(str(path))
     if not link.is_log:
         link.close()
         raise InputError(f"not a telemetry log: {path}")
     buffer = TelemetryBuffer(max_gap=max_gap, max_hold=max_hold, horizon=None)
     stats = LinkStats()
-    ingest = _Ingest(buffer, stats, link_timeout)
+    ingest = _Ingest(buffer, stats, link_timeout, system_id=system_id, name=Path(path).name)
     try:
         while (msg := link.recv(RECV_TYPES, 0.0)) is not None:
             ingest.message(msg, msg._timestamp)
+        ingest.settle()  # a log without any autopilot HEARTBEAT
     finally:
         stats.receive_errors = link.receive_errors
         link.close()
@@ -326,15 +485,29 @@ class TelemetryReader:
         Send our HEARTBEAT at 1 Hz (live links only).
     speed : float or None
         Pacing of a tlog source (1 = recorded timing).
+    system_id : int
+        The MAVLink system to follow; 0 = the first autopilot HEARTBEAT's (see the module doc).
+    no_data_warning : float
+        A live link that delivered nothing from the vehicle this many seconds after the start
+        gets one WARNING naming the connection (going silent later is a "link lost" WARNING).
     open_kwargs
         Passed to :func:`open_link` (``baud``, ``source_system``).
+
+    Raises
+    ------
+    ConfigError
+        ``system_id`` (or, at :meth:`start`, ``source_system``) is not a MAVLink id.
     """
 
     recv_timeout = 0.5
 
     def __init__(self, link: str | Link, buffer: TelemetryBuffer | None = None, *,
                  link_timeout: float = 2.0, send_heartbeat: bool = False,
-                 speed: float | None = None, **open_kwargs: Any) -> None:
+                 speed: float | None = None, system_id: int = 0, no_data_warning: float = 5.0,
+                 **open_kwargs: Any) -> None:
+        check_id(system_id, "telemetry.system_id", auto=True)
+        if "source_system" in open_kwargs:
+            check_id(open_kwargs["source_system"], "telemetry.source_system")
         self._spec = link
         self._open_kwargs = open_kwargs
         self.buffer = buffer if buffer is not None else TelemetryBuffer()
@@ -347,7 +520,10 @@ class TelemetryReader:
         self.finished = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._ingest = _Ingest(self.buffer, self.stats, self.link_timeout)
+        self.no_data_warning = float(no_data_warning)
+        name = link.spec if isinstance(link, Link) else str(link)
+        self._ingest = _Ingest(self.buffer, self.stats, self.link_timeout, system_id=system_id,
+                               name=name)
 
     @classmethod
     def from_config(cls, params: TelemetryConfig) -> TelemetryReader:
@@ -357,7 +533,7 @@ class TelemetryReader:
         buffer = TelemetryBuffer(max_gap=params.max_gap, max_hold=params.max_hold, horizon=params.horizon)
         return cls(params.source, buffer, link_timeout=params.link_timeout,
                    send_heartbeat=params.send_heartbeat, baud=params.baud,
-                   source_system=params.source_system)
+                   source_system=params.source_system, system_id=params.system_id)
 
     def start(self) -> TelemetryReader:
         """Open the link (errors raise here, in the caller's thread) and start reading."""
@@ -405,16 +581,23 @@ class TelemetryReader:
         unix0, mono0 = time.time(), time.monotonic()
         next_beat = time.monotonic()
         pace0: tuple[float, float] | None = None
+        quiet_start = not link.is_log  # warn once if a live link brings nothing at first
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
                 if self.send_heartbeat and not link.is_log and now >= next_beat:
                     link.send_heartbeat()
                     next_beat = now + 1.0
+                if quiet_start and now - mono0 >= self.no_data_warning:
+                    quiet_start = False
+                    if self._ingest.last_t is None:
+                        self._warn_no_data(now - mono0)
                 msg = link.recv(RECV_TYPES, self.recv_timeout)
                 self.stats.receive_errors = link.receive_errors
                 if msg is None:
                     if link.is_log:
+                        with self.lock:
+                            self._ingest.settle()
                         log.info("end of telemetry log %s after %d messages", link.spec, self.stats.total)
                         break
                     self._check_silence(unix0 + (time.monotonic() - mono0))
@@ -436,6 +619,21 @@ class TelemetryReader:
             self.stats.receive_errors = link.receive_errors
             link.close()
             self.finished.set()
+
+    def _warn_no_data(self, elapsed: float) -> None:
+        st, spec = self.stats, self.link.spec if self.link else self._spec
+        if st.other_systems:
+            seen = ", ".join(f"system {k}: {v}" for k, v in sorted(st.other_systems.items()))
+            why = f"only messages of systems not followed ({seen})"
+        elif self._ingest.waiting:
+            why = f"{self._ingest.waiting} messages but no autopilot HEARTBEAT yet"
+        elif self.stats.receive_errors:
+            why = f"{self.stats.receive_errors} unreadable frames (wrong baud rate or protocol?)"
+        else:
+            why = ("not a single MAVLink message: check the connection string, the port or baud "
+                   "rate, and that the vehicle or router sends to this address")
+        log.warning("MAVLink %s: no telemetry from the vehicle %.0f s after the start (%s); mapping "
+                    "continues without it until it arrives", spec, elapsed, why)
 
     def _check_silence(self, t_now: float) -> None:
         ing = self._ingest

@@ -217,6 +217,7 @@ class TelemetryConfig(_Section):
     send_heartbeat: bool = False
     send_statustext: bool = False
     source_system: int = _num(1, 1, 255)
+    system_id: int = _num(0, 0, 255)
     use_priors: bool = True
     prior_angle_tol_deg: float = _num(5.0, 0.0, 180.0, lo_open=True)
     prior_scale_tol: float = _num(0.05, 0.0, 10.0, lo_open=True)

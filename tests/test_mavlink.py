@@ -17,11 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from photomap.drivers.mavlink import Link, TelemetryReader, load_tlog, mavlink, open_link
+from photomap.drivers.mavlink import (Link, TelemetryReader, load_tlog, mavlink, open_link,
+                                      statustext_chunks)
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from photomap.config import load_config
-from photomap.errors import InputError
+from photomap.errors import ConfigError, InputError
 from photomap.telemetry.samples import TelemetryBuffer
 from tools.mavlink_replay import main as replay_main
 from tools.mavlink_replay import replay
@@ -404,3 +405,232 @@ def test_link_wraps_an_open_connection(synthetic):
     assert reader.finished.wait(5.0)
     reader.stop()
     assert reader.stats.messages == synthetic[1]
+
+
+# ----------------------------------------------------------------------------- one vehicle
+OTHER_YAW = 0.5  # the second vehicle's constant yaw [rad]
+
+
+def write_two_vehicles(path: Path, *, vehicle_heartbeat_at: float | None = 0.4,
+                       other_heartbeat_at: float | None = 0.0) -> Counter:
+    """A tlog where vehicle 1 flies the known flight (yaw :func:`true_yaw`) and vehicle 2 sends
+    ATTITUDE with yaw OTHER_YAW at the same rate, interleaved; a ground station (255) sends its
+    HEARTBEAT (autopilot INVALID) first. Vehicle 1's first HEARTBEAT comes at
+    ``vehicle_heartbeat_at`` s (its ATTITUDE from 0 s; times on the 0.1 s grid), vehicle 2's at ``other_heartbeat_at``
+    (None: never). Returns the messages written per system id."""
+    counts: Counter = Counter()
+    with open(path, "wb") as f:
+        w = _TlogWriter(f)
+        mavs = {s: mavlink2.MAVLink(w, srcSystem=s, srcComponent=1) for s in (1, 2, 255)}
+
+        def send(sysid, msg):
+            mavs[sysid].send(msg)
+            counts[sysid] += 1
+
+        for k in range(30):  # 3 s at 10 Hz
+            t = k / 10
+            w.t_us = round((T0 + t) * 1e6)
+            boot_ms = 100_000 + k * 100
+            if k % 10 == 0:
+                send(255, mavs[255].heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                                     0, 0, mavlink.MAV_STATE_ACTIVE))
+            for sysid, first in ((2, other_heartbeat_at), (1, vehicle_heartbeat_at)):
+                if first is not None and k >= round(first * 10) and (k - round(first * 10)) % 10 == 0:
+                    send(sysid, mavs[sysid].heartbeat_encode(
+                        mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 4,
+                        mavlink.MAV_STATE_ACTIVE))
+            send(2, mavs[2].attitude_encode(boot_ms + 7, 0.0, 0.0, OTHER_YAW, 0.0, 0.0, 0.0))
+            send(1, mavs[1].attitude_encode(boot_ms, 0.05, -0.02, true_yaw(t), 0.0, 0.0, 1.0))
+    return counts
+
+
+def _yaws(buf: TelemetryBuffer) -> list[float | None]:
+    return [buf.at(T0 + k / 10).yaw for k in range(30)]
+
+
+def test_two_vehicles_are_never_mixed(tmp_path, caplog):
+    """The bug: every system went into one buffer, so yaw jumped between two vehicles."""
+    path = tmp_path / "two.tlog"
+    counts = write_two_vehicles(path, vehicle_heartbeat_at=0.4, other_heartbeat_at=1.0)
+    with caplog.at_level(logging.WARNING, logger="photomap.drivers.mavlink"):
+        buf, stats = load_tlog(path, max_gap=1.0, max_hold=0.3)
+    assert stats.system_id == 1  # its autopilot HEARTBEAT came first (the GCS's does not count)
+    # vehicle 1's ATTITUDE from before its first HEARTBEAT (0 .. 0.3 s) is used too
+    assert _yaws(buf) == pytest.approx([true_yaw(k / 10) for k in range(30)], abs=1e-6)
+    assert stats.span == pytest.approx((T0, T0 + 2.9))
+    assert stats.messages["ATTITUDE"] == 30 and stats.messages["HEARTBEAT"] == 3
+    assert dict(stats.other_systems) == {2: counts[2], 255: counts[255]}
+    warned = [r.getMessage() for r in caplog.records if "system 2" in r.getMessage()]
+    assert len(warned) == 1 and "ignored" in warned[0]
+    assert not [r for r in caplog.records if "system 255" in r.getMessage()]  # a GCS is normal
+
+
+def test_a_configured_system_id_is_followed(tmp_path):
+    path = tmp_path / "two.tlog"
+    counts = write_two_vehicles(path, vehicle_heartbeat_at=0.0, other_heartbeat_at=None)
+    buf, stats = load_tlog(path, max_gap=1.0, max_hold=0.3, system_id=2)
+    assert stats.system_id == 2
+    assert _yaws(buf) == pytest.approx([OTHER_YAW] * 30)
+    assert stats.other_systems[1] == counts[1]
+
+
+def test_without_any_autopilot_heartbeat_the_busiest_system_is_followed(tmp_path, caplog):
+    path = tmp_path / "none.tlog"
+    with open(path, "wb") as f:
+        w = _TlogWriter(f)
+        mavs = {s: mavlink2.MAVLink(w, srcSystem=s, srcComponent=1) for s in (1, 2)}
+        for k in range(50):  # 5 s: vehicle 1 at 10 Hz, vehicle 2 at 5 Hz, no HEARTBEAT at all
+            w.t_us = round((T0 + k / 10) * 1e6)
+            mavs[1].send(mavs[1].attitude_encode(1000 + k * 100, 0, 0, true_yaw(k / 10), 0, 0, 0))
+            if k % 2:
+                mavs[2].send(mavs[2].attitude_encode(1000 + k * 100, 0, 0, OTHER_YAW, 0, 0, 0))
+    with caplog.at_level(logging.WARNING, logger="photomap.drivers.mavlink"):
+        buf, stats = load_tlog(path, max_gap=1.0, max_hold=0.3)
+    assert stats.system_id == 1 and stats.other_systems[2] == 25
+    assert [buf.at(T0 + k / 10).yaw for k in range(50)] == pytest.approx(
+        [true_yaw(k / 10) for k in range(50)], abs=1e-6)
+    assert sum("no autopilot HEARTBEAT" in r.getMessage() for r in caplog.records) == 1
+    short = tmp_path / "short.tlog"  # a log that ends before the wait is over: the same choice
+    short.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 4])
+    buf, stats = load_tlog(short)
+    assert stats.system_id == 1 and buf.at(T0).yaw == pytest.approx(true_yaw(0.0))
+
+
+def test_live_reader_follows_one_vehicle(tmp_path):
+    path = tmp_path / "two.tlog"
+    write_two_vehicles(path, vehicle_heartbeat_at=0.4, other_heartbeat_at=1.0)
+    port = free_port()
+    with TelemetryReader(f"udpin:127.0.0.1:{port}", TelemetryBuffer(horizon=None)) as reader:
+        th, result = _replay_thread(path, f"udpout:127.0.0.1:{port}", speed=20.0)
+        th.join(10)
+
+        def last_yaw():
+            with reader.lock:
+                return reader.buffer.latest("yaw")[1]
+
+        # the vehicle's last attitude arrives (on a busy machine, a little after the replay ends)
+        assert wait_for(lambda: abs(last_yaw() - true_yaw(2.9)) < 1e-6), last_yaw()
+    assert reader.stats.system_id == 1 and reader.stats.other_systems[2] > 0
+
+
+def test_ids_outside_1_255_are_a_config_error_naming_the_key(tmp_path, capsys):
+    """The bug: source_system=300 killed the reader thread or the worker (struct.error)."""
+    port = free_port()
+    with pytest.raises(ConfigError, match="telemetry.source_system"):
+        open_link(f"udpin:127.0.0.1:{port}", source_system=300)
+    with pytest.raises(ConfigError, match="telemetry.source_system"):
+        TelemetryReader(f"udpin:127.0.0.1:{port}", source_system=0)
+    with pytest.raises(ConfigError, match="telemetry.system_id"):
+        TelemetryReader(f"udpin:127.0.0.1:{port}", system_id=256)
+    with pytest.raises(ConfigError, match="telemetry.system_id"):
+        load_tlog(tmp_path / "x.tlog", system_id=-1)
+    from photomap.cli.main import main as cli
+    code = cli(["replay", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "o"), "-q",
+                "--mavlink", f"udpin:127.0.0.1:{port}", "--set", "telemetry.source_system=300"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code in (2, 3) and len(err) == 1 and "Traceback" not in err[0]
+
+
+# ----------------------------------------------------------------------------- silence
+def test_a_live_link_that_brings_nothing_is_reported_once_by_name(caplog):
+    port = free_port()
+    spec = f"udpin:127.0.0.1:{port}"
+    with caplog.at_level(logging.WARNING, logger="photomap.drivers.mavlink"):
+        with TelemetryReader(spec, no_data_warning=0.3) as reader:
+            assert wait_for(lambda: any("no telemetry" in r.getMessage() for r in caplog.records))
+            reader._stop.wait(0.8)  # a while longer: still one warning
+    warned = [r for r in caplog.records if "no telemetry" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].levelno == logging.WARNING
+    assert spec in warned[0].getMessage() and "not a single MAVLink message" in warned[0].getMessage()
+
+
+def test_only_a_ground_station_on_the_link_is_reported(caplog):
+    port = free_port()
+    spec = f"udpin:127.0.0.1:{port}"
+    with caplog.at_level(logging.WARNING, logger="photomap.drivers.mavlink"):
+        with TelemetryReader(spec, no_data_warning=0.6) as reader:
+            gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255)
+            try:
+                gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 4)
+                assert wait_for(lambda: any("no telemetry" in r.getMessage() for r in caplog.records))
+            finally:
+                gcs.close()
+    message = next(r.getMessage() for r in caplog.records if "no telemetry" in r.getMessage())
+    assert spec in message and "system 255: 1" in message
+    assert reader.stats.system_id is None and reader.stats.total == 0
+
+
+def test_a_link_going_silent_is_a_warning_naming_it(synthetic, caplog):
+    path, _ = synthetic
+    port = free_port()
+    spec = f"udpin:127.0.0.1:{port}"
+    with caplog.at_level(logging.WARNING, logger="photomap.drivers.mavlink"):
+        with TelemetryReader(spec, link_timeout=0.3) as reader:
+            th, _ = _replay_thread(path, f"udpout:127.0.0.1:{port}", speed=10.0, stop_after=0.1)
+            th.join(10)
+            assert wait_for(lambda: reader.link_lost)
+    lost = [r.getMessage() for r in caplog.records if "link lost" in r.getMessage()]
+    assert len(lost) == 1 and spec in lost[0]
+    assert not [r for r in caplog.records if "no telemetry" in r.getMessage()]
+
+
+# ----------------------------------------------------------------------------- STATUSTEXT
+def test_statustext_chunks():
+    assert statustext_chunks("") == [b""]
+    assert statustext_chunks("x" * 50) == [b"x" * 50]                       # fits: one, id 0
+    assert statustext_chunks("x" * 51) == [b"x" * 50, b"x"]
+    assert statustext_chunks("x" * 100) == [b"x" * 50, b"x" * 50, b""]      # a NUL ends it
+    text = "Kartierung läuft: Höhe über Grund unbekannt, Verbindung zur Karte verloren"
+    chunks = statustext_chunks(text)
+    assert all(len(c) == 50 for c in chunks[:-1]) and len(chunks[-1]) < 50
+    assert b"".join(chunks).decode("utf-8") == text
+    assert len(statustext_chunks("y" * 20000)) == 256                      # chunk_seq is a uint8
+
+
+@pytest.mark.parametrize("text", ["photomap: link to map lost, new segment at frame 12345 (confidence 0.03)",
+                                  "z" * 100, "ok"])
+def test_long_statustext_arrives_whole(text):
+    """The bug: STATUSTEXT was cut at 50 bytes. Chunks share a nonzero id, chunk_seq 0, 1, ..."""
+    port = free_port()
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}")
+    link = open_link(f"udpout:127.0.0.1:{port}", source_system=1)
+    try:
+        link.send_status(text, mavlink.MAV_SEVERITY_WARNING)
+        got = []
+        while (msg := gcs.recv_match(type="STATUSTEXT", blocking=True, timeout=3.0)) is not None:
+            got.append(msg)
+            if b"\x00" in msg._text_raw or (msg.id == 0):
+                break
+    finally:
+        link.close()
+        gcs.close()
+    assert got and all(m.severity == mavlink.MAV_SEVERITY_WARNING for m in got)
+    if len(text) <= 50:
+        assert len(got) == 1 and got[0].id == 0 and got[0].text == text
+        return
+    assert len({m.id for m in got}) == 1 and got[0].id != 0
+    assert [m.chunk_seq for m in got] == list(range(len(got)))
+    assert b"".join(m._text_raw.rstrip(b"\x00") for m in got).decode() == text
+
+
+def test_an_antenna_tracker_is_not_the_vehicle(tmp_path):
+    """An ArduPilot antenna tracker has an autopilot too: its HEARTBEAT must not win the lock."""
+    path = tmp_path / "tracker.tlog"
+    with open(path, "wb") as f:
+        w = _TlogWriter(f)
+        tracker = mavlink2.MAVLink(w, srcSystem=2, srcComponent=1)
+        vehicle = mavlink2.MAVLink(w, srcSystem=1, srcComponent=1)
+        for k in range(20):
+            w.t_us = round((T0 + k / 10) * 1e6)
+            if k % 10 == 0:
+                tracker.send(tracker.heartbeat_encode(mavlink.MAV_TYPE_ANTENNA_TRACKER,
+                                                      mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4))
+                tracker.send(tracker.attitude_encode(1000 + k * 100, 0, 0, OTHER_YAW, 0, 0, 0))
+            if k % 10 == 1:
+                vehicle.send(vehicle.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR,
+                                                      mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4))
+            vehicle.send(vehicle.attitude_encode(1000 + k * 100, 0, 0, true_yaw(k / 10), 0, 0, 0))
+    buf, stats = load_tlog(path, max_gap=1.0, max_hold=0.3)
+    assert stats.system_id == 1 and stats.other_systems[2] == 4
+    assert [buf.at(T0 + k / 10).yaw for k in range(20)] == pytest.approx(
+        [true_yaw(k / 10) for k in range(20)], abs=1e-6)

@@ -10,7 +10,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
+import threading
 
 from photomap import __version__
 from photomap.cli.oplog import LOG_FORMATS, setup_logging
@@ -80,19 +82,29 @@ def _setup_logging(verbose: int, quiet: bool, log_format: str = "text") -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    _setup_logging(args.verbose, args.quiet, args.log_format)
+    # SIGTERM acts like Ctrl-C (KeyboardInterrupt): a clean "interrupted" rather than an abrupt
+    # death while a command starts up; a mapping run installs its own handler that writes the map
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    command, args = "photomap", None
     try:
+        args = build_parser().parse_args(argv)
+        command = f"photomap {args.command}"
+        _setup_logging(args.verbose, args.quiet, args.log_format)
         cfg = load_config(args.config, args.overrides)
         return int(args._module.main(args, cfg) or 0)
     except PhotomapError as exc:
-        if args.debug:
+        if args is not None and args.debug:
             raise
-        print(f"photomap {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{command}: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print(f"photomap {args.command}: interrupted", file=sys.stderr)
+        print(f"{command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -77,7 +77,10 @@ def video_metadata(input_spec: str) -> dict:
 def _link_summary(spec: str, stats) -> dict:
     return {"source": spec, "messages": stats.total, "gaps": stats.gaps,
             "link_lost": stats.link_lost, "link_regained": stats.link_regained,
-            "rejected_samples": sum(stats.rejected.values()), "parse_errors": stats.receive_errors}
+            "rejected_samples": sum(stats.rejected.values()), "parse_errors": stats.receive_errors,
+            "system_id": stats.system_id,
+            "other_systems": {str(k): v for k, v in sorted(stats.other_systems.items())},
+            "span": list(stats.span) if stats.span else None}
 
 
 def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None, input_spec: str = "",
@@ -94,7 +97,7 @@ def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None,
         if not Path(spec).is_file():
             raise InputError(f"telemetry log not found: {spec}")
         buffer, stats = load_tlog(spec, max_gap=tcfg.max_gap, max_hold=tcfg.max_hold,
-                                  link_timeout=tcfg.link_timeout)
+                                  link_timeout=tcfg.link_timeout, system_id=tcfg.system_id)
         if video_start is None:
             video_start = meta.get("t0_unix") or getattr(source, "creation_time", None)
         if video_start is None and getattr(source, "exif_times", None):

@@ -211,8 +211,9 @@ def read_trajectory_csv(path: str | Path) -> list[PoseRow]:
             x, y = (rec["x"] or "").strip(), (rec["y"] or "").strip()
             conf = (rec["confidence"] or "").strip()
             seg = (rec["segment"] or "").strip()
+            t = (rec["t"] or "").strip()  # empty for a frame never received (a dropped row)
             rows.append(PoseRow(
-                frame=int(rec["frame"]), t=float(rec["t"]), M=M,
+                frame=int(rec["frame"]), t=float(t) if t else math.nan, M=M,
                 confidence=float(conf) if conf else math.nan, status=status,
                 segment=int(seg) if seg else 0,
                 extra={c: _parse_extra(rec.get(c)) for c in extra_cols},

@@ -92,35 +92,65 @@ class RunStats:
         }
 
 
-def _prefetch(source: FrameSource, depth: int, stop: threading.Event) -> Iterator[Frame]:
-    """Decode ``source`` in a thread, ``depth`` frames ahead (blocking: never drops)."""
+def _prefetch(source: FrameSource, depth: int, stop: threading.Event, *,
+              poll: float = 0.2, join_timeout: float = 5.0) -> Iterator[Frame]:
+    """Decode ``source`` in a thread, ``depth`` frames ahead (blocking: never drops).
+
+    The decode thread is the only one that iterates ``source``; when it stops (end, ``stop``
+    set, or this generator closed) it closes its own iterator, so a video source releases its
+    decoder in the thread that decoded. Every wait polls with ``poll`` s; closing this generator
+    waits at most ``join_timeout`` s for the thread (a daemon: a stuck decoder never keeps the
+    process alive). An error of the source is re-raised here, after the frames before it.
+    """
     q: queue.Queue = queue.Queue(maxsize=depth)
     failure: list[BaseException] = []
+    gone = threading.Event()  # the consumer is gone: the decode thread stops
+
+    def put(item: object) -> bool:
+        while not gone.is_set():
+            try:
+                q.put(item, timeout=poll)
+                return True
+            except queue.Full:
+                continue
+        return False
 
     def reader() -> None:
+        frames = iter(source)
         try:
-            for frame in source:
-                while not stop.is_set():
-                    try:
-                        q.put(frame, timeout=0.2)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
+            for frame in frames:
+                if stop.is_set() or not put(frame) or stop.is_set():
                     break
         except BaseException as exc:  # handed to the consumer
             failure.append(exc)
         finally:
-            q.put(_END)
+            close = getattr(frames, "close", None)
+            if close is not None:
+                try:
+                    close()  # this thread read: it ends the iteration (and releases the decoder)
+                except Exception as exc:
+                    log.warning("closing the frame source failed: %s", exc)
+            put(_END)
 
     thread = threading.Thread(target=reader, name="photomap-decode", daemon=True)
     thread.start()
-    while True:
-        item = q.get()
-        if item is _END:
-            break
-        yield item
-    thread.join(timeout=2.0)
+    try:
+        while True:
+            try:
+                item = q.get(timeout=poll)
+            except queue.Empty:
+                if not thread.is_alive() and q.empty():
+                    break  # the thread died without its end marker: never wait forever
+                continue
+            if item is _END:
+                break
+            yield item
+    finally:
+        gone.set()
+        thread.join(timeout=join_timeout)
+        if thread.is_alive():
+            log.warning("the decode thread did not stop within %.1f s; left to exit with the process",
+                        join_timeout)
     if failure:
         raise failure[0]
 
@@ -180,9 +210,12 @@ class MappingPipeline:
 
     # ------------------------------------------------------------------ control
     def stop(self) -> None:
-        """Stop capture; the worker finishes and the outputs are written. Safe from a signal handler."""
+        """Stop capture; the worker finishes and the outputs are written.
+
+        Only sets a flag (safe from a signal handler and from any thread): :meth:`run` sees it
+        within 0.2 s and closes the source from its own thread.
+        """
         self._stop.set()
-        self.source.close()
 
     @property
     def stopping(self) -> bool:
@@ -196,19 +229,26 @@ class MappingPipeline:
         def work() -> None:
             # BLAS pools pinned to one thread while mapping: the refinement's small products spin
             # against every other busy thread otherwise (10x slower on a busy 2-core computer)
+            frames = self.source if self.source.live else _prefetch(self.source, 8, self._stop)
             try:
-                frames = self.source if self.source.live else _prefetch(self.source, 8, self._stop)
                 with threadpool_limits(limits=1, user_api="blas"):
                     for frame in frames:  # after stop(), the frames already queued are drained
                         self._process(frame)
             except BaseException as exc:  # reported by run(), after the outputs are written
                 failure.append(exc)
+            finally:
+                if frames is not self.source:
+                    frames.close()  # stops the decode thread (bounded wait), also after an error
 
         worker = threading.Thread(target=work, name="photomap-worker", daemon=True)
         worker.start()
+        closed = False
         while worker.is_alive():
             worker.join(timeout=0.2)
-        self.source.close()
+            if self._stop.is_set() and not closed:  # stop() only flags: close here, not in a handler
+                closed = True
+                self.source.close()
+        self.source.close()  # bounded: never releases a decoder under a running read
         summary = self.finish()
         if failure:
             raise failure[0]
