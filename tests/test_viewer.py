@@ -12,6 +12,8 @@ import sys
 import threading
 import time
 import warnings
+
+import yaml
 from pathlib import Path
 
 import cv2
@@ -487,3 +489,21 @@ def test_telemetry_series_are_shown(tmp_path):
     assert heading.shape == (30, 2)
     diff = (heading[:, 0] - heading[:, 1] + 180.0) % 360.0 - 180.0
     assert np.abs(diff).max() < 0.2  # vision follows the autopilot's heading
+    # the Map view: GPS positions, and ground footprints where the simulated camera really looked
+    from photomap.io.trajectory_files import read_groundtruth
+    from photomap.sim.flight import pixel_to_latlon
+
+    chunks = _chunks(rrd)
+    positions = _rows(chunks["/geo/position"], "GeoPoints:positions")
+    outlines = _rows(chunks["/geo/footprint"], "GeoLineStrings:line_strings")
+    assert len(positions) == 30 and len(outlines) == 30 and "/geo/track" in chunks
+    meta = yaml.safe_load((flight / "meta.yaml").read_text())
+    truth = read_groundtruth(flight / "groundtruth.csv")
+    for k in (0, 15, 29):
+        corners = np.array([[-0.5, -0.5, 1], [319.5, -0.5, 1], [319.5, 239.5, 1], [-0.5, 239.5, 1]]).T
+        px = truth.H[k] @ corners
+        lat, lon = pixel_to_latlon(px[0] / px[2], px[1] / px[2], meta["gsd"], meta["origin"]["lat"],
+                                   meta["origin"]["lon"])
+        got = np.array(outlines[k][0])[:4]
+        err_m = np.hypot((got[:, 0] - lat) * 111_320.0, (got[:, 1] - lon) * 111_320.0 * np.cos(np.radians(lat)))
+        assert err_m.max() < 1.0, err_m  # the simulator's altitude/attitude give the exact footprint

@@ -6,14 +6,16 @@ import rerun.blueprint as rrb
 
 
 def default_blueprint() -> rrb.Blueprint:
-    """Map on the left; the live camera, health plots and events stacked on the right.
+    """Map on the left (a second tab: the GPS track and footprint on web tiles); the live camera,
+    health plots and events stacked on the right.
 
     The entity roots match :mod:`photomap.live.viewer`: ``/map`` (tiles, trajectory, footprint),
-    ``/camera``, ``/health`` and ``/telemetry`` (time series) and ``/events`` (text log).
+    ``/geo`` (GPS position, footprint, keyframes, track), ``/camera``, ``/health`` and ``/telemetry`` (time series) and ``/events`` (text log).
     """
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial2DView(origin="/map", name="Map"),
+            rrb.Tabs(rrb.Spatial2DView(origin="/map", name="Map"),
+                     rrb.MapView(origin="/geo", name="Geo (GPS)")),
             rrb.Vertical(
                 rrb.Spatial2DView(origin="/camera", name="Camera"),
                 rrb.Tabs(rrb.TimeSeriesView(origin="/health", name="Health"),

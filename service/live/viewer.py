@@ -36,6 +36,10 @@ integer coordinates at pixel centres):
 ``telemetry/altitude_m``, ``telemetry/heading_deg``
     With MAVLink telemetry: height above ground, and the heading from vision (the pose angle,
     tied to the autopilot's heading at the segment's first frame) beside the autopilot's yaw.
+``geo/position``, ``geo/footprint``, ``geo/keyframes``, ``geo/track``
+    With GPS telemetry: the vehicle's position, the frame's ground outline from the camera model,
+    height and yaw, keyframe positions, and the GPS track, for rerun's Map view (web tiles are
+    fetched by the viewer when it shows them; without a tile server the other views are unchanged).
 ``events``
     ``TextLog``: map segments started, link to the map lost, telemetry link lost/regained,
     camera reconnects, viewer overload.
@@ -70,6 +74,7 @@ import numpy as np
 
 from photomap.config import ViewerConfig
 from photomap.errors import ConfigError, InputError
+from photomap.geo.georef import latlon_from_enu
 from photomap.geometry import frame_centre, pose_angle_deg
 
 if TYPE_CHECKING:
@@ -207,6 +212,27 @@ def footprint_tiles(pose: np.ndarray, width: int, height: int, tile_size: int) -
             for tx in range(int(x0) // ts, int(x1) // ts + 1)}
 
 
+def geo_footprint(sample, focal_px: float | None, width: int, height: int) -> np.ndarray | None:
+    """The frame's ground outline (5, 2) as (lat, lon), closed, from the telemetry alone.
+
+    A nadir pinhole camera at ``sample``'s position and height above ground, image up along its
+    yaw (clockwise from north), focal ``focal_px``: a pixel ``(u, v)`` lies ``(u - cx, cy - v) *
+    height / focal`` metres (right, forward) from the point below the camera. None when a value
+    is unknown.
+    """
+    if focal_px is None or sample.height_above_ground is None or sample.yaw is None \
+            or sample.lat is None or sample.lon is None or not sample.height_above_ground > 0:
+        return None
+    k = sample.height_above_ground / focal_px
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    corners = frame_outline(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), width, height)
+    right, forward = (corners[:, 0] - cx) * k, (cy - corners[:, 1]) * k
+    s, c = math.sin(sample.yaw), math.cos(sample.yaw)
+    east, north = right * c + forward * s, -right * s + forward * c
+    lat, lon = latlon_from_enu(east, north, sample.lat, sample.lon)
+    return np.c_[lat, lon]
+
+
 def _downscale(image: np.ndarray, max_px: int) -> np.ndarray:
     """A copy of ``image`` whose longer side is at most ``max_px`` (INTER_AREA)."""
     h, w = image.shape[:2]
@@ -305,6 +331,10 @@ class _Item:
     health: bool = True  # log the health series (false for the closing refresh)
     altitude: float | None = None  # telemetry height above ground, m
     heading: tuple[float, float] | None = None  # (vision, autopilot), deg
+    geo_position: tuple[float, float] | None = None  # GPS (lat, lon) of this frame
+    geo_footprint: np.ndarray | None = None  # (5, 2) lat, lon: the frame's ground outline
+    geo_track: np.ndarray | None = None  # (N, 2) lat, lon: the GPS track so far (thinned)
+    geo_keyframe: tuple[float, float] | None = None  # GPS (lat, lon) of a new keyframe
 
 
 class _DropOldestQueue:
@@ -407,6 +437,8 @@ class Viewer:
         self._path: list[tuple[float, float, float]] = []  # x, y, confidence (thinned)
         self._path_stride, self._path_count = 1, 0
         self._last_point: tuple[float, float, float] | None = None
+        self._geo: list[tuple[float, float]] = []  # GPS track (lat, lon), thinned
+        self._geo_stride, self._geo_count = 1, 0
         self._since_strip = 0
         self._strip_due = False
         self._last_tiles = self._last_camera = -math.inf
@@ -548,6 +580,12 @@ class Viewer:
         sample = event.telemetry
         if sample is None or event.pose is None:
             return
+        if sample.lat is not None and sample.lon is not None:
+            item.geo_position = (sample.lat, sample.lon)
+            if event.keyframe:
+                item.geo_keyframe = item.geo_position
+            self._append_geo(sample.lat, sample.lon)
+            item.geo_footprint = geo_footprint(sample, event.focal_px, *event.frame_size)
         item.altitude = sample.height_above_ground
         if sample.yaw is not None:
             angle = pose_angle_deg(event.pose)
@@ -615,6 +653,8 @@ class Viewer:
         if self._path and (self._strip_due or self._since_strip >= self._trajectory_every):
             item.strips = self._strips()
             self._since_strip, self._strip_due = 0, False
+            if len(self._geo) >= 2:
+                item.geo_track = np.array(self._geo, dtype=float)
 
         self._last_item = item
         dropped = self._queue.put(item)
@@ -642,6 +682,15 @@ class Viewer:
         for x, y, confidence in path:
             self._append_path(x, y, confidence)
         self._strip_due = True
+
+    def _append_geo(self, lat: float, lon: float) -> None:
+        """The GPS track, thinned like the map path (every ``stride``-th fix, halved when over the cap)."""
+        if self._geo_count % self._geo_stride == 0:
+            self._geo.append((lat, lon))
+            if len(self._geo) > self._max_points:
+                self._geo = self._geo[::2]
+                self._geo_stride *= 2
+        self._geo_count += 1
 
     def _append_path(self, x: float, y: float, confidence: float) -> None:
         """Keep every ``stride``-th point; halve the points (double the stride) when over the cap."""
@@ -747,6 +796,18 @@ class Viewer:
             self.stats.points += 1
             rec.log("map/footprint", rr.LineStrips2D([frame_outline(item.pose, *item.frame_size)],
                                                      colors=[item.color], radii=rr.Radius.ui_points(1.5)))
+        if item.geo_position is not None:
+            rec.log("geo/position", rr.GeoPoints(lat_lon=[item.geo_position], radii=rr.Radius.ui_points(5.0),
+                                                 colors=[item.color]))
+        if item.geo_footprint is not None:
+            rec.log("geo/footprint", rr.GeoLineStrings(lat_lon=[item.geo_footprint], radii=rr.Radius.ui_points(1.5),
+                                                       colors=[item.color]))
+        if item.geo_keyframe is not None:
+            rec.log("geo/keyframes", rr.GeoPoints(lat_lon=[item.geo_keyframe], radii=rr.Radius.ui_points(3.0),
+                                                  colors=[(255, 255, 255)]))
+        if item.geo_track is not None:
+            rec.log("geo/track", rr.GeoLineStrings(lat_lon=[item.geo_track], radii=rr.Radius.ui_points(2.0),
+                                                   colors=[(255, 64, 0)]))
         if item.strips:
             rec.log("map/trajectory", rr.LineStrips2D([s for s, _ in item.strips],
                                                       colors=[c for _, c in item.strips],
@@ -792,6 +853,8 @@ class Viewer:
                     final.tiles = self._take_tiles(self._tiles, last.segment, None)
                 if self._path:
                     final.strips = self._strips()
+                if len(self._geo) >= 2:
+                    final.geo_track = np.array(self._geo, dtype=float)
             except Exception as exc:
                 self._warn_once("close", f"viewer: final map refresh failed: {type(exc).__name__}: {exc}")
             self._queue.put(final, drop=False)

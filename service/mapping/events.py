@@ -63,6 +63,7 @@ class FrameEvent:
     dropped_frames: int = 0  # cumulative, by the capture
     reconnects: int = 0  # cumulative, camera
     telemetry: TelemetrySample | None = None
+    focal_px: float | None = None  # the camera's focal length at the input resolution, when known
     link_lost: int = 0  # cumulative telemetry link losses / regains
     link_regained: int = 0
     # after a pose-graph correction of ``segment``: its whole path again, (x, y, confidence) of

@@ -407,7 +407,8 @@ class MappingPipeline:
                 touched=frozenset(touched), tiles=self.mosaics.get(step.segment),
                 register_ms=1000.0 * register_s, frame_ms=1000.0 * (time.perf_counter() - t0),
                 dropped_frames=int(self.source.stats.dropped), reconnects=int(self.source.stats.reconnects),
-                telemetry=sample, link_lost=int(link.get("link_lost", 0)),
+                telemetry=sample, focal_px=self.telemetry.focal(self.frame_size[0]) if self.telemetry else None,
+                link_lost=int(link.get("link_lost", 0)),
                 link_regained=int(link.get("link_regained", 0)), corrected_path=corrected_path))
         interval = self.cfg.output.checkpoint_interval
         if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
