@@ -40,7 +40,9 @@ from photomap.core.records import PoseRow
 from photomap.core.tracking import LOW_CONFIDENCE, TrackStep, Tracker
 from photomap.drivers.frames import Frame, FrameSource
 from photomap.geometry import frame_centre, pose_angle_deg
+from photomap.errors import PhotomapError
 from photomap.io.keyframestore import KeyframeStore
+from photomap.io.report import write_report
 from photomap.io.tilestore import DiskTileStore
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
 from photomap.mapping.events import FrameEvent, FrameSink
@@ -650,6 +652,10 @@ class MappingPipeline:
         summary["mosaics"] = maps
         summary["complete"] = True
         write_json(self.out_dir / "run.json", summary)
+        try:
+            write_report(self.out_dir)  # report.html: the flight at a glance, offline
+        except (OSError, ValueError, PhotomapError) as exc:
+            log.warning("report.html not written: %s", exc)
         if self._own_cache and self._cache_dir is not None:
             shutil.rmtree(self._cache_dir, ignore_errors=True)
         return summary
