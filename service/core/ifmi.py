@@ -42,6 +42,10 @@ __all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar", "
 
 _EPS = 1e-12
 _REFINE_SAMPLES = 16384  # the refinement samples about this many pixels on a regular grid
+_REFINE_SIGMA = 0.7  # Gaussian prefilter of the refinement images (pixels of their pyramid level)
+_REFINE_SIGNAL = 0.7  # signal share of the gradient energy the refinement level must reach
+_REFINE_MAX_LEVEL = 3  # coarsest pyramid level of the refinement (1/8 of the frame size)
+_REFINE_TOL = 2e-3  # refinement converged once an update moves the frame corners less (pixels)
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 
 
@@ -135,8 +139,31 @@ class PreparedFrame:
     logpolar: np.ndarray  # rfft2 of the weighted log-polar magnitude, phase-normalised
     ring_snr: np.ndarray  # per-ring Wiener weight S/(S+N) of the frame's spectrum
     energy: float  # variance of the frame (0 for a blank frame)
-    gradients: np.ndarray | None = field(default=None)  # Nx4 steepest-descent images (refinement)
-    smooth: np.ndarray | None = field(default=None)  # smoothed gray used by the refinement
+    refine_level: int = 0  # pyramid level (0 = full resolution) the refinement uses as reference
+    # refinement data built on first use (pyramid, smoothed images, template): see Registrar._refine
+    _cache: dict = field(default_factory=dict, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class _Grid:
+    """The refinement's sample grid on one pyramid level (coordinates in pixels of that level)."""
+
+    level: int
+    stride: int  # level pixels between samples
+    size: tuple[int, int]  # (rows, cols) of samples
+    center: tuple[float, float]  # the frame centre in level pixels
+    window: np.ndarray  # (N,) apodization weight of each sample
+    xc: np.ndarray  # (N,) sample x minus the centre
+    yc: np.ndarray  # (N,) sample y minus the centre
+
+
+@dataclass(frozen=True, eq=False)
+class _Template:
+    """A reference frame's refinement data: samples and steepest-descent images on a grid."""
+
+    grid: _Grid
+    values: np.ndarray  # (N,) smoothed samples minus their mean
+    sd: np.ndarray  # (6, N) steepest-descent images: d/d(tx, ty, scale, rotation, offset, gain)
 
 
 def _tukey(n: int, taper: float) -> np.ndarray:
@@ -252,13 +279,14 @@ class Registrar:
             lmult[-1] = 1.0
         self._lp_ref = float((self._lp_gauss * lmult[None, :]).sum() / (na * nr))
 
-        # the refinement runs on a regular grid of about _REFINE_SAMPLES pixels
-        self._stride = max(1, int(round(math.sqrt(h * w / _REFINE_SAMPLES))))
-        ys, xs = np.mgrid[0:h:self._stride, 0:w:self._stride].astype(np.float32)
-        self._xc = (xs - self.center[0]).ravel()
-        self._yc = (ys - self.center[1]).ravel()
-        self._refine_shape = xs.shape
-        self._refine_window = self.window[::self._stride, ::self._stride].ravel()
+        self._grids: dict[int, _Grid] = {}
+        # gradient energy weight of each log-polar ring on each pyramid level of the refinement:
+        # r^2 (gradient) * r^2 (ring area on the log grid) * |transfer function|^2 of pyrDown^L
+        # (Gaussian, sigma 1 px of each level it reads) and the refinement's own smoothing
+        levels = 1 + min(_REFINE_MAX_LEVEL, max(0, int(math.log2(min(h, w) / 32))))
+        r = self._lp_radius.astype(np.float64)
+        var = [sum(4.0 ** k for k in range(lv)) + (2 ** lv * _REFINE_SIGMA) ** 2 for lv in range(levels)]
+        self._level_weights = np.array([r ** 4 * np.exp(-(2 * np.pi * r) ** 2 * v) for v in var])
         # nearest log-polar ring of each rfft2 bin, to spread per-ring SNR weights over a spectrum
         ring = np.searchsorted(self._lp_radius, self._radius)
         self._ring_index = np.clip(ring, 0, nr - 1)
@@ -307,17 +335,24 @@ class Registrar:
         lps = scipy.fft.rfft2(lp, workers=1)
         amp = np.abs(lps)
         lps /= amp + _EPS * (float(amp.max()) + _EPS)
-        grads = smooth = None
-        if self.refine_iterations:
-            smooth = cv2.GaussianBlur(gray, (0, 0), 0.7)
-            gx = cv2.Scharr(smooth, cv2.CV_32F, 1, 0, scale=1 / 32)
-            gy = cv2.Scharr(smooth, cv2.CV_32F, 0, 1, scale=1 / 32)
-            gx = gx[::self._stride, ::self._stride].ravel()
-            gy = gy[::self._stride, ::self._stride].ravel()
-            grads = np.stack([gx, gy, self._xc * gx + self._yc * gy, self._xc * gy - self._yc * gx],
-                             axis=1)
         return PreparedFrame(gray=gray, spectrum=spec, logpolar=lps, ring_snr=snr.astype(np.float32),
-                             energy=energy, gradients=grads, smooth=smooth)
+                             energy=energy, refine_level=self._refine_level(power, noise))
+
+    def _refine_level(self, power: np.ndarray, noise: float) -> int:
+        """Finest pyramid level on which signal dominates the frame's gradient energy.
+
+        Gauss-Newton steps shrink by the noise share of the template's gradient energy (the
+        Hessian counts it, the error signal does not): on smooth, noisy ground the refinement
+        would crawl at full resolution. ``power`` is the per-ring power of the log-polar
+        magnitude, ``noise`` its white-noise floor.
+        """
+        if not self.refine_iterations or noise <= 0:
+            return 0
+        signal = np.maximum(power - noise, 0.0)
+        share = np.einsum("lj,j->l", self._level_weights, signal) / np.maximum(
+            np.einsum("lj,j->l", self._level_weights, power), _EPS)
+        good = np.flatnonzero(share >= _REFINE_SIGNAL)
+        return int(good[0]) if good.size else len(share) - 1
 
     # ------------------------------------------------------------------ peaks
     @staticmethod
@@ -470,58 +505,154 @@ class Registrar:
         return np.where(tx ** 2 + ty ** 2 <= prior.shift_tol ** 2, r, -np.inf)
 
     # ------------------------------------------------------------------ refinement
+    def _grid(self, level: int) -> _Grid:
+        grid = self._grids.get(level)
+        if grid is None:
+            h, w = self.shape
+            for _ in range(level):  # cv2.pyrDown sizes; level pixel (u, v) is full pixel 2^L (u, v)
+                h, w = (h + 1) // 2, (w + 1) // 2
+            stride = max(1, int(round(math.sqrt(h * w / _REFINE_SAMPLES))))
+            ys = np.arange(0, h, stride)
+            xs = np.arange(0, w, stride)
+            f = 2 ** level
+            cx, cy = self.center[0] / f, self.center[1] / f
+            yy, xx = np.meshgrid(ys, xs, indexing="ij")
+            grid = _Grid(level, stride, (len(ys), len(xs)), (cx, cy),
+                         np.ascontiguousarray(self.window[ys * f][:, xs * f]).ravel(),
+                         (xx - cx).astype(np.float32).ravel(), (yy - cy).astype(np.float32).ravel())
+            self._grids[level] = grid
+        return grid
+
+    @staticmethod
+    def _smooth(frame: PreparedFrame, level: int) -> np.ndarray:
+        """The frame on a pyramid level, smoothed for the refinement (cached in the frame)."""
+        key = ("smooth", level)
+        out = frame._cache.get(key)
+        if out is None:
+            pyramid = frame._cache.setdefault("pyramid", [frame.gray])
+            while len(pyramid) <= level:
+                pyramid.append(cv2.pyrDown(pyramid[-1]))
+            out = cv2.GaussianBlur(pyramid[level], (0, 0), _REFINE_SIGMA)
+            frame._cache[key] = out
+        return out
+
+    def _template(self, frame: PreparedFrame) -> _Template:
+        """The reference side of the refinement (built once per frame)."""
+        tpl = frame._cache.get("template")
+        if tpl is None:
+            grid = self._grid(frame.refine_level)
+            img = self._smooth(frame, grid.level)
+            st = grid.stride
+            rh, rw = grid.size
+            pad = cv2.copyMakeBorder(img, 1, 1, 1, 1, cv2.BORDER_REFLECT_101)
+
+            def at(dy: int, dx: int) -> np.ndarray:
+                return pad[1 + dy::st, 1 + dx::st][:rh, :rw]
+
+            values = at(0, 0).ravel()
+            gx = ((at(0, 1) - at(0, -1)) * 0.5).ravel()
+            gy = ((at(1, 0) - at(-1, 0)) * 0.5).ravel()
+            sd = np.empty((6, values.size), np.float32)
+            sd[0] = gx
+            sd[1] = gy
+            np.multiply(grid.xc, gx, out=sd[2])
+            sd[2] += grid.yc * gy
+            np.multiply(grid.xc, gy, out=sd[3])
+            sd[3] -= grid.yc * gx
+            sd[4] = 1.0
+            np.subtract(values, np.float32(values.mean()), out=sd[5])
+            tpl = _Template(grid, sd[5], sd)
+            frame._cache["template"] = tpl
+        return tpl
+
     def _refine(self, a: PreparedFrame, b: PreparedFrame, m: np.ndarray) -> np.ndarray | None:
         """Inverse compositional Gauss-Newton on a similarity + brightness gain/offset.
 
-        ``m`` maps b -> a; returns the refined matrix, or None when it does not converge.
+        ``m`` maps b -> a; returns the refined matrix, or None when it does not converge. It runs
+        on ``a.refine_level`` of both frames' pyramids, with samples of ``a`` on a regular grid
+        (the template) and ``b`` warped onto them. Only small, single-threaded reductions
+        (``np.einsum``, no BLAS): a busy neighbour process does not slow it down.
         """
         h, w = self.shape
-        cx, cy = self.center
-        rh, rw = self._refine_shape
-        stride = np.diag([self._stride, self._stride, 1.0])  # refinement grid -> pixels
-        tmpl = a.smooth[::self._stride, ::self._stride].ravel()
-        tmpl_sq = tmpl.astype(np.float64) ** 2  # second moments in float64 (no cancellation)
-        sd = a.gradients
-        centre = np.array([[1, 0, cx], [0, 1, cy], [0, 0, 1.0]])
-        centre_inv = np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1.0]])
+        tpl = self._template(a)
+        grid = tpl.grid
+        img_b = self._smooth(b, grid.level)
+        f = float(2 ** grid.level)
+        st = float(grid.stride)
+        rh, rw = grid.size
+        cx, cy = grid.center
+        reach = max(cx, cy) * 1.5
+        # in level pixels, the matrix keeps its linear part and divides its shift by f
         m3 = np.vstack([m, [0.0, 0.0, 1.0]])
+        m3[:2, 2] /= f
         start = m3.copy()
-        for _ in range(self.refine_iterations):
-            # b sampled at the refinement grid of a: NaN where the sample leaves b
-            inv = (np.linalg.inv(m3) @ stride)[:2]
-            warped = cv2.warpAffine(b.smooth, inv, (rw, rh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
-            wgt = self._refine_window * np.isfinite(warped)
-            np.nan_to_num(warped, copy=False)
-            wsum = float(wgt.sum())
-            if wsum < 0.05 * wgt.size:
+        moved = math.inf  # level pixels the samples moved since their mask was built
+        fit_start = fit_end = -math.inf  # weighted correlation of b with the template
+        for it in range(self.refine_iterations):
+            # b sampled at the template's grid: inverse of m3, after grid index -> level pixel
+            inv = np.linalg.inv(m3)[:2]
+            inv[:, :2] *= st
+            if moved > 0.5 * st:
+                warped = cv2.warpAffine(img_b, inv, (rw, rh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                        borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+                # keep samples whose grid neighbours are inside b too (margin for later moves)
+                inside = cv2.erode(np.isfinite(warped).view(np.uint8), np.ones((3, 3), np.uint8),
+                                   borderType=cv2.BORDER_CONSTANT, borderValue=1).ravel()
+                warped = warped.ravel()
+                warped[inside == 0] = 0.0
+                wgt = grid.window * inside
+                wsum = float(wgt.sum())
+                if wsum < 0.05 * wgt.size:
+                    return None
+                # template moments over the kept samples (the values are centred: float32 is exact enough)
+                mt = float(np.einsum("i,i->", wgt, tpl.values)) / wsum
+                vt = float(np.einsum("i,i,i->", wgt, tpl.values, tpl.values)) / wsum - mt * mt
+                if vt <= _EPS:
+                    return None
+                wsd = tpl.sd * wgt
+                hess = np.einsum("ji,ki->jk", wsd, tpl.sd).astype(np.float64)
+                tmpl = tpl.values - np.float32(mt)
+                moved = 0.0
+            else:
+                warped = cv2.warpAffine(img_b, inv, (rw, rh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0).ravel()
+            # brightness gain/offset of the warped image against the template (moments), which
+            # the solve corrects to first order together with the warp: the mean and variance
+            # taken from the overlap absorb part of a shift of smooth ground, the joint system
+            # (warp, offset, gain) accounts for that (else on featureless ground each update
+            # is a small fraction of the error)
+            mw = float(np.einsum("i,i->", wgt, warped)) / wsum
+            warped -= np.float32(mw)
+            vw = float(np.einsum("i,i,i->", wgt, warped, warped)) / wsum
+            if vw <= _EPS:
                 return None
-            # brightness gain/offset of the warped image against the template
-            mt = float(wgt @ tmpl) / wsum
-            mw = float(wgt @ warped) / wsum
-            vt = float(wgt @ tmpl_sq) / wsum - mt * mt
-            vw = float(wgt @ warped.astype(np.float64) ** 2) / wsum - mw * mw
-            if vt <= _EPS or vw <= _EPS:
-                return None
-            gain = math.sqrt(vw / vt)
-            err = (warped - mw) / gain - (tmpl - mt)
-            sdw = sd * wgt[:, None]
-            hess = sdw.T @ sd
-            rhs = sdw.T @ err
+            warped *= np.float32(math.sqrt(vt / vw))
+            warped -= tmpl  # the residual
+            rhs = np.einsum("ji,i->j", wsd, warped).astype(np.float64)
+            if it == 0:
+                fit_start = 1.0 - float(np.einsum("i,i,i->", wgt, warped, warped)) / (2.0 * wsum * vt)
             try:
-                dp = np.linalg.solve(hess.astype(np.float64), rhs.astype(np.float64))
+                tx, ty, da, db = np.linalg.solve(hess, rhs)[:4]
             except np.linalg.LinAlgError:
                 return None
-            tx, ty, da, db = dp
             # warp increment about the centre: x -> (1+da) x - db y + tx (centred coordinates)
-            d = np.array([[1 + da, -db, tx], [db, 1 + da, ty], [0, 0, 1]])
-            m3 = centre @ d @ centre_inv @ m3
-            # converged when the frame corners move less than 0.002 px
-            if max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * max(cx, cy) * 1.5 < 2e-3:
+            c, s_ = 1.0 + da, db
+            inc = np.array([[c, -s_, tx + cx - c * cx + s_ * cy], [s_, c, ty + cy - s_ * cx - c * cy], [0, 0, 1]])
+            m3 = inc @ m3
+            # converged when the frame corners move less than _REFINE_TOL (full-resolution pixels)
+            step = max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * reach
+            if step * f < _REFINE_TOL:
+                fit_end = 1.0 - float(np.einsum("i,i,i->", wgt, warped, warped)) / (2.0 * wsum * vt)
                 break
-        # reject a refinement that wandered far from the iFMI estimate (it diverged)
+            moved += step  # the mask stays good while samples moved less than half a grid step
+        m3[:2, 2] *= f
+        start[:2, 2] *= f
+        # reject a refinement that wandered far from the iFMI estimate (it diverged), unless it
+        # converged to a better fit and stayed within 10 % of the frame size (iFMI can be off by
+        # a few degrees on featureless ground, which moves the corners by more than 3 %)
         corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-        if np.abs((m3 - start) @ corners)[:2].max() > max(3.0, 0.03 * max(h, w)):
+        moved_px = float(np.abs((m3 - start) @ corners)[:2].max())
+        if moved_px > max(3.0, 0.03 * max(h, w)) and not (fit_end > fit_start and moved_px <= 0.1 * max(h, w)):
             return None
         return m3[:2]
 
