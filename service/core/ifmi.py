@@ -45,7 +45,7 @@ _REFINE_SAMPLES = 16384  # the refinement samples about this many pixels on a re
 _REFINE_SIGMA = 0.7  # Gaussian prefilter of the refinement images (pixels of their pyramid level)
 _REFINE_SIGNAL = 0.7  # signal share of the gradient energy the refinement level must reach
 _REFINE_MAX_LEVEL = 3  # coarsest pyramid level of the refinement (1/8 of the frame size)
-_REFINE_TOL = 2e-3  # refinement converged once an update moves the frame corners less (pixels)
+_REFINE_TOL = 0.01  # refinement converged once an update moves the frame corners less (pixels)
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 
 
@@ -629,8 +629,11 @@ class Registrar:
             warped *= np.float32(math.sqrt(vt / vw))
             warped -= tmpl  # the residual
             rhs = np.einsum("ji,i->j", wsd, warped).astype(np.float64)
+            # weighted correlation of b with the template: the residual's energy is -2 rhs[5]
+            # (row 5 is the centred template; the residual has zero weighted mean)
+            fit = 1.0 + float(rhs[5]) / (wsum * vt)
             if it == 0:
-                fit_start = 1.0 - float(np.einsum("i,i,i->", wgt, warped, warped)) / (2.0 * wsum * vt)
+                fit_start = fit
             try:
                 tx, ty, da, db = np.linalg.solve(hess, rhs)[:4]
             except np.linalg.LinAlgError:
@@ -642,7 +645,7 @@ class Registrar:
             # converged when the frame corners move less than _REFINE_TOL (full-resolution pixels)
             step = max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * reach
             if step * f < _REFINE_TOL:
-                fit_end = 1.0 - float(np.einsum("i,i,i->", wgt, warped, warped)) / (2.0 * wsum * vt)
+                fit_end = fit
                 break
             moved += step  # the mask stays good while samples moved less than half a grid step
         m3[:2, 2] *= f
