@@ -57,10 +57,10 @@ def similarity_matrix(angle_deg: float, scale: float, shift: tuple[float, float]
     which with y pointing down turns clockwise on screen for a positive angle.
     """
     a = math.radians(angle_deg)
-    lin = scale * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    c = np.asarray(center, dtype=np.float64)
-    t = c + np.asarray(shift, dtype=np.float64) - lin @ c
-    return np.hstack([lin, t[:, None]])
+    c, s = scale * math.cos(a), scale * math.sin(a)
+    cx, cy = float(center[0]), float(center[1])
+    return np.array([[c, -s, cx + float(shift[0]) - (c * cx - s * cy)],
+                     [s, c, cy + float(shift[1]) - (s * cx + c * cy)]])
 
 
 def _matrix_params(m: np.ndarray) -> tuple[float, float, tuple[float, float]]:
@@ -185,7 +185,110 @@ def _fit_offset(lm: float, l0: float, lp: float) -> float:
     den = lm - 2.0 * l0 + lp
     if den >= -_EPS:
         return 0.0
-    return float(np.clip(0.5 * (lm - lp) / den, -0.5, 0.5))
+    return min(max(0.5 * (lm - lp) / den, -0.5), 0.5)
+
+
+def _percentile(x: np.ndarray, q: float) -> float:
+    """``np.percentile(x, q)`` (linear interpolation) of a 1-D array, by partial sort."""
+    if not x.size:
+        return 0.0
+    pos = q / 100.0 * (x.size - 1)
+    lo = int(math.floor(pos))
+    hi = min(lo + 1, x.size - 1)
+    part = np.partition(x, [lo, hi])
+    return float(part[lo] + (pos - lo) * (part[hi] - part[lo]))
+
+
+class _Ccs:
+    """OpenCV's packed real DFT layout (CCS) of h x w arrays, with numpy access to its bins.
+
+    ``cv2.dft`` of a real h x w float32 array (about twice as fast as ``scipy.fft.rfft2`` here)
+    packs the half spectrum fx >= 0 into h x w floats. Its interior columns fx = 1 .. (w-1)//2
+    are (re, im) pairs: :meth:`inner` views them as a complex (h, ni) array without copying. The
+    columns fx = 0 and, for even w, fx = w/2 pack their own Hermitian column along the rows:
+    :meth:`edges` unpacks them as half columns ky = 0 .. h//2 (complex (h//2 + 1, ne)), each
+    entry standing for ``edge_mult`` bins of the full spectrum. :meth:`split` cuts an
+    rfft2-layout array (h, w//2 + 1) into the same two parts.
+    """
+
+    def __init__(self, h: int, w: int) -> None:
+        self.h, self.w = h, w
+        self.ni = (w - 1) // 2
+        self.nh = (h - 1) // 2
+        self.cols = [0, w - 1] if w % 2 == 0 else [0]  # packed columns of the edges
+        self.fx = [0, w // 2] if w % 2 == 0 else [0]  # their rfft2 columns
+        self.m = h // 2 + 1
+        mult = np.full(self.m, 2.0, np.float32)
+        mult[0] = 1.0
+        if h % 2 == 0:
+            mult[-1] = 1.0
+        self.edge_mult = mult[:, None]
+
+    @staticmethod
+    def forward(img: np.ndarray) -> np.ndarray:
+        return cv2.dft(img)
+
+    @staticmethod
+    def inverse(packed: np.ndarray) -> np.ndarray:
+        return cv2.idft(packed, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+
+    def inner(self, packed: np.ndarray) -> np.ndarray:
+        return packed[:, 1:1 + 2 * self.ni].view(np.complex64)
+
+    def edges(self, packed: np.ndarray) -> np.ndarray:
+        cols = packed[:, self.cols]
+        nh = self.nh
+        e = np.zeros((self.m, len(self.cols)), np.complex64)
+        e.real[0] = cols[0]
+        e.real[1:1 + nh] = cols[1:1 + 2 * nh:2]
+        e.imag[1:1 + nh] = cols[2:2 + 2 * nh:2]
+        if self.h % 2 == 0:
+            e.real[-1] = cols[-1]
+        return e
+
+    def set_edges(self, packed: np.ndarray, e: np.ndarray) -> None:
+        nh = self.nh
+        cols = np.empty((self.h, len(self.cols)), np.float32)
+        cols[0] = e.real[0]
+        cols[1:1 + 2 * nh:2] = e.real[1:1 + nh]
+        cols[2:2 + 2 * nh:2] = e.imag[1:1 + nh]
+        if self.h % 2 == 0:
+            cols[-1] = e.real[-1]
+        packed[:, self.cols] = cols
+
+    def split(self, full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (np.ascontiguousarray(full[:, 1:1 + self.ni]),
+                np.ascontiguousarray(full[:self.m][:, self.fx]))
+
+    def shifted_abs(self, packed: np.ndarray, edges: np.ndarray) -> np.ndarray:
+        """|spectrum| in rfft2 layout (h, w//2 + 1) with rows fftshifted (fy = 0 at row h//2)."""
+        h, m, s = self.h, self.m, self.h // 2
+        out = np.empty((h, self.w // 2 + 1), np.float32)
+        inner = self.inner(packed)
+        np.abs(inner[:h - s], out=out[s:, 1:1 + self.ni])
+        np.abs(inner[h - s:], out=out[:s, 1:1 + self.ni])
+        ea = np.abs(edges)
+        for k, fx in enumerate(self.fx):
+            col = np.concatenate([ea[:, k], ea[h - m:0:-1, k]])  # rows in FFT order
+            out[s:, fx] = col[:h - s]
+            out[:s, fx] = col[h - s:]
+        return out
+
+
+def _normalise(inner: np.ndarray, edges: np.ndarray, w_inner: np.ndarray | float,
+               w_edges: np.ndarray | float) -> None:
+    """Phase-only matched filter in place: ``z *= weight / (|z| + floor)`` on both CCS parts.
+
+    ``floor`` (1e-12 of the largest magnitude) only keeps exact zeros finite.
+    """
+    mag = np.abs(inner)
+    mag_e = np.abs(edges)
+    floor = np.float32(_EPS * (max(float(mag.max()), float(mag_e.max())) + _EPS))
+    mag += floor
+    np.divide(w_inner, mag, out=mag)
+    inner *= mag
+    mag_e += floor
+    edges *= w_edges / mag_e
 
 
 class Registrar:
@@ -243,20 +346,16 @@ class Registrar:
             rr = np.hypot((xx - (w - 1) / 2) / ((w - 1) / 2), (yy - (h - 1) / 2) / ((h - 1) / 2))
             self.window = np.where(rr < 1, 0.5 * (1 + np.cos(np.pi * np.clip((rr - (1 - window_taper)) / window_taper, 0, 1))), 0).astype(np.float32)
 
-        # frequency grid of an rfft2 spectrum (rows: fy in fft order, cols: fx >= 0), cycles/px
+        # frequency grid of an rfft2 spectrum (rows: fy in fft order, cols: fx >= 0), cycles/px;
+        # the constants below are kept split into the CCS layout's interior and edge parts
+        self._ccs = _Ccs(h, w)
         fy = scipy.fft.fftfreq(h)[:, None]
         fx = scipy.fft.rfftfreq(w)[None, :]
-        self._radius = np.sqrt(fx ** 2 + fy ** 2).astype(np.float32)
-        # Hermitian multiplicity of each rfft2 bin in the full spectrum
-        mult = np.full(fx.shape[1], 2.0)
-        mult[0] = 1.0
-        if w % 2 == 0:
-            mult[-1] = 1.0
-        self._mult = np.broadcast_to(mult[None, :], (h, fx.shape[1]))
-        self._gauss = np.exp(-0.5 * (self._radius / peak_sigma) ** 2).astype(np.float32)
+        radius = np.sqrt(fx ** 2 + fy ** 2).astype(np.float32)
+        self._gauss = self._ccs.split(np.exp(-0.5 * (radius / peak_sigma) ** 2).astype(np.float32))
         # phase ramp that turns conj(F) into the spectrum of the point-mirrored image
-        ramp = np.exp(-2j * np.pi * (fx * (w - 1) + scipy.fft.fftfreq(h)[:, None] * h * (h - 1) / h))
-        self._mirror = ramp.astype(np.complex64)
+        ramp = np.exp(-2j * np.pi * (fx * (w - 1) + fy * (h - 1)))
+        self._mirror = self._ccs.split(ramp.astype(np.complex64))
 
         # log-polar grid over the half plane fx >= 0: rows = angle, cols = log radius
         n = min(h, w)
@@ -270,14 +369,15 @@ class Registrar:
         self._lp_map_y = (rad * np.sin(theta) * h + h // 2).astype(np.float32)
         self._lp_radius = rad[0].astype(np.float32)
         self._lp_window = _tukey(nr, 0.5).astype(np.float32)
+        self._lp_ccs = _Ccs(na, nr)
         lfy = scipy.fft.fftfreq(na)[:, None]
         lfx = scipy.fft.rfftfreq(nr)[None, :]
-        self._lp_gauss = np.exp(-0.5 * (lfx ** 2 + lfy ** 2) / peak_sigma ** 2).astype(np.float32)
-        lmult = np.full(lfx.shape[1], 2.0)
-        lmult[0] = 1.0
-        if nr % 2 == 0:
-            lmult[-1] = 1.0
-        self._lp_ref = float((self._lp_gauss * lmult[None, :]).sum() / (na * nr))
+        lp_gauss = np.exp(-0.5 * (lfx ** 2 + lfy ** 2) / peak_sigma ** 2).astype(np.float32)
+        self._lp_gauss = self._lp_ccs.split(lp_gauss)
+        self._lp_ref = float(2.0 * self._lp_gauss[0].sum() + (self._lp_gauss[1] * self._lp_ccs.edge_mult).sum()) / (na * nr)
+        # scale shifts beyond +-nr/4 bins are never searched
+        shifts_r = np.fft.fftfreq(nr, 1.0 / nr)
+        self._lp_allowed = np.broadcast_to((np.abs(shifts_r) <= nr // 4)[None, :], (na, nr))
 
         self._grids: dict[int, _Grid] = {}
         # gradient energy weight of each log-polar ring on each pyramid level of the refinement:
@@ -287,10 +387,11 @@ class Registrar:
         r = self._lp_radius.astype(np.float64)
         var = [sum(4.0 ** k for k in range(lv)) + (2 ** lv * _REFINE_SIGMA) ** 2 for lv in range(levels)]
         self._level_weights = np.array([r ** 4 * np.exp(-(2 * np.pi * r) ** 2 * v) for v in var])
-        # nearest log-polar ring of each rfft2 bin, to spread per-ring SNR weights over a spectrum
-        ring = np.searchsorted(self._lp_radius, self._radius)
-        self._ring_index = np.clip(ring, 0, nr - 1)
-        self._outside_band = self._radius > band_high
+        # nearest log-polar ring of each rfft2 bin, to spread per-ring SNR weights over a spectrum;
+        # bins outside the band point at an extra ring of weight 0
+        ring = np.clip(np.searchsorted(self._lp_radius, radius), 0, nr - 1)
+        ring[radius > band_high] = nr
+        self._ring_index = self._ccs.split(ring.astype(np.intp))
 
     # ------------------------------------------------------------------ preparation
     def _gray(self, frame: np.ndarray) -> np.ndarray:
@@ -309,7 +410,10 @@ class Registrar:
         return img.astype(np.float32, copy=False)
 
     def _windowed_spectrum(self, gray: np.ndarray, mean: float) -> np.ndarray:
-        return scipy.fft.rfft2((gray - mean) * self.window, workers=1)
+        """CCS-packed DFT of the mean-free, apodized frame."""
+        x = gray - np.float32(mean)
+        x *= self.window
+        return self._ccs.forward(x)
 
     def prepare(self, frame: np.ndarray) -> PreparedFrame:
         """Compute and cache a frame's spectra (grey or BGR; uint8 or float)."""
@@ -317,12 +421,12 @@ class Registrar:
         mean = float(gray.mean())
         energy = float(gray.var())
         spec = self._windowed_spectrum(gray, mean)
-        mag = np.fft.fftshift(np.abs(spec), axes=0)
-        lp = cv2.remap(mag, self._lp_map_x, self._lp_map_y, cv2.INTER_LINEAR,
+        edges = self._ccs.edges(spec)
+        lp = cv2.remap(self._ccs.shifted_abs(spec, edges), self._lp_map_x, self._lp_map_y, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         # per-ring power and its noise floor (white noise is flat; take the quietest rings)
         power = np.einsum("ij,ij->j", lp, lp) / lp.shape[0]
-        noise = float(np.percentile(power, 5)) if power.size else 0.0
+        noise = _percentile(power, 5.0)
         if self.snr_weighting and noise > 0:
             signal = np.maximum(power - noise, 0.0)
             snr = signal / (signal + noise)
@@ -330,13 +434,15 @@ class Registrar:
             snr = np.ones_like(power)
         # whiten (magnitude ~ 1/f for natural images) and weight the rings
         weight = (self._lp_radius * snr * self._lp_window).astype(np.float32)
-        lp = lp * weight[None, :]
+        lp *= weight[None, :]
         lp -= lp.mean()
-        lps = scipy.fft.rfft2(lp, workers=1)
-        amp = np.abs(lps)
-        lps /= amp + _EPS * (float(amp.max()) + _EPS)
+        lps = self._lp_ccs.forward(lp)
+        lp_edges = self._lp_ccs.edges(lps)
+        _normalise(self._lp_ccs.inner(lps), lp_edges, 1.0, 1.0)
+        self._lp_ccs.set_edges(lps, lp_edges)
         return PreparedFrame(gray=gray, spectrum=spec, logpolar=lps, ring_snr=snr.astype(np.float32),
-                             energy=energy, refine_level=self._refine_level(power, noise))
+                             energy=energy, refine_level=self._refine_level(power, noise),
+                             _cache={"mean": mean, "edges": edges, "lp_edges": lp_edges})
 
     def _refine_level(self, power: np.ndarray, noise: float) -> int:
         """Finest pyramid level on which signal dominates the frame's gradient energy.
@@ -376,20 +482,30 @@ class Registrar:
 
     @staticmethod
     def _peaks(r: np.ndarray, count: int, exclude: int = 3) -> list[tuple[int, int, float]]:
-        """The ``count`` highest local maxima (integer positions) of a periodic surface."""
-        work = r.copy()
+        """The ``count`` highest local maxima (integer positions) of a periodic surface.
+
+        Masks the neighbourhood of each peak found in place and restores it before returning.
+        """
         h, w = r.shape
-        out = []
+        out: list[tuple[int, int, float]] = []
+        saved = []
         for _ in range(count):
-            idx = int(np.argmax(work))
-            iy, ix = divmod(idx, w)
-            val = float(work[iy, ix])
-            if not np.isfinite(val) or val == -np.inf:
+            iy, ix = divmod(int(np.argmax(r)), w)
+            val = float(r[iy, ix])
+            if not np.isfinite(val):
                 break
-            out.append((iy, ix, float(r[iy, ix])))
-            ys = np.arange(iy - exclude, iy + exclude + 1) % h
-            xs = np.arange(ix - exclude, ix + exclude + 1) % w
-            work[np.ix_(ys, xs)] = -np.inf
+            out.append((iy, ix, val))
+            if len(out) == count:
+                break
+            if exclude <= iy < h - exclude and exclude <= ix < w - exclude:
+                block = (slice(iy - exclude, iy + exclude + 1), slice(ix - exclude, ix + exclude + 1))
+            else:
+                block = np.ix_(np.arange(iy - exclude, iy + exclude + 1) % h,
+                               np.arange(ix - exclude, ix + exclude + 1) % w)
+            saved.append((block, r[block].copy()))
+            r[block] = -np.inf
+        for block, values in reversed(saved):
+            r[block] = values
         return out
 
     # ------------------------------------------------------------------ rotation and scale
@@ -397,21 +513,27 @@ class Registrar:
                         prior: Prior | None) -> list[tuple[float, float, float]]:
         """Candidate (angle_deg mod 180 in (-90, 90], scale, peak) of the matrix b -> a."""
         na, nr = self.angle_bins, self.radius_bins
-        cross = np.conj(a.logpolar) * b.logpolar * self._lp_gauss
-        r = scipy.fft.irfft2(cross, s=(na, nr), workers=1) / self._lp_ref
+        ccs = self._lp_ccs
+        cross = np.empty((na, nr), np.float32)
+        inner = ccs.inner(cross)
+        np.conjugate(ccs.inner(a.logpolar), out=inner)
+        inner *= ccs.inner(b.logpolar)
+        inner *= self._lp_gauss[0]
+        ccs.set_edges(cross, np.conj(a._cache["lp_edges"]) * b._cache["lp_edges"] * self._lp_gauss[1])
+        r = ccs.inverse(cross)
+        r *= np.float32(1.0 / self._lp_ref)
         # The log-polar image of b is that of a shifted by (+log s, -angle) (rows: angle, cols: log r).
         # Restrict the radius shift to +-nr/4 (scale within exp(+-nr/4 * step)) and apply priors.
-        allowed = np.ones((na, nr), dtype=bool)
+        allowed = self._lp_allowed
         shifts_r = np.fft.fftfreq(nr, 1.0 / nr)
-        allowed &= (np.abs(shifts_r) <= nr // 4)[None, :]
         if prior is not None and prior.scale is not None:
             target = math.log(prior.scale) / self._log_step
             tol = max(abs(math.log1p(prior.scale_tol)) / self._log_step, 0.51)
-            allowed &= (np.abs(shifts_r - target) <= tol)[None, :]
+            allowed = allowed & (np.abs(shifts_r - target) <= tol)[None, :]
         if prior is not None and prior.angle_deg is not None and prior.angle_tol_deg < 90:
             shifts_a = np.fft.fftfreq(na, 1.0 / na) * (180.0 / na)  # degrees, = -angle (mod 180)
             diff = (-shifts_a - prior.angle_deg + 90.0) % 180.0 - 90.0
-            allowed &= (np.abs(diff) <= max(prior.angle_tol_deg, 180.0 / na))[:, None]
+            allowed = allowed & (np.abs(diff) <= max(prior.angle_tol_deg, 180.0 / na))[:, None]
         r_masked = np.where(allowed, r, -np.inf)
         peaks = self._peaks(r_masked, self.max_candidates)
         if not peaks:
@@ -432,51 +554,72 @@ class Registrar:
         return out
 
     # ------------------------------------------------------------------ translation
-    def _translation_weight(self, a: PreparedFrame, b: PreparedFrame) -> np.ndarray:
-        if not self.snr_weighting:
-            return self._gauss
-        snr = np.sqrt(a.ring_snr * b.ring_snr)
-        ring = snr[self._ring_index]
-        ring[self._outside_band] = 0.0
-        return self._gauss * ring
+    def _translation_weight(self, a: PreparedFrame, b: PreparedFrame) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """Weight of the translation POMF (CCS interior and edges) and its peak reference/noise."""
+        gauss_in, gauss_e = self._gauss
+        if self.snr_weighting:
+            snr = np.zeros(self.radius_bins + 1, np.float32)  # the last ring: outside the band
+            np.sqrt(a.ring_snr * b.ring_snr, out=snr[:-1])
+            w_in = np.take(snr, self._ring_index[0])
+            w_in *= gauss_in
+            w_e = np.take(snr, self._ring_index[1]) * gauss_e
+        else:
+            w_in, w_e = gauss_in, gauss_e
+        h, w = self.shape
+        mult = self._ccs.edge_mult
+        ref = (2.0 * float(w_in.sum(dtype=np.float64)) + float((w_e * mult).sum())) / (h * w)
+        noise = math.sqrt(2.0 * float(np.einsum("ij,ij->", w_in, w_in)) + float((w_e * w_e * mult).sum())) / (h * w)
+        return w_in, w_e, ref, noise
 
     def _translation(self, a: PreparedFrame, b: PreparedFrame, angle: float, scale: float,
-                     prior: Prior | None) -> list[Candidate]:
+                     prior: Prior | None, weight: tuple[np.ndarray, np.ndarray, float, float]) -> list[Candidate]:
         """Score the hypotheses ``angle`` and ``angle + 180`` of the matrix b -> a."""
         h, w = self.shape
+        ccs = self._ccs
         # With M = [L | t] (L = scale * R(angle)), b'(q) = b(L^-1 (q - c) + c) = a(q + tau) where
         # t = c + tau - L c: warping b by L about the centre c leaves a pure translation.
         lin_fwd = similarity_matrix(angle, scale, center=self.center)  # maps b pixels to b' pixels
+        mean_b = b._cache["mean"]
         warped = cv2.warpAffine(b.gray, lin_fwd, (w, h), flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=float(b.gray.mean()))
-        spec_b = self._windowed_spectrum(warped, float(b.gray.mean()))
-        weight = self._translation_weight(a, b)
-        ref = float((weight * self._mult).sum()) / (h * w)
-        noise = math.sqrt(float((weight ** 2 * self._mult).sum())) / (h * w)
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=mean_b)
+        spec_b = self._windowed_spectrum(warped, mean_b)
+        w_in, w_e, ref, noise = weight
         if ref <= _EPS:
             return [Candidate(angle, scale, (0.0, 0.0), 0.0)]
-        cross = np.conj(a.spectrum) * spec_b
-        mag = np.abs(cross)
-        cross *= weight / (mag + _EPS * (float(mag.max()) + _EPS))
+        a_in, a_e = ccs.inner(a.spectrum), a._cache["edges"]
+        b_in, b_e = ccs.inner(spec_b), ccs.edges(spec_b)
 
-        hyps = [(angle, cross)]
-        want_flip = True
+        def pomf(mirrored: bool) -> np.ndarray:
+            """Weighted, phase-normalised cross-power spectrum of a and b' (or its point mirror),
+            CCS-packed: conj(a) b', or conj(a) ramp conj(b') for b' rotated by 180 deg."""
+            packed = np.empty((h, w), np.float32)
+            inner = ccs.inner(packed)
+            if mirrored:
+                np.multiply(a_in, b_in, out=inner)
+                np.conjugate(inner, out=inner)
+                inner *= self._mirror[0]
+                edges = np.conj(a_e * b_e) * self._mirror[1]
+            else:
+                np.conjugate(a_in, out=inner)
+                inner *= b_in
+                edges = np.conj(a_e) * b_e
+            _normalise(inner, edges, w_in, w_e)
+            ccs.set_edges(packed, edges)
+            return packed
+
+        keep, flip = True, True
         if prior is not None and prior.angle_deg is not None and prior.angle_tol_deg < 90:
             d0 = abs(_wrap180(angle - prior.angle_deg))
-            if d0 > 90:
-                hyps = []
-            want_flip = d0 > 90 - prior.angle_tol_deg or not hyps
-        if want_flip:
-            # point mirror of b' about the centre = b' rotated by 180 deg
-            flip = np.conj(a.spectrum) * (self._mirror * np.conj(spec_b))
-            mag = np.abs(flip)
-            flip *= weight / (mag + _EPS * (float(mag.max()) + _EPS))
-            hyps.append((_wrap180(angle + 180.0), flip))
+            keep = d0 <= 90
+            flip = d0 > 90 - prior.angle_tol_deg or not keep
+        hyps = [(angle, pomf(False))] if keep else []
+        if flip:
+            hyps.append((_wrap180(angle + 180.0), pomf(True)))
 
         out = []
         k = math.sqrt(2.0 * math.log(h * w)) + 1.0
         for hyp_angle, spectrum in hyps:
-            r = scipy.fft.irfft2(spectrum, s=(h, w), workers=1)
+            r = ccs.inverse(spectrum)
             peaks = self._peaks(r, 2, exclude=4)
             if prior is not None and prior.shift is not None:
                 # also the best peak within the prior's tolerance (periodic ground)
@@ -673,13 +816,14 @@ class Registrar:
             return Registration(matrix=similarity_matrix(0.0, 1.0), confidence=0.0)
 
         cands: list[Candidate] = []
+        weight = self._translation_weight(pa, pb)
         for angle, scale, _ in self._rotation_scale(pa, pb, prior):
-            cands.extend(self._translation(pa, pb, angle, scale, prior))
+            cands.extend(self._translation(pa, pb, angle, scale, prior, weight))
         if (prior is not None and prior.angle_deg is not None and prior.scale is not None
                 and max(c.peak for c in cands) < _WEAK_PEAK):
             # Little overlap starves the log-polar POMF first: also try the expected rotation and
             # scale directly in the translation step (the refinement then corrects them).
-            cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior))
+            cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior, weight))
         cands = self._rank(cands, prior)
         best = cands[0]
         m = similarity_matrix(best.angle_deg, best.scale)
