@@ -42,10 +42,14 @@ __all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar", "
 
 _EPS = 1e-12
 _REFINE_SAMPLES = 16384  # the refinement samples about this many pixels on a regular grid
-_REFINE_SIGMA = 0.7  # Gaussian prefilter of the refinement images (pixels of their pyramid level)
+_REFINE_BLUR_VAR = 0.5  # the refinement images' 3x3 binomial prefilter: variance, px^2 of their level
 _REFINE_SIGNAL = 0.7  # signal share of the gradient energy the refinement level must reach
 _REFINE_MAX_LEVEL = 3  # coarsest pyramid level of the refinement (1/8 of the frame size)
 _REFINE_TOL = 0.01  # refinement converged once an update moves the frame corners less (pixels)
+_REFINE_KEEP = 0.5  # grid samples kept: gradient energy above this fraction of the mean (~40 %
+#                     of the samples, ~92 % of the energy, which is what the estimate's precision needs)
+_REFINE_MIN_KEEP = 4096  # ... but at least this many (all of a smaller grid: noisy ground needs them)
+_REFINE_MARGIN = 2.0  # samples used must map this far inside b (level pixels); see _refine
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 
 
@@ -146,24 +150,30 @@ class PreparedFrame:
 
 @dataclass(frozen=True, eq=False)
 class _Grid:
-    """The refinement's sample grid on one pyramid level (coordinates in pixels of that level)."""
+    """The refinement's regular sample grid on one pyramid level (pixels of that level)."""
 
     level: int
     stride: int  # level pixels between samples
     size: tuple[int, int]  # (rows, cols) of samples
     center: tuple[float, float]  # the frame centre in level pixels
-    window: np.ndarray  # (N,) apodization weight of each sample
-    xc: np.ndarray  # (N,) sample x minus the centre
-    yc: np.ndarray  # (N,) sample y minus the centre
+    window: np.ndarray  # (rows, cols) apodization weight of each sample
+    xyw: np.ndarray  # (3, N) float32 sample x, y and window, row-major over the grid
+    flat: np.ndarray  # (N,) index of each sample in the raveled level image
 
 
 @dataclass(frozen=True, eq=False)
 class _Template:
-    """A reference frame's refinement data: samples and steepest-descent images on a grid."""
+    """A reference frame's refinement data: its informative grid samples (K of them).
+
+    Only samples whose weighted gradient energy exceeds ``_REFINE_KEEP`` of the mean are kept:
+    flat samples hardly constrain the warp, and every sample costs in each iteration.
+    """
 
     grid: _Grid
-    values: np.ndarray  # (N,) smoothed samples minus their mean
-    sd: np.ndarray  # (6, N) steepest-descent images: d/d(tx, ty, scale, rotation, offset, gain)
+    points: np.ndarray  # (1, K, 2) float32 sample positions (x, y), level pixels
+    window: np.ndarray  # (K,) apodization weight
+    sd: np.ndarray  # (6, K) steepest-descent images: d/d(tx, ty, scale, rotation), offset, gain
+    #                 (the last row is the centred template itself)
 
 
 def _tukey(n: int, taper: float) -> np.ndarray:
@@ -385,7 +395,7 @@ class Registrar:
         # (Gaussian, sigma 1 px of each level it reads) and the refinement's own smoothing
         levels = 1 + min(_REFINE_MAX_LEVEL, max(0, int(math.log2(min(h, w) / 32))))
         r = self._lp_radius.astype(np.float64)
-        var = [sum(4.0 ** k for k in range(lv)) + (2 ** lv * _REFINE_SIGMA) ** 2 for lv in range(levels)]
+        var = [sum(4.0 ** k for k in range(lv)) + 4.0 ** lv * _REFINE_BLUR_VAR for lv in range(levels)]
         self._level_weights = np.array([r ** 4 * np.exp(-(2 * np.pi * r) ** 2 * v) for v in var])
         # nearest log-polar ring of each rfft2 bin, to spread per-ring SNR weights over a spectrum;
         # bins outside the band point at an extra ring of weight 0
@@ -658,11 +668,11 @@ class Registrar:
             ys = np.arange(0, h, stride)
             xs = np.arange(0, w, stride)
             f = 2 ** level
-            cx, cy = self.center[0] / f, self.center[1] / f
             yy, xx = np.meshgrid(ys, xs, indexing="ij")
-            grid = _Grid(level, stride, (len(ys), len(xs)), (cx, cy),
-                         np.ascontiguousarray(self.window[ys * f][:, xs * f]).ravel(),
-                         (xx - cx).astype(np.float32).ravel(), (yy - cy).astype(np.float32).ravel())
+            window = np.ascontiguousarray(self.window[ys * f][:, xs * f])
+            grid = _Grid(level, stride, (len(ys), len(xs)), (self.center[0] / f, self.center[1] / f),
+                         window, np.stack([xx.ravel(), yy.ravel(), window.ravel()]).astype(np.float32),
+                         (yy * w + xx).ravel())
             self._grids[level] = grid
         return grid
 
@@ -675,7 +685,7 @@ class Registrar:
             pyramid = frame._cache.setdefault("pyramid", [frame.gray])
             while len(pyramid) <= level:
                 pyramid.append(cv2.pyrDown(pyramid[-1]))
-            out = cv2.GaussianBlur(pyramid[level], (0, 0), _REFINE_SIGMA)
+            out = cv2.GaussianBlur(pyramid[level], (3, 3), 0)  # [1, 2, 1] / 4: variance 0.5
             frame._cache[key] = out
         return out
 
@@ -692,19 +702,31 @@ class Registrar:
             def at(dy: int, dx: int) -> np.ndarray:
                 return pad[1 + dy::st, 1 + dx::st][:rh, :rw]
 
-            values = at(0, 0).ravel()
-            gx = ((at(0, 1) - at(0, -1)) * 0.5).ravel()
-            gy = ((at(1, 0) - at(-1, 0)) * 0.5).ravel()
-            sd = np.empty((6, values.size), np.float32)
-            sd[0] = gx
-            sd[1] = gy
-            np.multiply(grid.xc, gx, out=sd[2])
-            sd[2] += grid.yc * gy
-            np.multiply(grid.xc, gy, out=sd[3])
-            sd[3] -= grid.yc * gx
+            grad = np.empty((2, rh, rw), np.float32)  # twice the gradient (central differences)
+            np.subtract(at(0, 1), at(0, -1), out=grad[0])
+            np.subtract(at(1, 0), at(-1, 0), out=grad[1])
+            energy = grad[0] * grad[0]
+            energy += grad[1] * grad[1]
+            energy *= grid.window
+            if energy.size <= _REFINE_MIN_KEEP:
+                keep = np.arange(energy.size)
+            else:
+                keep = np.flatnonzero(energy > np.float32(_REFINE_KEEP * float(energy.mean())))
+                if keep.size < _REFINE_MIN_KEEP:  # the most energetic ones, in raster order
+                    keep = np.sort(np.argpartition(energy.ravel(), -_REFINE_MIN_KEEP)[-_REFINE_MIN_KEEP:])
+            x, y, window = np.take(grid.xyw, keep, axis=1)
+            xc, yc = x - np.float32(grid.center[0]), y - np.float32(grid.center[1])
+            sd = np.empty((6, keep.size), np.float32)
+            np.multiply(np.take(grad.reshape(2, -1), keep, axis=1), 0.5, out=sd[:2])
+            np.multiply(xc, sd[0], out=sd[2])
+            sd[2] += yc * sd[1]
+            np.multiply(xc, sd[1], out=sd[3])
+            sd[3] -= yc * sd[0]
             sd[4] = 1.0
-            np.subtract(values, np.float32(values.mean()), out=sd[5])
-            tpl = _Template(grid, sd[5], sd)
+            sd[5] = img.ravel()[grid.flat[keep]]
+            if keep.size:
+                sd[5] -= np.float32(sd[5].mean())
+            tpl = _Template(grid, np.stack([x, y], axis=-1)[None], window, sd)
             frame._cache["template"] = tpl
         return tpl
 
@@ -712,61 +734,73 @@ class Registrar:
         """Inverse compositional Gauss-Newton on a similarity + brightness gain/offset.
 
         ``m`` maps b -> a; returns the refined matrix, or None when it does not converge. It runs
-        on ``a.refine_level`` of both frames' pyramids, with samples of ``a`` on a regular grid
-        (the template) and ``b`` warped onto them. Only small, single-threaded reductions
-        (``np.einsum``, no BLAS): a busy neighbour process does not slow it down.
+        on ``a.refine_level`` of both frames' pyramids, with the informative samples of a grid on
+        ``a`` (the template) and ``b`` interpolated at their warped positions. Only small,
+        single-threaded reductions (``np.einsum``, OpenCV; no BLAS products, whose threads would
+        spin against any busy neighbour process).
         """
         h, w = self.shape
         tpl = self._template(a)
         grid = tpl.grid
         img_b = self._smooth(b, grid.level)
+        hb, wb_ = img_b.shape
+        if tpl.sd.shape[1] < 16:
+            return None
         f = float(2 ** grid.level)
-        st = float(grid.stride)
-        rh, rw = grid.size
         cx, cy = grid.center
         reach = max(cx, cy) * 1.5
         # in level pixels, the matrix keeps its linear part and divides its shift by f
-        m3 = np.vstack([m, [0.0, 0.0, 1.0]])
-        m3[:2, 2] /= f
+        m3 = np.array([[m[0, 0], m[0, 1], m[0, 2] / f], [m[1, 0], m[1, 1], m[1, 2] / f], [0.0, 0.0, 1.0]])
         start = m3.copy()
         moved = math.inf  # level pixels the samples moved since their mask was built
         fit_start = fit_end = -math.inf  # weighted correlation of b with the template
         for it in range(self.refine_iterations):
-            # b sampled at the template's grid: inverse of m3, after grid index -> level pixel
-            inv = np.linalg.inv(m3)[:2]
-            inv[:, :2] *= st
-            if moved > 0.5 * st:
-                warped = cv2.warpAffine(img_b, inv, (rw, rh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                        borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-                # keep samples whose grid neighbours are inside b too (margin for later moves)
-                inside = cv2.erode(np.isfinite(warped).view(np.uint8), np.ones((3, 3), np.uint8),
-                                   borderType=cv2.BORDER_CONSTANT, borderValue=1).ravel()
-                warped = warped.ravel()
-                warped[inside == 0] = 0.0
-                wgt = grid.window * inside
+            # where the template's samples fall in b: the inverse of m3
+            (p, q, tx0), (r_, s_, ty0) = m3[0], m3[1]
+            det = p * s_ - q * r_
+            if abs(det) < _EPS:
+                return None
+            ia, ib, ic, id_ = s_ / det, -q / det, -r_ / det, p / det
+            inv = np.array([[ia, ib, -(ia * tx0 + ib * ty0)], [ic, id_, -(ic * tx0 + id_ * ty0)]])
+            where = cv2.transform(tpl.points, inv)
+            warped = cv2.remap(img_b, where, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=0.0).ravel()
+            if moved > _REFINE_MARGIN - 0.5:
+                # use the samples at least _REFINE_MARGIN inside b: they stay inside (and the
+                # mask, Hessian and template moments stay valid) while the warp moves them less
+                u, v = where[0, :, 0], where[0, :, 1]
+                inside = (u >= _REFINE_MARGIN) & (u <= wb_ - 1 - _REFINE_MARGIN)
+                inside &= (v >= _REFINE_MARGIN) & (v <= hb - 1 - _REFINE_MARGIN)
+                wgt = tpl.window * inside
                 wsum = float(wgt.sum())
-                if wsum < 0.05 * wgt.size:
-                    return None
-                # template moments over the kept samples (the values are centred: float32 is exact enough)
-                mt = float(np.einsum("i,i->", wgt, tpl.values)) / wsum
-                vt = float(np.einsum("i,i,i->", wgt, tpl.values, tpl.values)) / wsum - mt * mt
-                if vt <= _EPS:
+                if wsum < 0.05 * float(tpl.window.sum()):
                     return None
                 wsd = tpl.sd * wgt
-                hess = np.einsum("ji,ki->jk", wsd, tpl.sd).astype(np.float64)
-                tmpl = tpl.values - np.float32(mt)
+                # Gauss-Newton matrix (upper triangle, 6 reductions) and template moments
+                hess = np.empty((6, 6))
+                for j in range(6):
+                    hess[j, j:] = np.einsum("ki,i->k", tpl.sd[j:], wsd[j])
+                hess = np.triu(hess) + np.triu(hess, 1).T
+                mt = hess[4, 5] / wsum  # rows 4 and 5: ones and the centred template
+                vt = hess[5, 5] / wsum - mt * mt
+                if vt <= _EPS:
+                    return None
+                try:
+                    solve = np.linalg.inv(hess)[:4]
+                except np.linalg.LinAlgError:
+                    return None
+                tmpl = tpl.sd[5] - np.float32(mt)
                 moved = 0.0
-            else:
-                warped = cv2.warpAffine(img_b, inv, (rw, rh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0).ravel()
             # brightness gain/offset of the warped image against the template (moments), which
             # the solve corrects to first order together with the warp: the mean and variance
             # taken from the overlap absorb part of a shift of smooth ground, the joint system
             # (warp, offset, gain) accounts for that (else on featureless ground each update
             # is a small fraction of the error)
-            mw = float(np.einsum("i,i->", wgt, warped)) / wsum
+            wb = wgt * warped
+            mw = float(wb.sum()) / wsum
             warped -= np.float32(mw)
-            vw = float(np.einsum("i,i,i->", wgt, warped, warped)) / wsum
+            np.multiply(wgt, warped, out=wb)
+            vw = float(np.einsum("i,i->", wb, warped)) / wsum
             if vw <= _EPS:
                 return None
             warped *= np.float32(math.sqrt(vt / vw))
@@ -777,10 +811,7 @@ class Registrar:
             fit = 1.0 + float(rhs[5]) / (wsum * vt)
             if it == 0:
                 fit_start = fit
-            try:
-                tx, ty, da, db = np.linalg.solve(hess, rhs)[:4]
-            except np.linalg.LinAlgError:
-                return None
+            tx, ty, da, db = np.einsum("jk,k->j", solve, rhs)
             # warp increment about the centre: x -> (1+da) x - db y + tx (centred coordinates)
             c, s_ = 1.0 + da, db
             inc = np.array([[c, -s_, tx + cx - c * cx + s_ * cy], [s_, c, ty + cy - s_ * cx - c * cy], [0, 0, 1]])
@@ -790,7 +821,7 @@ class Registrar:
             if step * f < _REFINE_TOL:
                 fit_end = fit
                 break
-            moved += step  # the mask stays good while samples moved less than half a grid step
+            moved += step
         m3[:2, 2] *= f
         start[:2, 2] *= f
         # reject a refinement that wandered far from the iFMI estimate (it diverged), unless it
