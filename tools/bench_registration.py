@@ -323,6 +323,7 @@ class Timing:
     shape: tuple[int, int]
     ms: dict[str, dict[str, float]]
     samples: int  # timed pairs per method and condition
+    load: float = float("nan")  # 1-minute load average when the timing started (0 = idle machine)
 
     def ratio_busy(self, method: str) -> float:
         return self.ms["busy"][method] / self.ms["quiet"][method]
@@ -344,6 +345,7 @@ def time_ifmi(shape: tuple[int, int], n: int, terrains: TerrainCache, repeats: i
     flight = make_flight(spec, n, terrains, SEED + 100)
     methods = ifmi_methods(shape)
     ms: dict[str, dict[str, float]] = {}
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     for condition in CONDITIONS:
         with busy_neighbour(condition == "busy"):
             for method in methods:  # warm-up (lazy init, caches)
@@ -359,7 +361,7 @@ def time_ifmi(shape: tuple[int, int], n: int, terrains: TerrainCache, repeats: i
                         samples[method.name].append(1e3 * (time.perf_counter() - t0))
                         prev[method.name] = cur
         ms[condition] = {name: float(np.median(v)) for name, v in samples.items()}
-    return Timing(shape, ms, repeats * (len(flight.grays) - 1))
+    return Timing(shape, ms, repeats * (len(flight.grays) - 1), load)
 
 
 # --------------------------------------------------------------------------- confidence calibration
@@ -489,7 +491,7 @@ def accuracy_table(runs: list[Run]) -> list[str]:
 def timing_table(timings: dict[tuple[int, int], Timing]) -> list[str]:
     out = ["| frame (w x h) | iFMI quiet | iFMI busy | busy / quiet | no refine quiet | no refine busy "
            "| busy / quiet | refined / plain quiet | refined / plain busy | target ms (quiet) | paper C/C++ ms "
-           "| paper / iFMI |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+           "| paper / iFMI | load before |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for shape, t in timings.items():
         paper = PAPER_MS.get(shape)
         target = TARGET_MS.get(shape)
@@ -499,7 +501,7 @@ def timing_table(timings: dict[tuple[int, int], Timing]) -> list[str]:
                    f"| {quiet['iFMI no refine']:.2f} | {busy['iFMI no refine']:.2f} "
                    f"| {t.ratio_busy('iFMI no refine'):.2f} | {t.ratio_refined('quiet'):.2f} "
                    f"| {t.ratio_refined('busy'):.2f} | {'<= %g' % target if target else '-'} "
-                   f"| {'%g' % paper if paper else '-'} | {ratio} |")
+                   f"| {'%g' % paper if paper else '-'} | {ratio} | {_fmt(t.load, 2)} |")
     return out
 
 
@@ -575,8 +577,9 @@ def render_report(flights: list[Flight], runs: list[Run], timings, cal: Calibrat
     lines += ["", "## iFMI speed by frame size (sequence mode)", "",
               "Median ms per pair on a textured 5 fps flight (the new frame's `prepare()` plus `register()`), "
               f"{samples} pairs per method and condition ({args.timing_pairs} pairs, {args.timing_repeats} passes), "
-              "iFMI and iFMI no refine alternating pair by pair. *quiet*: no process started by the tool (the "
-              "load average above says what else ran); *busy*: a separate process spinning on one core "
+              "iFMI and iFMI no refine alternating pair by pair. *quiet*: no process started by the tool "
+              "(*load before*: the 1-minute load average when the size's timing started; above 0 other "
+              "processes shared the cores); *busy*: a separate process spinning on one core "
               "for the duration (`while True: pass`, started and stopped by the tool). *busy / quiet* is "
               "the cost of a busy neighbour, *refined / plain* the cost of the Gauss-Newton refinement, "
               "both from the same run. "
