@@ -51,7 +51,7 @@ from photomap.sim.flight import (Camera, Effects, Motion, iter_frames, plan_flig
 from photomap.core.ifmi import Registrar
 from photomap.sim.terrain import BUNDLED, DEFAULT_GSD, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
 
-if __package__ in (None, ""):  # run as `python tools/bench_registration.py`: the repository root holds `tools`
+if __package__ in (None, ""):  # run as `python tools/bench_registration.py`: make `tools` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from tools.peers import Method, peer_methods  # noqa: E402
 from tools.report import replace_section  # noqa: E402

@@ -398,7 +398,9 @@ class Registrar:
         lfx = scipy.fft.rfftfreq(nr)[None, :]
         lp_gauss = np.exp(-0.5 * (lfx ** 2 + lfy ** 2) / peak_sigma ** 2).astype(np.float32)
         self._lp_gauss = self._lp_ccs.split(lp_gauss)
-        self._lp_ref = float(2.0 * self._lp_gauss[0].sum() + (self._lp_gauss[1] * self._lp_ccs.edge_mult).sum()) / (na * nr)
+        lp_sum = 2.0 * float(self._lp_gauss[0].sum())
+        lp_sum += float((self._lp_gauss[1] * self._lp_ccs.edge_mult).sum())
+        self._lp_ref = lp_sum / (na * nr)
         # scale shifts beyond +-nr/4 bins are never searched
         shifts_r = np.fft.fftfreq(nr, 1.0 / nr)
         self._lp_allowed = np.broadcast_to((np.abs(shifts_r) <= nr // 4)[None, :], (na, nr))
@@ -578,7 +580,8 @@ class Registrar:
         return out
 
     # ------------------------------------------------------------------ translation
-    def _translation_weight(self, a: PreparedFrame, b: PreparedFrame) -> tuple[np.ndarray, np.ndarray, float, float]:
+    def _translation_weight(self, a: PreparedFrame,
+                            b: PreparedFrame) -> tuple[np.ndarray, np.ndarray, float, float]:
         """Weight of the translation POMF (CCS interior and edges) and its peak reference/noise."""
         gauss_in, gauss_e = self._gauss
         if self.snr_weighting:
@@ -592,11 +595,13 @@ class Registrar:
         h, w = self.shape
         mult = self._ccs.edge_mult
         ref = (2.0 * float(w_in.sum(dtype=np.float64)) + float((w_e * mult).sum())) / (h * w)
-        noise = math.sqrt(2.0 * float(np.einsum("ij,ij->", w_in, w_in)) + float((w_e * w_e * mult).sum())) / (h * w)
+        energy = 2.0 * float(np.einsum("ij,ij->", w_in, w_in)) + float((w_e * w_e * mult).sum())
+        noise = math.sqrt(energy) / (h * w)
         return w_in, w_e, ref, noise
 
     def _translation(self, a: PreparedFrame, b: PreparedFrame, angle: float, scale: float,
-                     prior: Prior | None, weight: tuple[np.ndarray, np.ndarray, float, float]) -> list[Candidate]:
+                     prior: Prior | None,
+                     weight: tuple[np.ndarray, np.ndarray, float, float]) -> list[Candidate]:
         """Score the hypotheses ``angle`` and ``angle + 180`` of the matrix b -> a."""
         h, w = self.shape
         ccs = self._ccs
@@ -833,7 +838,8 @@ class Registrar:
             tx, ty, da, db = np.einsum("jk,k->j", solve, rhs)
             # warp increment about the centre: x -> (1+da) x - db y + tx (centred coordinates)
             c, s_ = 1.0 + da, db
-            inc = np.array([[c, -s_, tx + cx - c * cx + s_ * cy], [s_, c, ty + cy - s_ * cx - c * cy], [0, 0, 1]])
+            inc = np.array([[c, -s_, tx + cx - c * cx + s_ * cy],
+                            [s_, c, ty + cy - s_ * cx - c * cy], [0.0, 0.0, 1.0]])
             m3 = inc @ m3
             # converged when the frame corners move less than _REFINE_TOL (full-resolution pixels)
             step = max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * reach
@@ -848,7 +854,8 @@ class Registrar:
         # a few degrees on featureless ground, which moves the corners by more than 3 %)
         corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
         moved_px = float(np.abs((m3 - start) @ corners)[:2].max())
-        if moved_px > max(3.0, 0.03 * max(h, w)) and not (fit_end > fit_start and moved_px <= 0.1 * max(h, w)):
+        converged_better = fit_end > fit_start and moved_px <= 0.1 * max(h, w)
+        if moved_px > max(3.0, 0.03 * max(h, w)) and not converged_better:
             return None
         return m3[:2]
 
