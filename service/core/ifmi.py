@@ -764,38 +764,37 @@ class Registrar:
         """
         h, w = self.shape
         tpl = self._template(a)
+        if tpl.sd.shape[1] < 16:
+            return None
         grid = tpl.grid
         img_b = self._smooth(b, grid.level)
         hb, wb_ = img_b.shape
         offset_b = np.float32(b._cache["mean"])
-        if tpl.sd.shape[1] < 16:
-            return None
+        lo = _REFINE_MARGIN
         f = float(2 ** grid.level)
         cx, cy = grid.center
         reach = max(cx, cy) * 1.5
-        # in level pixels, the matrix keeps its linear part and divides its shift by f
-        m3 = np.array([[m[0, 0], m[0, 1], m[0, 2] / f], [m[1, 0], m[1, 1], m[1, 2] / f], [0.0, 0.0, 1.0]])
-        start = m3.copy()
+        # the matrix as plain floats, in level pixels (its linear part is the same, its shift / f)
+        m00, m01, m02 = float(m[0, 0]), float(m[0, 1]), float(m[0, 2]) / f
+        m10, m11, m12 = float(m[1, 0]), float(m[1, 1]), float(m[1, 2]) / f
+        start = np.array([[m00, m01, m02 * f], [m10, m11, m12 * f]])
         moved = math.inf  # level pixels the samples moved since their mask was built
         fit_start = fit_end = -math.inf  # weighted correlation of b with the template
         for it in range(self.refine_iterations):
-            # where the template's samples fall in b: the inverse of m3
-            (p, q, tx0), (r_, s_, ty0) = m3[0], m3[1]
-            det = p * s_ - q * r_
+            # where the template's samples fall in b: the inverse of the matrix
+            det = m00 * m11 - m01 * m10
             if abs(det) < _EPS:
                 return None
-            ia, ib, ic, id_ = s_ / det, -q / det, -r_ / det, p / det
-            inv = np.array([[ia, ib, -(ia * tx0 + ib * ty0)], [ic, id_, -(ic * tx0 + id_ * ty0)]])
-            where = cv2.transform(tpl.points, inv)
+            ia, ib, ic, id_ = m11 / det, -m01 / det, -m10 / det, m00 / det
+            where = cv2.transform(tpl.points, np.array([[ia, ib, -(ia * m02 + ib * m12)],
+                                                        [ic, id_, -(ic * m02 + id_ * m12)]]))
             warped = cv2.remap(img_b, where, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                borderValue=0.0).ravel()
-            if moved > _REFINE_MARGIN - 0.5:
+            if moved > lo - 0.5:
                 # use the samples at least _REFINE_MARGIN inside b: they stay inside (and the
                 # mask, Hessian and template moments stay valid) while the warp moves them less
-                u, v = where[0, :, 0], where[0, :, 1]
-                inside = (u >= _REFINE_MARGIN) & (u <= wb_ - 1 - _REFINE_MARGIN)
-                inside &= (v >= _REFINE_MARGIN) & (v <= hb - 1 - _REFINE_MARGIN)
-                wgt = tpl.window * inside
+                inside = cv2.inRange(where, (lo, lo), (wb_ - 1 - lo, hb - 1 - lo)).ravel()
+                wgt = cv2.multiply(tpl.window, inside, scale=1.0 / 255.0, dtype=cv2.CV_32F).ravel()
                 wsum = float(wgt.sum())
                 if wsum < 0.05 * float(tpl.window.sum()):
                     return None
@@ -813,6 +812,11 @@ class Registrar:
                     solve = np.linalg.inv(hess)[:4]
                 except np.linalg.LinAlgError:
                     return None
+                # see below: sums of the residual = gain * (proj - mw * ones) - centred template
+                ones, tmpl = hess[:, 4], hess[:, 5] - mt * hess[:, 4]
+                solve_ones = np.einsum("jk,k->j", solve, ones).tolist()
+                solve_tmpl = np.einsum("jk,k->j", solve, tmpl).tolist()
+                ones5, tmpl5 = float(ones[5]), float(tmpl[5])
                 wb = np.empty_like(wgt)
                 moved = 0.0
             # Brightness gain/offset of the warped image against the template from their moments,
@@ -824,40 +828,41 @@ class Registrar:
             warped -= offset_b  # centred roughly (precision of the float32 sums)
             proj = np.einsum("ji,i->j", wsd, warped).astype(np.float64)
             np.multiply(wgt, warped, out=wb)
-            mw = proj[4] / wsum
+            mw = float(proj[4]) / wsum
             vw = float(np.einsum("i,i->", wb, warped)) / wsum - mw * mw
             if vw <= _EPS:
                 return None
             gain = math.sqrt(vt / vw)
-            rhs = gain * (proj - mw * hess[:, 4]) - (hess[:, 5] - mt * hess[:, 4])
             # weighted correlation of b with the template: the residual's energy is -2 rhs[5]
             # (row 5 is the centred template; the residual has zero weighted mean)
-            fit = 1.0 + float(rhs[5]) / (wsum * vt)
+            fit = 1.0 + (gain * (float(proj[5]) - mw * ones5) - tmpl5) / (wsum * vt)
             if it == 0:
                 fit_start = fit
-            tx, ty, da, db = np.einsum("jk,k->j", solve, rhs)
-            # warp increment about the centre: x -> (1+da) x - db y + tx (centred coordinates)
+            gm = gain * mw
+            tx, ty, da, db = (gain * x - gm * o - t for x, o, t in
+                              zip(np.einsum("jk,k->j", solve, proj).tolist(), solve_ones, solve_tmpl))
+            # warp increment about the centre, x -> (1+da) x - db y + tx in centred coordinates,
+            # composed in front of the matrix
             c, s_ = 1.0 + da, db
-            inc = np.array([[c, -s_, tx + cx - c * cx + s_ * cy],
-                            [s_, c, ty + cy - s_ * cx - c * cy], [0.0, 0.0, 1.0]])
-            m3 = inc @ m3
+            ex, ey = tx + cx - c * cx + s_ * cy, ty + cy - s_ * cx - c * cy
+            m00, m01, m02, m10, m11, m12 = (c * m00 - s_ * m10, c * m01 - s_ * m11, c * m02 - s_ * m12 + ex,
+                                            s_ * m00 + c * m10, s_ * m01 + c * m11, s_ * m02 + c * m12 + ey)
             # converged when the frame corners move less than _REFINE_TOL (full-resolution pixels)
             step = max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * reach
             if step * f < _REFINE_TOL:
                 fit_end = fit
                 break
             moved += step
-        m3[:2, 2] *= f
-        start[:2, 2] *= f
+        out = np.array([[m00, m01, m02 * f], [m10, m11, m12 * f]])
         # reject a refinement that wandered far from the iFMI estimate (it diverged), unless it
         # converged to a better fit and stayed within 10 % of the frame size (iFMI can be off by
         # a few degrees on featureless ground, which moves the corners by more than 3 %)
         corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-        moved_px = float(np.abs((m3 - start) @ corners)[:2].max())
+        moved_px = float(np.abs(np.einsum("ij,jk->ik", out - start, corners)).max())
         converged_better = fit_end > fit_start and moved_px <= 0.1 * max(h, w)
         if moved_px > max(3.0, 0.03 * max(h, w)) and not converged_better:
             return None
-        return m3[:2]
+        return out
 
     # ------------------------------------------------------------------ public
     def register(self, a: np.ndarray | PreparedFrame, b: np.ndarray | PreparedFrame,
