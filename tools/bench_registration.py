@@ -324,6 +324,9 @@ class Timing:
     ms: dict[str, dict[str, float]]
     samples: int  # timed pairs per method and condition
     load: float = float("nan")  # 1-minute load average when the timing started (0 = idle machine)
+    # CPU time of the timing thread per pair (medians, ms): unlike wall time, it hardly depends on
+    # how often other processes preempt the benchmark (a shared machine)
+    cpu: dict[str, dict[str, float]] = dataclasses.field(default_factory=dict)
 
     def ratio_busy(self, method: str) -> float:
         return self.ms["busy"][method] / self.ms["quiet"][method]
@@ -345,23 +348,27 @@ def time_ifmi(shape: tuple[int, int], n: int, terrains: TerrainCache, repeats: i
     flight = make_flight(spec, n, terrains, SEED + 100)
     methods = ifmi_methods(shape)
     ms: dict[str, dict[str, float]] = {}
+    cpu: dict[str, dict[str, float]] = {}
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     for condition in CONDITIONS:
         with busy_neighbour(condition == "busy"):
             for method in methods:  # warm-up (lazy init, caches)
                 method.register(method.prepare(flight.grays[0]), method.prepare(flight.grays[1]))
             samples: dict[str, list[float]] = {m.name: [] for m in methods}
+            cpu_samples: dict[str, list[float]] = {m.name: [] for m in methods}
             for _ in range(repeats):
                 prev = {m.name: m.prepare(flight.grays[0]) for m in methods}
                 for gray in flight.grays[1:]:
                     for method in methods:
-                        t0 = time.perf_counter()
+                        t0, c0 = time.perf_counter(), time.thread_time()
                         cur = method.prepare(gray)
                         method.register(prev[method.name], cur)
                         samples[method.name].append(1e3 * (time.perf_counter() - t0))
+                        cpu_samples[method.name].append(1e3 * (time.thread_time() - c0))
                         prev[method.name] = cur
         ms[condition] = {name: float(np.median(v)) for name, v in samples.items()}
-    return Timing(shape, ms, repeats * (len(flight.grays) - 1), load)
+        cpu[condition] = {name: float(np.median(v)) for name, v in cpu_samples.items()}
+    return Timing(shape, ms, repeats * (len(flight.grays) - 1), load, cpu)
 
 
 # --------------------------------------------------------------------------- confidence calibration
@@ -521,6 +528,18 @@ def calibration_table(cal: Calibration) -> list[str]:
     return out
 
 
+def cpu_table(timings: dict[tuple[int, int], Timing]) -> list[str]:
+    out = ["| frame (w x h) | iFMI CPU quiet | iFMI CPU busy | no refine CPU quiet | no refine CPU busy "
+           "| refined / plain (CPU, quiet) |", "|---|---:|---:|---:|---:|---:|"]
+    for shape, t in timings.items():
+        if not t.cpu:
+            continue
+        q, b = t.cpu["quiet"], t.cpu["busy"]
+        out.append(f"| {shape[1]}x{shape[0]} | {q['iFMI']:.2f} | {b['iFMI']:.2f} | {q['iFMI no refine']:.2f} "
+                   f"| {b['iFMI no refine']:.2f} | {q['iFMI'] / q['iFMI no refine']:.2f} |")
+    return out
+
+
 def targets_table(runs: list[Run], timings: dict[tuple[int, int], Timing]) -> list[str]:
     def get(seq: str) -> Run | None:
         return next((r for r in runs if r.method == "iFMI" and r.sequence == seq), None)
@@ -585,6 +604,11 @@ def render_report(flights: list[Flight], runs: list[Run], timings, cal: Calibrat
               "both from the same run. "
               "Paper: Buelow & Birk, IROS 2009, C/C++ on a 1.7 GHz PC: 230 ms at 256x256, 430 ms at 480x480.", ""]
     lines += timing_table(timings)
+    lines += ["", "CPU time of the benchmark's thread per pair (median ms; `time.thread_time`): on a shared "
+              "machine it shows the work itself, while the wall times above also count the time other "
+              "processes held the cores. Threads that spin (a multithreaded BLAS) show up in the wall time, "
+              "not here.", ""]
+    lines += cpu_table(timings)
     lines += ["", "## iFMI confidence calibration", "",
               "Confidence of iFMI on the successful pairs of all sequences above against wrong results: pairs "
               "of those sequences with a gross error, pairs of views of the same terrains (aukerman, grass, "
