@@ -43,6 +43,6 @@ def test_time_ifmi_reports_medians_quiet_and_busy():
         assert all(v > 0 and math.isfinite(v) for v in t.ms[condition].values())
     assert t.samples == 2
     assert set(t.cpu) == {"quiet", "busy"}
-    assert all(0 < v <= 10 * t.ms[c][m] + 1 for c in t.cpu for m, v in t.cpu[c].items())  # CPU <~ wall
+    assert all(0 < v <= t.ms[c][m] + 0.1 for c in t.cpu for m, v in t.cpu[c].items())  # CPU <= wall
     assert t.ratio_busy("iFMI") == pytest.approx(t.ms["busy"]["iFMI"] / t.ms["quiet"]["iFMI"])
     assert t.ratio_refined("quiet") == pytest.approx(t.ms["quiet"]["iFMI"] / t.ms["quiet"]["iFMI no refine"])
