@@ -120,10 +120,10 @@ def similarity_matrix(angle_deg: float, scale: float, shift: tuple[float, float]
     which with y pointing down turns clockwise on screen for a positive angle.
     """
     a = math.radians(angle_deg)
-    lin = scale * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    c = np.asarray(center, dtype=np.float64)
-    t = c + np.asarray(shift, dtype=np.float64) - lin @ c
-    return np.hstack([lin, t[:, None]])
+    c, s = scale * math.cos(a), scale * math.sin(a)
+    cx, cy = float(center[0]), float(center[1])
+    return np.array([[c, -s, cx + float(shift[0]) - (c * cx - s * cy)],
+                     [s, c, cy + float(shift[1]) - (s * cx + c * cy)]])
 
 
 def scaling(f: float) -> np.ndarray:

@@ -13,7 +13,12 @@ Chatterji 1996 for classic FMI):
    cannot tell ``a`` from ``a + 180 deg``: both hypotheses are tested, the second one for the price
    of one inverse FFT (the point-mirrored image's spectrum is a phase ramp times the conjugate).
 5. Optionally a few Gauss-Newton iterations (inverse compositional Lucas-Kanade with a similarity
-   warp and a brightness gain/offset) refine the estimate below the log-polar grid.
+   warp and a brightness gain/offset) refine the estimate below the log-polar grid. They run on
+   the pyramid level (``cv2.pyrDown``) where signal dominates the reference's gradient energy
+   (full resolution for textured ground, 1/4 for smooth, noisy sand: noise gradients would shrink
+   every step), on the informative samples of a regular grid on the reference (those whose
+   gradient energy exceeds a quarter of the mean, at least 4096), and stop once an update moves the frame
+   corners by less than 0.01 px (2-3 iterations on textured ground).
 
 Every cross-power spectrum is weighted by a Gaussian low-pass, which turns the POMF peak into a
 sampled Gaussian; fitting a Gaussian to the 3 samples around the maximum (a parabola on their
@@ -26,7 +31,15 @@ are read from it as ``degrees(atan2(m10, m00))`` and ``sqrt(det)``, ``shift`` is
 
 The module is pure: arrays in, arrays out; a :class:`Registrar` only caches constants for one
 frame shape, and a :class:`PreparedFrame` caches one frame's spectra so that, in a sequence, each
-new frame costs 3 forward and at most 3 inverse real FFTs.
+new frame costs 3 forward and at most 3 inverse real FFTs; the refinement's data of a frame is
+built on first use and cached in it too.
+
+Speed (issue 12): the FFTs are OpenCV's (``cv2.dft`` in its packed CCS layout, about twice as fast
+as ``scipy.fft`` here), everything is float32 but the few sums that need more, and nothing calls a
+BLAS product on large arrays (``@``/``dot`` on the refinement's samples ran multithreaded OpenBLAS,
+whose threads spin: next to any busy process a 3 ms registration took 30-100 ms). Only OpenCV and
+``np.einsum`` (single-threaded) touch the large arrays, so a Registrar costs the same in any
+process, whatever its BLAS thread settings.
 """
 
 from __future__ import annotations
@@ -45,6 +58,15 @@ __all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar"]
 
 _EPS = 1e-12
 _REFINE_SAMPLES = 16384  # the refinement samples about this many pixels on a regular grid
+_REFINE_BLUR_VAR = 0.5  # the refinement images' 3x3 binomial prefilter: variance, px^2 of their level
+_REFINE_SIGNAL = 0.7  # signal share of the gradient energy the refinement level must reach
+_REFINE_MAX_LEVEL = 3  # coarsest pyramid level of the refinement (1/8 of the frame size)
+_REFINE_TOL = 0.01  # refinement converged once an update moves the frame corners less (pixels)
+_REFINE_KEEP = 0.25  # grid samples kept: gradient energy above this fraction of the mean (about
+#                      half of them on textured ground, ~97 % of the energy, which is what the
+#                      estimate's precision needs; 0.5 keeps ~40 % and loses ~15 % of the precision)
+_REFINE_MIN_KEEP = 4096  # ... but at least this many (all of a smaller grid: noisy ground needs them)
+_REFINE_MARGIN = 2.0  # samples used must map this far inside b (level pixels); see _refine
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 _EXPECTED_PEAK = 0.35  # a peak at the expected shift wins over higher ones at this fraction of the best
 _CLEAR_PEAK = 0.15  # ... and at least this high (well above noise, which scores ~0)
@@ -126,8 +148,37 @@ class PreparedFrame:
     logpolar: np.ndarray  # rfft2 of the weighted log-polar magnitude, phase-normalised
     ring_snr: np.ndarray  # per-ring Wiener weight S/(S+N) of the frame's spectrum
     energy: float  # variance of the frame (0 for a blank frame)
-    gradients: np.ndarray | None = field(default=None)  # Nx4 steepest-descent images (refinement)
-    smooth: np.ndarray | None = field(default=None)  # smoothed gray used by the refinement
+    refine_level: int = 0  # pyramid level (0 = full resolution) the refinement uses as reference
+    # refinement data built on first use (pyramid, smoothed images, template): see Registrar._refine
+    _cache: dict = field(default_factory=dict, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class _Grid:
+    """The refinement's regular sample grid on one pyramid level (pixels of that level)."""
+
+    level: int
+    stride: int  # level pixels between samples
+    size: tuple[int, int]  # (rows, cols) of samples
+    center: tuple[float, float]  # the frame centre in level pixels
+    window: np.ndarray  # (rows, cols) apodization weight of each sample
+    xyw: np.ndarray  # (3, N) float32 sample x, y and window, row-major over the grid
+    flat: np.ndarray  # (N,) index of each sample in the raveled level image
+
+
+@dataclass(frozen=True, eq=False)
+class _Template:
+    """A reference frame's refinement data: its informative grid samples (K of them).
+
+    Only samples whose weighted gradient energy exceeds ``_REFINE_KEEP`` of the mean are kept:
+    flat samples hardly constrain the warp, and every sample costs in each iteration.
+    """
+
+    grid: _Grid
+    points: np.ndarray  # (1, K, 2) float32 sample positions (x, y), level pixels
+    window: np.ndarray  # (K,) apodization weight
+    sd: np.ndarray  # (6, K) steepest-descent images: d/d(tx, ty, scale, rotation), offset, gain
+    #                 (the last row is the centred template itself)
 
 
 def _tukey(n: int, taper: float) -> np.ndarray:
@@ -149,7 +200,110 @@ def _fit_offset(lm: float, l0: float, lp: float) -> float:
     den = lm - 2.0 * l0 + lp
     if den >= -_EPS:
         return 0.0
-    return float(np.clip(0.5 * (lm - lp) / den, -0.5, 0.5))
+    return min(max(0.5 * (lm - lp) / den, -0.5), 0.5)
+
+
+def _percentile(x: np.ndarray, q: float) -> float:
+    """``np.percentile(x, q)`` (linear interpolation) of a 1-D array, by partial sort."""
+    if not x.size:
+        return 0.0
+    pos = q / 100.0 * (x.size - 1)
+    lo = int(math.floor(pos))
+    hi = min(lo + 1, x.size - 1)
+    part = np.partition(x, [lo, hi])
+    return float(part[lo] + (pos - lo) * (part[hi] - part[lo]))
+
+
+class _Ccs:
+    """OpenCV's packed real DFT layout (CCS) of h x w arrays, with numpy access to its bins.
+
+    ``cv2.dft`` of a real h x w float32 array (about twice as fast as ``scipy.fft.rfft2`` here)
+    packs the half spectrum fx >= 0 into h x w floats. Its interior columns fx = 1 .. (w-1)//2
+    are (re, im) pairs: :meth:`inner` views them as a complex (h, ni) array without copying. The
+    columns fx = 0 and, for even w, fx = w/2 pack their own Hermitian column along the rows:
+    :meth:`edges` unpacks them as half columns ky = 0 .. h//2 (complex (h//2 + 1, ne)), each
+    entry standing for ``edge_mult`` bins of the full spectrum. :meth:`split` cuts an
+    rfft2-layout array (h, w//2 + 1) into the same two parts.
+    """
+
+    def __init__(self, h: int, w: int) -> None:
+        self.h, self.w = h, w
+        self.ni = (w - 1) // 2
+        self.nh = (h - 1) // 2
+        self.cols = [0, w - 1] if w % 2 == 0 else [0]  # packed columns of the edges
+        self.fx = [0, w // 2] if w % 2 == 0 else [0]  # their rfft2 columns
+        self.m = h // 2 + 1
+        mult = np.full(self.m, 2.0, np.float32)
+        mult[0] = 1.0
+        if h % 2 == 0:
+            mult[-1] = 1.0
+        self.edge_mult = mult[:, None]
+
+    @staticmethod
+    def forward(img: np.ndarray) -> np.ndarray:
+        return cv2.dft(img)
+
+    @staticmethod
+    def inverse(packed: np.ndarray) -> np.ndarray:
+        return cv2.idft(packed, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+
+    def inner(self, packed: np.ndarray) -> np.ndarray:
+        return packed[:, 1:1 + 2 * self.ni].view(np.complex64)
+
+    def edges(self, packed: np.ndarray) -> np.ndarray:
+        cols = packed[:, self.cols]
+        nh = self.nh
+        e = np.zeros((self.m, len(self.cols)), np.complex64)
+        e.real[0] = cols[0]
+        e.real[1:1 + nh] = cols[1:1 + 2 * nh:2]
+        e.imag[1:1 + nh] = cols[2:2 + 2 * nh:2]
+        if self.h % 2 == 0:
+            e.real[-1] = cols[-1]
+        return e
+
+    def set_edges(self, packed: np.ndarray, e: np.ndarray) -> None:
+        nh = self.nh
+        cols = np.empty((self.h, len(self.cols)), np.float32)
+        cols[0] = e.real[0]
+        cols[1:1 + 2 * nh:2] = e.real[1:1 + nh]
+        cols[2:2 + 2 * nh:2] = e.imag[1:1 + nh]
+        if self.h % 2 == 0:
+            cols[-1] = e.real[-1]
+        packed[:, self.cols] = cols
+
+    def split(self, full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (np.ascontiguousarray(full[:, 1:1 + self.ni]),
+                np.ascontiguousarray(full[:self.m][:, self.fx]))
+
+    def shifted_abs(self, packed: np.ndarray, edges: np.ndarray) -> np.ndarray:
+        """|spectrum| in rfft2 layout (h, w//2 + 1) with rows fftshifted (fy = 0 at row h//2)."""
+        h, m, s = self.h, self.m, self.h // 2
+        out = np.empty((h, self.w // 2 + 1), np.float32)
+        inner = self.inner(packed)
+        np.abs(inner[:h - s], out=out[s:, 1:1 + self.ni])
+        np.abs(inner[h - s:], out=out[:s, 1:1 + self.ni])
+        ea = np.abs(edges)
+        for k, fx in enumerate(self.fx):
+            col = np.concatenate([ea[:, k], ea[h - m:0:-1, k]])  # rows in FFT order
+            out[s:, fx] = col[:h - s]
+            out[:s, fx] = col[h - s:]
+        return out
+
+
+def _normalise(inner: np.ndarray, edges: np.ndarray, w_inner: np.ndarray | float,
+               w_edges: np.ndarray | float) -> None:
+    """Phase-only matched filter in place: ``z *= weight / (|z| + floor)`` on both CCS parts.
+
+    ``floor`` (1e-12 of the largest magnitude) only keeps exact zeros finite.
+    """
+    mag = np.abs(inner)
+    mag_e = np.abs(edges)
+    floor = np.float32(_EPS * (max(float(mag.max()), float(mag_e.max())) + _EPS))
+    mag += floor
+    np.divide(w_inner, mag, out=mag)
+    inner *= mag
+    mag_e += floor
+    edges *= w_edges / mag_e
 
 
 class Registrar:
@@ -194,20 +348,16 @@ class Registrar:
             rr = np.hypot((xx - (w - 1) / 2) / ((w - 1) / 2), (yy - (h - 1) / 2) / ((h - 1) / 2))
             self.window = np.where(rr < 1, 0.5 * (1 + np.cos(np.pi * np.clip((rr - (1 - window_taper)) / window_taper, 0, 1))), 0).astype(np.float32)
 
-        # frequency grid of an rfft2 spectrum (rows: fy in fft order, cols: fx >= 0), cycles/px
+        # frequency grid of an rfft2 spectrum (rows: fy in fft order, cols: fx >= 0), cycles/px;
+        # the constants below are kept split into the CCS layout's interior and edge parts
+        self._ccs = _Ccs(h, w)
         fy = scipy.fft.fftfreq(h)[:, None]
         fx = scipy.fft.rfftfreq(w)[None, :]
-        self._radius = np.sqrt(fx ** 2 + fy ** 2).astype(np.float32)
-        # Hermitian multiplicity of each rfft2 bin in the full spectrum
-        mult = np.full(fx.shape[1], 2.0)
-        mult[0] = 1.0
-        if w % 2 == 0:
-            mult[-1] = 1.0
-        self._mult = np.broadcast_to(mult[None, :], (h, fx.shape[1]))
-        self._gauss = np.exp(-0.5 * (self._radius / peak_sigma) ** 2).astype(np.float32)
+        radius = np.sqrt(fx ** 2 + fy ** 2).astype(np.float32)
+        self._gauss = self._ccs.split(np.exp(-0.5 * (radius / peak_sigma) ** 2).astype(np.float32))
         # phase ramp that turns conj(F) into the spectrum of the point-mirrored image
-        ramp = np.exp(-2j * np.pi * (fx * (w - 1) + scipy.fft.fftfreq(h)[:, None] * h * (h - 1) / h))
-        self._mirror = ramp.astype(np.complex64)
+        ramp = np.exp(-2j * np.pi * (fx * (w - 1) + fy * (h - 1)))
+        self._mirror = self._ccs.split(ramp.astype(np.complex64))
 
         # log-polar grid over the half plane fx >= 0: rows = angle, cols = log radius
         n = min(h, w)
@@ -221,26 +371,31 @@ class Registrar:
         self._lp_map_y = (rad * np.sin(theta) * h + h // 2).astype(np.float32)
         self._lp_radius = rad[0].astype(np.float32)
         self._lp_window = _tukey(nr, 0.5).astype(np.float32)
+        self._lp_ccs = _Ccs(na, nr)
         lfy = scipy.fft.fftfreq(na)[:, None]
         lfx = scipy.fft.rfftfreq(nr)[None, :]
-        self._lp_gauss = np.exp(-0.5 * (lfx ** 2 + lfy ** 2) / peak_sigma ** 2).astype(np.float32)
-        lmult = np.full(lfx.shape[1], 2.0)
-        lmult[0] = 1.0
-        if nr % 2 == 0:
-            lmult[-1] = 1.0
-        self._lp_ref = float((self._lp_gauss * lmult[None, :]).sum() / (na * nr))
+        lp_gauss = np.exp(-0.5 * (lfx ** 2 + lfy ** 2) / peak_sigma ** 2).astype(np.float32)
+        self._lp_gauss = self._lp_ccs.split(lp_gauss)
+        lp_sum = 2.0 * float(self._lp_gauss[0].sum())
+        lp_sum += float((self._lp_gauss[1] * self._lp_ccs.edge_mult).sum())
+        self._lp_ref = lp_sum / (na * nr)
+        # scale shifts beyond +-nr/4 bins are never searched
+        shifts_r = np.fft.fftfreq(nr, 1.0 / nr)
+        self._lp_allowed = np.broadcast_to((np.abs(shifts_r) <= nr // 4)[None, :], (na, nr))
 
-        # the refinement runs on a regular grid of about _REFINE_SAMPLES pixels
-        self._stride = max(1, int(round(math.sqrt(h * w / _REFINE_SAMPLES))))
-        ys, xs = np.mgrid[0:h:self._stride, 0:w:self._stride].astype(np.float32)
-        self._xc = (xs - self.center[0]).ravel()
-        self._yc = (ys - self.center[1]).ravel()
-        self._refine_shape = xs.shape
-        self._refine_window = self.window[::self._stride, ::self._stride].ravel()
-        # nearest log-polar ring of each rfft2 bin, to spread per-ring SNR weights over a spectrum
-        ring = np.searchsorted(self._lp_radius, self._radius)
-        self._ring_index = np.clip(ring, 0, nr - 1)
-        self._outside_band = self._radius > band_high
+        self._grids: dict[int, _Grid] = {}
+        # gradient energy weight of each log-polar ring on each pyramid level of the refinement:
+        # r^2 (gradient) * r^2 (ring area on the log grid) * |transfer function|^2 of pyrDown^L
+        # (Gaussian, sigma 1 px of each level it reads) and the refinement's own smoothing
+        levels = 1 + min(_REFINE_MAX_LEVEL, max(0, int(math.log2(min(h, w) / 32))))
+        r = self._lp_radius.astype(np.float64)
+        var = [sum(4.0 ** k for k in range(lv)) + 4.0 ** lv * _REFINE_BLUR_VAR for lv in range(levels)]
+        self._level_weights = np.array([r ** 4 * np.exp(-(2 * np.pi * r) ** 2 * v) for v in var])
+        # nearest log-polar ring of each rfft2 bin, to spread per-ring SNR weights over a spectrum;
+        # bins outside the band point at an extra ring of weight 0
+        ring = np.clip(np.searchsorted(self._lp_radius, radius), 0, nr - 1)
+        ring[radius > band_high] = nr
+        self._ring_index = self._ccs.split(ring.astype(np.intp))
 
     # ------------------------------------------------------------------ preparation
     def _gray(self, frame: np.ndarray) -> np.ndarray:
@@ -259,7 +414,10 @@ class Registrar:
         return img.astype(np.float32, copy=False)
 
     def _windowed_spectrum(self, gray: np.ndarray, mean: float) -> np.ndarray:
-        return scipy.fft.rfft2((gray - mean) * self.window, workers=1)
+        """CCS-packed DFT of the mean-free, apodized frame."""
+        x = gray - np.float32(mean)
+        x *= self.window
+        return self._ccs.forward(x)
 
     def prepare(self, frame: np.ndarray) -> PreparedFrame:
         """Compute and cache a frame's spectra (grey or BGR; uint8 or float)."""
@@ -267,12 +425,12 @@ class Registrar:
         mean = float(gray.mean())
         energy = float(gray.var())
         spec = self._windowed_spectrum(gray, mean)
-        mag = np.fft.fftshift(np.abs(spec), axes=0)
-        lp = cv2.remap(mag, self._lp_map_x, self._lp_map_y, cv2.INTER_LINEAR,
+        edges = self._ccs.edges(spec)
+        lp = cv2.remap(self._ccs.shifted_abs(spec, edges), self._lp_map_x, self._lp_map_y, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         # per-ring power and its noise floor (white noise is flat; take the quietest rings)
         power = np.einsum("ij,ij->j", lp, lp) / lp.shape[0]
-        noise = float(np.percentile(power, 5)) if power.size else 0.0
+        noise = _percentile(power, 5.0)
         if self.snr_weighting and noise > 0:
             signal = np.maximum(power - noise, 0.0)
             snr = signal / (signal + noise)
@@ -280,22 +438,31 @@ class Registrar:
             snr = np.ones_like(power)
         # whiten (magnitude ~ 1/f for natural images) and weight the rings
         weight = (self._lp_radius * snr * self._lp_window).astype(np.float32)
-        lp = lp * weight[None, :]
+        lp *= weight[None, :]
         lp -= lp.mean()
-        lps = scipy.fft.rfft2(lp, workers=1)
-        amp = np.abs(lps)
-        lps /= amp + _EPS * (float(amp.max()) + _EPS)
-        grads = smooth = None
-        if self.refine_iterations:
-            smooth = cv2.GaussianBlur(gray, (0, 0), 0.7)
-            gx = cv2.Scharr(smooth, cv2.CV_32F, 1, 0, scale=1 / 32)
-            gy = cv2.Scharr(smooth, cv2.CV_32F, 0, 1, scale=1 / 32)
-            gx = gx[::self._stride, ::self._stride].ravel()
-            gy = gy[::self._stride, ::self._stride].ravel()
-            grads = np.stack([gx, gy, self._xc * gx + self._yc * gy, self._xc * gy - self._yc * gx],
-                             axis=1)
+        lps = self._lp_ccs.forward(lp)
+        lp_edges = self._lp_ccs.edges(lps)
+        _normalise(self._lp_ccs.inner(lps), lp_edges, 1.0, 1.0)
+        self._lp_ccs.set_edges(lps, lp_edges)
         return PreparedFrame(gray=gray, spectrum=spec, logpolar=lps, ring_snr=snr.astype(np.float32),
-                             energy=energy, gradients=grads, smooth=smooth)
+                             energy=energy, refine_level=self._refine_level(power, noise),
+                             _cache={"mean": mean, "edges": edges, "lp_edges": lp_edges})
+
+    def _refine_level(self, power: np.ndarray, noise: float) -> int:
+        """Finest pyramid level on which signal dominates the frame's gradient energy.
+
+        Gauss-Newton steps shrink by the noise share of the template's gradient energy (the
+        Hessian counts it, the error signal does not): on smooth, noisy ground the refinement
+        would crawl at full resolution. ``power`` is the per-ring power of the log-polar
+        magnitude, ``noise`` its white-noise floor.
+        """
+        if not self.refine_iterations or noise <= 0:
+            return 0
+        signal = np.maximum(power - noise, 0.0)
+        share = np.einsum("lj,j->l", self._level_weights, signal) / np.maximum(
+            np.einsum("lj,j->l", self._level_weights, power), _EPS)
+        good = np.flatnonzero(share >= _REFINE_SIGNAL)
+        return int(good[0]) if good.size else len(share) - 1
 
     # ------------------------------------------------------------------ peaks
     @staticmethod
@@ -319,20 +486,30 @@ class Registrar:
 
     @staticmethod
     def _peaks(r: np.ndarray, count: int, exclude: int = 3) -> list[tuple[int, int, float]]:
-        """The ``count`` highest local maxima (integer positions) of a periodic surface."""
-        work = r.copy()
+        """The ``count`` highest local maxima (integer positions) of a periodic surface.
+
+        Masks the neighbourhood of each peak found in place and restores it before returning.
+        """
         h, w = r.shape
-        out = []
+        out: list[tuple[int, int, float]] = []
+        saved = []
         for _ in range(count):
-            idx = int(np.argmax(work))
-            iy, ix = divmod(idx, w)
-            val = float(work[iy, ix])
-            if not np.isfinite(val) or val == -np.inf:
+            iy, ix = divmod(int(np.argmax(r)), w)
+            val = float(r[iy, ix])
+            if not np.isfinite(val):
                 break
-            out.append((iy, ix, float(r[iy, ix])))
-            ys = np.arange(iy - exclude, iy + exclude + 1) % h
-            xs = np.arange(ix - exclude, ix + exclude + 1) % w
-            work[np.ix_(ys, xs)] = -np.inf
+            out.append((iy, ix, val))
+            if len(out) == count:
+                break
+            if exclude <= iy < h - exclude and exclude <= ix < w - exclude:
+                block = (slice(iy - exclude, iy + exclude + 1), slice(ix - exclude, ix + exclude + 1))
+            else:
+                block = np.ix_(np.arange(iy - exclude, iy + exclude + 1) % h,
+                               np.arange(ix - exclude, ix + exclude + 1) % w)
+            saved.append((block, r[block].copy()))
+            r[block] = -np.inf
+        for block, values in reversed(saved):
+            r[block] = values
         return out
 
     # ------------------------------------------------------------------ rotation and scale
@@ -340,21 +517,27 @@ class Registrar:
                         prior: Prior | None) -> list[tuple[float, float, float]]:
         """Candidate (angle_deg mod 180 in (-90, 90], scale, peak) of the matrix b -> a."""
         na, nr = self.angle_bins, self.radius_bins
-        cross = np.conj(a.logpolar) * b.logpolar * self._lp_gauss
-        r = scipy.fft.irfft2(cross, s=(na, nr), workers=1) / self._lp_ref
+        ccs = self._lp_ccs
+        cross = np.empty((na, nr), np.float32)
+        inner = ccs.inner(cross)
+        np.conjugate(ccs.inner(a.logpolar), out=inner)
+        inner *= ccs.inner(b.logpolar)
+        inner *= self._lp_gauss[0]
+        ccs.set_edges(cross, np.conj(a._cache["lp_edges"]) * b._cache["lp_edges"] * self._lp_gauss[1])
+        r = ccs.inverse(cross)
+        r *= np.float32(1.0 / self._lp_ref)
         # The log-polar image of b is that of a shifted by (+log s, -angle) (rows: angle, cols: log r).
         # Restrict the radius shift to +-nr/4 (scale within exp(+-nr/4 * step)) and apply priors.
-        allowed = np.ones((na, nr), dtype=bool)
+        allowed = self._lp_allowed
         shifts_r = np.fft.fftfreq(nr, 1.0 / nr)
-        allowed &= (np.abs(shifts_r) <= nr // 4)[None, :]
         if prior is not None and prior.scale is not None:
             target = math.log(prior.scale) / self._log_step
             tol = max(abs(math.log1p(prior.scale_tol)) / self._log_step, 0.51)
-            allowed &= (np.abs(shifts_r - target) <= tol)[None, :]
+            allowed = allowed & (np.abs(shifts_r - target) <= tol)[None, :]
         if prior is not None and prior.angle_deg is not None and prior.angle_tol_deg < 90:
             shifts_a = np.fft.fftfreq(na, 1.0 / na) * (180.0 / na)  # degrees, = -angle (mod 180)
             diff = (-shifts_a - prior.angle_deg + 90.0) % 180.0 - 90.0
-            allowed &= (np.abs(diff) <= max(prior.angle_tol_deg, 180.0 / na))[:, None]
+            allowed = allowed & (np.abs(diff) <= max(prior.angle_tol_deg, 180.0 / na))[:, None]
         r_masked = np.where(allowed, r, -np.inf)
         peaks = self._peaks(r_masked, self.max_candidates)
         if not peaks:
@@ -375,51 +558,75 @@ class Registrar:
         return out
 
     # ------------------------------------------------------------------ translation
-    def _translation_weight(self, a: PreparedFrame, b: PreparedFrame) -> np.ndarray:
-        if not self.snr_weighting:
-            return self._gauss
-        snr = np.sqrt(a.ring_snr * b.ring_snr)
-        ring = snr[self._ring_index]
-        ring[self._outside_band] = 0.0
-        return self._gauss * ring
+    def _translation_weight(self, a: PreparedFrame,
+                            b: PreparedFrame) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """Weight of the translation POMF (CCS interior and edges) and its peak reference/noise."""
+        gauss_in, gauss_e = self._gauss
+        if self.snr_weighting:
+            snr = np.zeros(self.radius_bins + 1, np.float32)  # the last ring: outside the band
+            np.sqrt(a.ring_snr * b.ring_snr, out=snr[:-1])
+            w_in = np.take(snr, self._ring_index[0])
+            w_in *= gauss_in
+            w_e = np.take(snr, self._ring_index[1]) * gauss_e
+        else:
+            w_in, w_e = gauss_in, gauss_e
+        h, w = self.shape
+        mult = self._ccs.edge_mult
+        ref = (2.0 * float(w_in.sum(dtype=np.float64)) + float((w_e * mult).sum())) / (h * w)
+        energy = 2.0 * float(np.einsum("ij,ij->", w_in, w_in)) + float((w_e * w_e * mult).sum())
+        noise = math.sqrt(energy) / (h * w)
+        return w_in, w_e, ref, noise
 
     def _translation(self, a: PreparedFrame, b: PreparedFrame, angle: float, scale: float,
-                     prior: Prior | None) -> list[Candidate]:
+                     prior: Prior | None,
+                     weight: tuple[np.ndarray, np.ndarray, float, float]) -> list[Candidate]:
         """Score the hypotheses ``angle`` and ``angle + 180`` of the matrix b -> a."""
         h, w = self.shape
+        ccs = self._ccs
         # With M = [L | t] (L = scale * R(angle)), b'(q) = b(L^-1 (q - c) + c) = a(q + tau) where
         # t = c + tau - L c: warping b by L about the centre c leaves a pure translation.
         lin_fwd = similarity_matrix(angle, scale, center=self.center)  # maps b pixels to b' pixels
+        mean_b = b._cache["mean"]
         warped = cv2.warpAffine(b.gray, lin_fwd, (w, h), flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=float(b.gray.mean()))
-        spec_b = self._windowed_spectrum(warped, float(b.gray.mean()))
-        weight = self._translation_weight(a, b)
-        ref = float((weight * self._mult).sum()) / (h * w)
-        noise = math.sqrt(float((weight ** 2 * self._mult).sum())) / (h * w)
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=mean_b)
+        spec_b = self._windowed_spectrum(warped, mean_b)
+        w_in, w_e, ref, noise = weight
         if ref <= _EPS:
             return [Candidate(angle, scale, (0.0, 0.0), 0.0)]
-        cross = np.conj(a.spectrum) * spec_b
-        mag = np.abs(cross)
-        cross *= weight / (mag + _EPS * (float(mag.max()) + _EPS))
+        a_in, a_e = ccs.inner(a.spectrum), a._cache["edges"]
+        b_in, b_e = ccs.inner(spec_b), ccs.edges(spec_b)
 
-        hyps = [(angle, cross)]
-        want_flip = True
+        def pomf(mirrored: bool) -> np.ndarray:
+            """Weighted, phase-normalised cross-power spectrum of a and b' (or its point mirror),
+            CCS-packed: conj(a) b', or conj(a) ramp conj(b') for b' rotated by 180 deg."""
+            packed = np.empty((h, w), np.float32)
+            inner = ccs.inner(packed)
+            if mirrored:
+                np.multiply(a_in, b_in, out=inner)
+                np.conjugate(inner, out=inner)
+                inner *= self._mirror[0]
+                edges = np.conj(a_e * b_e) * self._mirror[1]
+            else:
+                np.conjugate(a_in, out=inner)
+                inner *= b_in
+                edges = np.conj(a_e) * b_e
+            _normalise(inner, edges, w_in, w_e)
+            ccs.set_edges(packed, edges)
+            return packed
+
+        keep, flip = True, True
         if prior is not None and prior.angle_deg is not None and prior.angle_tol_deg < 90:
             d0 = abs(_wrap180(angle - prior.angle_deg))
-            if d0 > 90:
-                hyps = []
-            want_flip = d0 > 90 - prior.angle_tol_deg or not hyps
-        if want_flip:
-            # point mirror of b' about the centre = b' rotated by 180 deg
-            flip = np.conj(a.spectrum) * (self._mirror * np.conj(spec_b))
-            mag = np.abs(flip)
-            flip *= weight / (mag + _EPS * (float(mag.max()) + _EPS))
-            hyps.append((_wrap180(angle + 180.0), flip))
+            keep = d0 <= 90
+            flip = d0 > 90 - prior.angle_tol_deg or not keep
+        hyps = [(angle, pomf(False))] if keep else []
+        if flip:
+            hyps.append((_wrap180(angle + 180.0), pomf(True)))
 
         out = []
         k = math.sqrt(2.0 * math.log(h * w)) + 1.0
         for hyp_angle, spectrum in hyps:
-            r = scipy.fft.irfft2(spectrum, s=(h, w), workers=1)
+            r = ccs.inverse(spectrum)
             peaks = self._peaks(r, 2, exclude=4)
             if prior is not None and prior.shift is not None:
                 # also the best peak within the prior's tolerance (periodic ground)
@@ -448,60 +655,192 @@ class Registrar:
         return np.where(tx ** 2 + ty ** 2 <= prior.shift_tol ** 2, r, -np.inf)
 
     # ------------------------------------------------------------------ refinement
+    def _grid(self, level: int) -> _Grid:
+        grid = self._grids.get(level)
+        if grid is None:
+            h, w = self.shape
+            for _ in range(level):  # cv2.pyrDown sizes; level pixel (u, v) is full pixel 2^L (u, v)
+                h, w = (h + 1) // 2, (w + 1) // 2
+            stride = max(1, int(round(math.sqrt(h * w / _REFINE_SAMPLES))))
+            ys = np.arange(0, h, stride)
+            xs = np.arange(0, w, stride)
+            f = 2 ** level
+            yy, xx = np.meshgrid(ys, xs, indexing="ij")
+            window = np.ascontiguousarray(self.window[ys * f][:, xs * f])
+            grid = _Grid(level, stride, (len(ys), len(xs)), (self.center[0] / f, self.center[1] / f),
+                         window, np.stack([xx.ravel(), yy.ravel(), window.ravel()]).astype(np.float32),
+                         (yy * w + xx).ravel())
+            self._grids[level] = grid
+        return grid
+
+    @staticmethod
+    def _smooth(frame: PreparedFrame, level: int) -> np.ndarray:
+        """The frame on a pyramid level, smoothed for the refinement (cached in the frame)."""
+        key = ("smooth", level)
+        out = frame._cache.get(key)
+        if out is None:
+            pyramid = frame._cache.setdefault("pyramid", [frame.gray])
+            while len(pyramid) <= level:
+                pyramid.append(cv2.pyrDown(pyramid[-1]))
+            out = cv2.GaussianBlur(pyramid[level], (3, 3), 0)  # [1, 2, 1] / 4: variance 0.5
+            frame._cache[key] = out
+        return out
+
+    def _template(self, frame: PreparedFrame) -> _Template:
+        """The reference side of the refinement (built once per frame)."""
+        tpl = frame._cache.get("template")
+        if tpl is None:
+            grid = self._grid(frame.refine_level)
+            img = self._smooth(frame, grid.level)
+            st = grid.stride
+            rh, rw = grid.size
+            pad = cv2.copyMakeBorder(img, 1, 1, 1, 1, cv2.BORDER_REFLECT_101)
+
+            def at(dy: int, dx: int) -> np.ndarray:
+                return pad[1 + dy::st, 1 + dx::st][:rh, :rw]
+
+            grad = np.empty((2, rh, rw), np.float32)  # twice the gradient (central differences)
+            np.subtract(at(0, 1), at(0, -1), out=grad[0])
+            np.subtract(at(1, 0), at(-1, 0), out=grad[1])
+            energy = grad[0] * grad[0]
+            energy += grad[1] * grad[1]
+            energy *= grid.window
+            if energy.size <= _REFINE_MIN_KEEP:
+                keep = np.arange(energy.size)
+            else:
+                # above a fraction of the mean energy, lowered until enough are kept
+                level = np.float32(_REFINE_KEEP * float(energy.mean()))
+                mask = energy > level
+                while int(np.count_nonzero(mask)) < _REFINE_MIN_KEEP and level > 0:
+                    level = level * np.float32(0.5) if level > 1e-6 * energy.max() else np.float32(0)
+                    mask = energy > level
+                keep = np.flatnonzero(mask)
+            x, y, window = np.take(grid.xyw, keep, axis=1)
+            xc, yc = x - np.float32(grid.center[0]), y - np.float32(grid.center[1])
+            sd = np.empty((6, keep.size), np.float32)
+            np.multiply(np.take(grad.reshape(2, -1), keep, axis=1), 0.5, out=sd[:2])
+            np.multiply(xc, sd[0], out=sd[2])
+            sd[2] += yc * sd[1]
+            np.multiply(xc, sd[1], out=sd[3])
+            sd[3] -= yc * sd[0]
+            sd[4] = 1.0
+            sd[5] = img.ravel()[grid.flat[keep]]
+            if keep.size:
+                sd[5] -= np.float32(sd[5].mean())
+            tpl = _Template(grid, np.stack([x, y], axis=-1)[None], window, sd)
+            frame._cache["template"] = tpl
+        return tpl
+
     def _refine(self, a: PreparedFrame, b: PreparedFrame, m: np.ndarray) -> np.ndarray | None:
         """Inverse compositional Gauss-Newton on a similarity + brightness gain/offset.
 
-        ``m`` maps b -> a; returns the refined matrix, or None when it does not converge.
+        ``m`` maps b -> a; returns the refined matrix, or None when it does not converge. It runs
+        on ``a.refine_level`` of both frames' pyramids, with the informative samples of a grid on
+        ``a`` (the template) and ``b`` interpolated at their warped positions. Only small,
+        single-threaded reductions (``np.einsum``, OpenCV; no BLAS products, whose threads would
+        spin against any busy neighbour process).
         """
         h, w = self.shape
-        cx, cy = self.center
-        rh, rw = self._refine_shape
-        stride = np.diag([self._stride, self._stride, 1.0])  # refinement grid -> pixels
-        tmpl = a.smooth[::self._stride, ::self._stride].ravel()
-        tmpl_sq = tmpl.astype(np.float64) ** 2  # second moments in float64 (no cancellation)
-        sd = a.gradients
-        centre = np.array([[1, 0, cx], [0, 1, cy], [0, 0, 1.0]])
-        centre_inv = np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1.0]])
-        m3 = np.vstack([m, [0.0, 0.0, 1.0]])
-        start = m3.copy()
-        for _ in range(self.refine_iterations):
-            # b sampled at the refinement grid of a: NaN where the sample leaves b
-            inv = (np.linalg.inv(m3) @ stride)[:2]
-            warped = cv2.warpAffine(b.smooth, inv, (rw, rh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
-            wgt = self._refine_window * np.isfinite(warped)
-            np.nan_to_num(warped, copy=False)
-            wsum = float(wgt.sum())
-            if wsum < 0.05 * wgt.size:
-                return None
-            # brightness gain/offset of the warped image against the template
-            mt = float(wgt @ tmpl) / wsum
-            mw = float(wgt @ warped) / wsum
-            vt = float(wgt @ tmpl_sq) / wsum - mt * mt
-            vw = float(wgt @ warped.astype(np.float64) ** 2) / wsum - mw * mw
-            if vt <= _EPS or vw <= _EPS:
-                return None
-            gain = math.sqrt(vw / vt)
-            err = (warped - mw) / gain - (tmpl - mt)
-            sdw = sd * wgt[:, None]
-            hess = sdw.T @ sd
-            rhs = sdw.T @ err
-            try:
-                dp = np.linalg.solve(hess.astype(np.float64), rhs.astype(np.float64))
-            except np.linalg.LinAlgError:
-                return None
-            tx, ty, da, db = dp
-            # warp increment about the centre: x -> (1+da) x - db y + tx (centred coordinates)
-            d = np.array([[1 + da, -db, tx], [db, 1 + da, ty], [0, 0, 1]])
-            m3 = centre @ d @ centre_inv @ m3
-            # converged when the frame corners move less than 0.002 px
-            if max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * max(cx, cy) * 1.5 < 2e-3:
-                break
-        # reject a refinement that wandered far from the iFMI estimate (it diverged)
-        corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-        if np.abs((m3 - start) @ corners)[:2].max() > max(3.0, 0.03 * max(h, w)):
+        tpl = self._template(a)
+        if tpl.sd.shape[1] < 16:
             return None
-        return m3[:2]
+        grid = tpl.grid
+        img_b = self._smooth(b, grid.level)
+        hb, wb_ = img_b.shape
+        offset_b = np.float32(b._cache["mean"])
+        lo = _REFINE_MARGIN
+        f = float(2 ** grid.level)
+        cx, cy = grid.center
+        reach = max(cx, cy) * 1.5
+        # the matrix as plain floats, in level pixels (its linear part is the same, its shift / f)
+        m00, m01, m02 = float(m[0, 0]), float(m[0, 1]), float(m[0, 2]) / f
+        m10, m11, m12 = float(m[1, 0]), float(m[1, 1]), float(m[1, 2]) / f
+        start = np.array([[m00, m01, m02 * f], [m10, m11, m12 * f]])
+        moved = math.inf  # level pixels the samples moved since their mask was built
+        fit_start = fit_end = -math.inf  # weighted correlation of b with the template
+        for it in range(self.refine_iterations):
+            # where the template's samples fall in b: the inverse of the matrix
+            det = m00 * m11 - m01 * m10
+            if abs(det) < _EPS:
+                return None
+            ia, ib, ic, id_ = m11 / det, -m01 / det, -m10 / det, m00 / det
+            where = cv2.transform(tpl.points, np.array([[ia, ib, -(ia * m02 + ib * m12)],
+                                                        [ic, id_, -(ic * m02 + id_ * m12)]]))
+            warped = cv2.remap(img_b, where, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=0.0).ravel()
+            if moved > lo - 0.5:
+                # use the samples at least _REFINE_MARGIN inside b: they stay inside (and the
+                # mask, Hessian and template moments stay valid) while the warp moves them less
+                inside = cv2.inRange(where, (lo, lo), (wb_ - 1 - lo, hb - 1 - lo)).ravel()
+                wgt = cv2.multiply(tpl.window, inside, scale=1.0 / 255.0, dtype=cv2.CV_32F).ravel()
+                wsum = float(wgt.sum())
+                if wsum < 0.05 * float(tpl.window.sum()):
+                    return None
+                wsd = tpl.sd * wgt
+                # Gauss-Newton matrix (upper triangle, 6 reductions) and template moments
+                hess = np.empty((6, 6))
+                for j in range(6):
+                    hess[j, j:] = np.einsum("ki,i->k", tpl.sd[j:], wsd[j])
+                hess = np.triu(hess) + np.triu(hess, 1).T
+                mt = hess[4, 5] / wsum  # rows 4 and 5: ones and the centred template
+                vt = hess[5, 5] / wsum - mt * mt
+                if vt <= _EPS:
+                    return None
+                try:
+                    solve = np.linalg.inv(hess)[:4]
+                except np.linalg.LinAlgError:
+                    return None
+                # see below: sums of the residual = gain * (proj - mw * ones) - centred template
+                ones, tmpl = hess[:, 4], hess[:, 5] - mt * hess[:, 4]
+                solve_ones = np.einsum("jk,k->j", solve, ones).tolist()
+                solve_tmpl = np.einsum("jk,k->j", solve, tmpl).tolist()
+                ones5, tmpl5 = float(ones[5]), float(tmpl[5])
+                wb = np.empty_like(wgt)
+                moved = 0.0
+            # Brightness gain/offset of the warped image against the template from their moments,
+            # corrected to first order by the solve together with the warp (the overlap's mean and
+            # variance absorb part of a shift of smooth ground; without the joint system each
+            # update is a small fraction of the error on featureless ground). With the residual
+            # e = g (u - mw) - (t - mt), every sum over the samples comes from one pass:
+            # sum w sd_j e = g (sum w sd_j u - mw sum w sd_j) - (sum w sd_j t - mt sum w sd_j).
+            warped -= offset_b  # centred roughly (precision of the float32 sums)
+            proj = np.einsum("ji,i->j", wsd, warped).astype(np.float64)
+            np.multiply(wgt, warped, out=wb)
+            mw = float(proj[4]) / wsum
+            vw = float(np.einsum("i,i->", wb, warped)) / wsum - mw * mw
+            if vw <= _EPS:
+                return None
+            gain = math.sqrt(vt / vw)
+            # weighted correlation of b with the template: the residual's energy is -2 rhs[5]
+            # (row 5 is the centred template; the residual has zero weighted mean)
+            fit = 1.0 + (gain * (float(proj[5]) - mw * ones5) - tmpl5) / (wsum * vt)
+            if it == 0:
+                fit_start = fit
+            gm = gain * mw
+            tx, ty, da, db = (gain * x - gm * o - t for x, o, t in
+                              zip(np.einsum("jk,k->j", solve, proj).tolist(), solve_ones, solve_tmpl))
+            # warp increment about the centre, x -> (1+da) x - db y + tx in centred coordinates,
+            # composed in front of the matrix
+            c, s_ = 1.0 + da, db
+            ex, ey = tx + cx - c * cx + s_ * cy, ty + cy - s_ * cx - c * cy
+            m00, m01, m02, m10, m11, m12 = (c * m00 - s_ * m10, c * m01 - s_ * m11, c * m02 - s_ * m12 + ex,
+                                            s_ * m00 + c * m10, s_ * m01 + c * m11, s_ * m02 + c * m12 + ey)
+            # converged when the frame corners move less than _REFINE_TOL (full-resolution pixels)
+            step = max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * reach
+            if step * f < _REFINE_TOL:
+                fit_end = fit
+                break
+            moved += step
+        out = np.array([[m00, m01, m02 * f], [m10, m11, m12 * f]])
+        # reject a refinement that wandered far from the iFMI estimate (it diverged), unless it
+        # converged to a better fit and stayed within 10 % of the frame size (iFMI can be off by
+        # a few degrees on featureless ground, which moves the corners by more than 3 %)
+        corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
+        moved_px = float(np.abs(np.einsum("ij,jk->ik", out - start, corners)).max())
+        converged_better = fit_end > fit_start and moved_px <= 0.1 * max(h, w)
+        if moved_px > max(3.0, 0.03 * max(h, w)) and not converged_better:
+            return None
+        return out
 
     # ------------------------------------------------------------------ public
     def register(self, a: np.ndarray | PreparedFrame, b: np.ndarray | PreparedFrame,
@@ -517,13 +856,14 @@ class Registrar:
             return Registration(matrix=similarity_matrix(0.0, 1.0), confidence=0.0)
 
         cands: list[Candidate] = []
+        weight = self._translation_weight(pa, pb)
         for angle, scale, _ in self._rotation_scale(pa, pb, prior):
-            cands.extend(self._translation(pa, pb, angle, scale, prior))
+            cands.extend(self._translation(pa, pb, angle, scale, prior, weight))
         if (prior is not None and prior.angle_deg is not None and prior.scale is not None
                 and max(c.peak for c in cands) < _WEAK_PEAK):
             # Little overlap starves the log-polar POMF first: also try the expected rotation and
             # scale directly in the translation step (the refinement then corrects them).
-            cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior))
+            cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior, weight))
         cands = self._rank(cands, prior)
         best = cands[0]
         m = similarity_matrix(best.angle_deg, best.scale)
