@@ -1,15 +1,25 @@
 """Exposure compensation of the photo map (photomap issue 10, item 7): steps at frame edges.
 
-1. Brighton beach (18 real DJI stills on auto exposure): the stills posed by SIFT + RANSAC
-   similarities (evaluation only; the iFMI replay poses 10 of the 18) or by the ``trajectory.csv``
-   of a ``photomap replay`` run (``--trajectory``), painted with ``mosaic.exposure`` none, gain and
-   channel_gain, blends overwrite and feather: the brightness step across frame edges
-   (:mod:`photomap.eval.seams`), ms per ``add``, and downscaled PNGs of the maps.
-2. A simulated video (aukerman, lawn-mower, ``gain_drift``) painted at its true poses: the step
-   across frame edges and the map's error against the map of the same flight without gain drift;
-   ms per ``add`` at 640x480 and 1920x1080.
+1. Brighton beach (18 real DJI stills on auto exposure), posed by SIFT + RANSAC similarities
+   (evaluation only: the iFMI replay poses 10 of the 18) and, with ``--trajectory``, by the
+   ``trajectory.csv`` of a ``photomap replay`` run (per segment). Painted with
+   ``mosaic.exposure`` none / gain / channel_gain (sequential, live) and with the gains of
+   :func:`photomap.core.exposure.joint_gains` (all frames at once, for a re-render), blends
+   overwrite and feather.
+2. A simulated video (aukerman, lawn-mower, ``gain_drift``) painted at its true poses, against the
+   map of the same flight without gain drift.
+3. ms per ``add`` at 640x480 and 1920x1080, video-like motion, the modes interleaved.
+
+Metrics (:mod:`photomap.eval.seams`, grey levels): ``step`` = the exposure step at the seams of
+the overwrite map, on the same ground (both frames of each seam pair, times their gains, within
+8 px of their seam; texture-free), luminance / mean over channels; ``side`` = the same for pairs
+of frames >= 50 apart (survey strips side by side); ``map`` = the luminance step across the seams
+in the map itself (texture included); ``sat`` = share of map pixels clipped at 255.
 
     python tools/bench_exposure.py [--out DIR] [--frames 600] [--trajectory run/trajectory.csv]
+                                   [--md docs/benchmarks.md]
+
+With --md, replaces the section between the exposure markers of that file.
 """
 
 from __future__ import annotations
@@ -17,6 +27,8 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import platform
+import sys
 import time
 from pathlib import Path
 
@@ -24,33 +36,50 @@ import cv2
 import numpy as np
 
 from photomap.config import MosaicConfig
+from photomap.core.exposure import joint_gains
 from photomap.core.mosaic import TiledMosaic
-from photomap.eval.seams import frame_labels, seam_steps
+from photomap.eval.seams import frame_labels, overlap_steps, seam_steps
 from photomap.io.trajectory_files import read_trajectory_csv
 
-MODES = ("none", "gain", "channel_gain")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tools.report import replace_section  # noqa: E402
+
+MODES = ("none", "gain", "channel_gain", "joint", "joint_channel")
 BLENDS = ("overwrite", "feather")
 
 
-def paint(frames, poses, blend: str, exposure: str) -> tuple[TiledMosaic, list[float], list]:
+def paint(frames, poses, blend: str, mode: str) -> tuple[TiledMosaic, list[float], list]:
     """A map of ``frames`` at ``poses`` (2x3 or None); ms per add; the gain of each frame."""
-    m = TiledMosaic(MosaicConfig(blend=blend, exposure=exposure))
+    m = TiledMosaic(MosaicConfig(blend=blend, exposure=mode if mode in ("gain", "channel_gain") else "none"))
+    given = [None] * len(frames)
+    if mode.startswith("joint"):
+        keep = [k for k, M in enumerate(poses) if M is not None]
+        fitted = joint_gains([frames[k] for k in keep], [poses[k] for k in keep], per_channel=mode == "joint_channel")
+        for k, g in zip(keep, fitted):
+            given[k] = g
     ms, gains = [], []
-    for f, M in zip(frames, poses):
+    for f, M, g in zip(frames, poses, given):
         if M is None:
             gains.append(None)
             continue
         t0 = time.perf_counter()
-        m.add(f, M)
+        m.add(f, M, gain=g)
         ms.append(1000 * (time.perf_counter() - t0))
         gains.append(None if m.last_gain is None else m.last_gain.copy())
     return m, ms, gains
 
 
-def steps(m: TiledMosaic, poses, frame_size):
-    image, _, origin = m.render()
-    bounds = (*origin, image.shape[1], image.shape[0])
-    return seam_steps(image, frame_labels(poses, frame_size, bounds, m.border))
+def measure(m: TiledMosaic, frames, poses, gains, frame_size, bounds=None) -> dict:
+    image, alpha, origin = m.render(bounds=bounds)
+    box = (*origin, image.shape[1], image.shape[0])
+    labels = frame_labels(poses, frame_size, box, m.border)
+    step = overlap_steps(frames, poses, gains, labels, origin)
+    side = overlap_steps(frames, poses, gains, labels, origin, min_index_gap=50)
+    g = np.array([np.mean(x) for x in gains if x is not None] or [1.0])
+    covered = alpha > 0
+    sat = float(((image >= 255).any(axis=-1) if image.ndim == 3 else image >= 255)[covered].mean())
+    return dict(step=step[0], colour=step[1], pairs=step[2], side=side[0], side_pairs=side[2],
+                map=seam_steps(image, labels).level_step, sat=100 * sat, gmin=g.min(), gmax=g.max())
 
 
 def save_png(m: TiledMosaic, path: Path, px: int = 1200) -> None:
@@ -84,11 +113,13 @@ def sift_poses(images: list[np.ndarray]) -> list[np.ndarray | None]:
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| set | blend | exposure | level step | pixel step | texture | ms/add (median) |",
-           "|---|---|---|---|---|---|---|"]
+    out = ["| set | blend | exposure | step (lum/colour) | side seams | map step | err vs truth | sat % | gains |",
+           "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        out.append(f"| {r['set']} | {r['blend']} | {r['exposure']} | {r['level']:.2f} | {r['pixel']:.2f} | "
-                   f"{r['texture']:.2f} | {r['ms']:.2f} |" + (f" err vs truth {r['err']:.2f}" if 'err' in r else ""))
+        side = f"{r['side']:.2f}" if r["side_pairs"] else "-"
+        err = f"{r['err']:.2f}" if "err" in r else "-"
+        out.append(f"| {r['set']} | {r['blend']} | {r['exposure']} | {r['step']:.2f} / {r['colour']:.2f} | {side} | "
+                   f"{r['map']:.2f} | {err} | {r['sat']:.2f} | {r['gmin']:.2f}..{r['gmax']:.2f} |")
     return "\n".join(out)
 
 
@@ -108,13 +139,10 @@ def brighton(out: Path, data: Path, trajectory: Path | None) -> list[dict]:
         for blend in BLENDS:
             for mode in MODES:
                 m, ms, gains = paint(images, poses, blend, mode)
-                s = steps(m, poses, size)
-                results.append(dict(set=name, blend=blend, exposure=mode, level=s.level_step, pixel=s.pixel_step,
-                                    texture=s.texture, ms=float(np.median(ms))))
+                results.append(dict(set=name, blend=blend, exposure=mode, ms=float(np.median(ms)),
+                                    **measure(m, images, poses, gains, size)))
                 save_png(m, out / f"{name}-{blend}-{mode}.png")
-                if mode != "none" and blend == "overwrite":
-                    print(name, mode, "gains:", " ".join("-" if g is None else "/".join(f"{v:.3f}" for v in g)
-                                                         for g in gains))
+                print(table(results[-1:]).splitlines()[-1], flush=True)
     return results
 
 
@@ -123,27 +151,31 @@ def simulated(out: Path, n_frames: int) -> list[dict]:
     from photomap.sim.terrain import load_terrain, valid_mask
 
     terrain = load_terrain("aukerman", zoom=2.0)
+    valid = valid_mask(terrain)
     kw = dict(fps=10.0, gsd=0.225, pattern="lawnmower", speed=6.0, yaw_mode="heading", altitude=(40.0, 40.0),
               scale_rate=0.0, noise=1.0, period_s=20.0, side_overlap=0.3)
-    drift = simulate_sequence(terrain, n_frames, (480, 640), seed=3, valid=valid_mask(terrain), gain_drift=0.3, **kw)
-    clean = simulate_sequence(terrain, n_frames, (480, 640), seed=3, valid=valid_mask(terrain), **kw)
-    s = 1.0 / float(np.median(drift.truth.scale))  # map pixels per terrain pixel: about frame resolution
+    drift = simulate_sequence(terrain, n_frames, (480, 640), seed=3, valid=valid, gain_drift=0.3, **kw)
+    clean = simulate_sequence(terrain, n_frames, (480, 640), seed=3, valid=valid, **kw)
+    s = 0.5 / float(np.median(drift.truth.scale))  # map at half the frames' resolution
     poses = [(np.diag([s, s, 1.0]) @ H)[:2] for H in drift.truth.H]
-    size = (640, 480)
     results = []
     for blend in BLENDS:
         truth, _, _ = paint(clean.frames, poses, blend, "none")
         t_img, t_alpha, t_org = truth.render()
-        for mode in MODES:
-            m, ms, gains = paint(drift.frames, poses, blend, mode)
-            st = steps(m, poses, size)
-            img, alpha, org = m.render(bounds=(*t_org, t_img.shape[1], t_img.shape[0]))
-            both = (alpha > 0) & (t_alpha > 0)
-            err = float(np.abs(img.astype(np.float32) - t_img.astype(np.float32))[both].mean())
-            results.append(dict(set=f"sim-{n_frames}", blend=blend, exposure=mode, level=st.level_step,
-                                pixel=st.pixel_step, texture=st.texture, ms=float(np.median(ms)), err=err))
-            save_png(m, out / f"sim-{blend}-{mode}.png")
+        bounds = (*t_org, t_img.shape[1], t_img.shape[0])
         save_png(truth, out / f"sim-{blend}-truth.png")
+        for mode in ("none", "gain", "channel_gain"):
+            m, ms, gains = paint(drift.frames, poses, blend, mode)
+            row = dict(set=f"sim-{n_frames}", blend=blend, exposure=mode, ms=float(np.median(ms)),
+                       **measure(m, drift.frames, poses, gains, (640, 480), bounds))
+            img, alpha, _ = m.render(bounds=bounds)
+            both = (alpha > 0) & (t_alpha > 0)
+            iv, tv = img[both].astype(np.float64), t_img[both].astype(np.float64)
+            level = (iv * tv).sum() / (iv * iv).sum()  # one global gain: the map's level is free
+            row["err"] = float(np.abs(np.clip(iv * level, 0, 255) - tv).mean())
+            results.append(row)
+            save_png(m, out / f"sim-{blend}-{mode}.png")
+            print(table(results[-1:]).splitlines()[-1], flush=True)
     return results
 
 
@@ -152,12 +184,13 @@ def timing(frames: int = 150, repeats: int = 3) -> list[str]:
     modes interleaved frame by frame (so that a busy machine slows them alike), medians."""
     rng = np.random.default_rng(0)
     lines = []
+    modes = ("none", "gain", "channel_gain")
     for w, h in ((640, 480), (1920, 1080)):
         ground = cv2.GaussianBlur(rng.integers(0, 256, (h + 400, w + 800, 3), np.uint8), (0, 0), 3)
         for blend in BLENDS:
-            ms: dict[str, list[float]] = {mode: [] for mode in MODES}
+            ms: dict[str, list[float]] = {mode: [] for mode in modes}
             for _ in range(repeats):
-                maps = {mode: TiledMosaic(MosaicConfig(blend=blend, exposure=mode)) for mode in MODES}
+                maps = {mode: TiledMosaic(MosaicConfig(blend=blend, exposure=mode)) for mode in modes}
                 for k in range(frames):
                     x = int(6 * k) % 800
                     f = np.ascontiguousarray(ground[200:200 + h, x:x + w])
@@ -169,7 +202,7 @@ def timing(frames: int = 150, repeats: int = 3) -> list[str]:
                         ms[mode].append(1000 * (time.perf_counter() - t0))
             res = {mode: float(np.median(v)) for mode, v in ms.items()}
             lines.append(f"{w}x{h} {blend}: " + ", ".join(f"{k} {v:.2f} ms" for k, v in res.items())
-                         + f" (gain adds {res['gain'] - res['none']:+.2f} ms)")
+                         + f" (gain adds {res['gain'] - res['none']:+.2f} ms, x{res['gain'] / res['none']:.2f})")
     return lines
 
 
@@ -180,14 +213,29 @@ def main() -> None:
     ap.add_argument("--trajectory", type=Path, help="trajectory.csv of a photomap replay of the Brighton stills")
     ap.add_argument("--frames", type=int, default=600, help="frames of the simulated flight (0: skip)")
     ap.add_argument("--no-timing", action="store_true")
+    ap.add_argument("--md", type=Path, help="markdown file whose exposure section gets the results")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     rows = brighton(args.out, args.data, args.trajectory)
     if args.frames:
         rows += simulated(args.out, args.frames)
-    print(table(rows))
+    text = [f"## Exposure compensation (`tools/bench_exposure.py --frames {args.frames}`)", "",
+            "Grey levels. *step*: the exposure step at the seams of the overwrite map, on the same ground "
+            "(both frames of each pair meeting at a seam, times their gains, within 8 px of the seam: "
+            "texture-free), luminance / mean of the channels; *side seams*: the same for frames >= 50 apart "
+            "(survey strips side by side); *map step*: the luminance step across the seams of the map itself "
+            "(texture included); *err vs truth*: mean |map - map of the flight without gain drift| after one "
+            "global gain; *sat*: map pixels clipped at 255. none/gain/channel_gain: `mosaic.exposure` "
+            "(sequential, live); joint/joint_channel: `joint_gains` over all frames, then painted with them. "
+            "Brighton: 18 DJI stills posed by SIFT (all) or by the iFMI replay (its segments).", "",
+            table(rows)]
     if not args.no_timing:
-        print("\n".join(timing()))
+        text += ["", f"ms per `add` ({platform.machine()}, {os.cpu_count()} cores shared with other jobs: "
+                     "absolute times are inflated, compare within a line):", ""]
+        text += [f"- {line}" for line in timing()]
+    print("\n".join(text))
+    if args.md:
+        replace_section(args.md, "exposure", "\n".join(text))
 
 
 if __name__ == "__main__":
