@@ -20,6 +20,9 @@ warped frame overlaps what the map already holds, ``g * frame`` matches the map:
 A frame with too little usable overlap (the first of a map, or one over empty map) keeps the
 previous gain, pulled toward 1 as for a frame of all new ground.
 
+For a re-render of a finished set (stills, keyframes), :func:`joint_gains` fits the gains of all
+frames at once from all their overlaps instead: no frame is the reference, and nothing drifts.
+
 Pure computation: arrays in, arrays out, deterministic (no randomness; the caller chooses the
 samples on a fixed grid).
 """
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 # Samples whose value (0..255) is at or below DARK or at or above BRIGHT in any channel, in the
@@ -36,6 +40,7 @@ DARK = 6.0
 BRIGHT = 249.0
 # Samples whose luminance log-ratio differs from the median one by more than this are outliers.
 MAX_LOG_DEVIATION = 0.3
+# Ridge of the joint fit, relative to the mean overlap weight: it only sets the common level.
 RIDGE = 1e-3
 
 
@@ -173,8 +178,6 @@ def joint_gains(frames: list[np.ndarray], poses: list[np.ndarray], *, per_channe
     -------
     float64 array (n, channels): the gain of each frame (multiply its values by it).
     """
-    import cv2
-
     if len(frames) != len(poses):
         raise ValueError(f"{len(frames)} frames but {len(poses)} poses")
     if not 0 < scale <= 1:
