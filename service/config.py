@@ -234,6 +234,7 @@ class MosaicConfig(_Section):
     tile_size: int = _num(256, 16, 8192)
     channels: int = _choice(3, 1, 3)
     blend: str = _choice("overwrite", "overwrite", "feather")
+    exposure: str = _choice("none", "none", "gain", "channel_gain")
     border: int = _num(1, 0, 1000)
     max_tiles_in_memory: int | None = _num(None, 1, None)
     cache_dir: str | None = None

@@ -26,6 +26,16 @@ Blending
     common factor cancels. Warping the premultiplied (value * weight, weight) image makes edge
     interpolation exact.
 
+Exposure
+--------
+With ``exposure`` ``gain`` or ``channel_gain`` each frame is multiplied, before it is painted, by
+a gain fitted where it overlaps what the map already holds (one for all channels, or one per
+channel), so that a camera on auto exposure leaves no brightness step at every frame edge; the
+gain returns slowly to 1 as new ground comes in, so it cannot drift without bound
+(:mod:`photomap.core.exposure`). The overlap is sampled on a grid of map pixels (about
+``GAIN_SAMPLES`` points per frame), before the frame is warped. :meth:`TiledMosaic.reset` starts
+the gains afresh.
+
 The module is pure computation: no file I/O, no threads. Tiles beyond ``max_tiles_in_memory``
 go to a :class:`photomap.io.tilestore.TileStore` (which may write files) and come back transparently.
 An instance is not thread-safe.
@@ -41,7 +51,14 @@ import cv2
 import numpy as np
 
 from photomap.config import MosaicConfig
+from photomap.core.exposure import SequentialGain
 from photomap.errors import InputError
+
+# Overlap samples per frame for the exposure gain: the footprint is sampled on a grid of map
+# pixels (multiples of a stride in x and y) with about this many points.
+GAIN_SAMPLES = 4096
+# How fast the exposure gain returns to 1: the fraction of the way per frame footprint of new ground.
+GAIN_PULL = 0.1
 
 TileKey = tuple[int, int]
 Rect = tuple[int, int, int, int]
@@ -72,7 +89,8 @@ class TiledMosaic:
     params : MosaicConfig
         The ``mosaic`` settings: ``tile_size`` (side of a square tile, map pixels), ``channels``
         (3: BGR map, 1: gray; frames are converted), ``blend`` (``overwrite`` or ``feather``, see
-        the module docstring), ``border`` (frame pixels kept out of the map), ``max_tiles_in_memory``
+        the module docstring), ``exposure`` (``none``, ``gain`` or ``channel_gain``, see the module
+        docstring), ``border`` (frame pixels kept out of the map), ``max_tiles_in_memory``
         (the least recently touched tiles beyond it go to ``store`` and come back when touched or
         read; ``None``: no cap) and ``max_footprint_px`` (a frame whose map footprint, its bounding
         box, exceeds this many map pixels is refused with :class:`InputError`, so that a wild pose
@@ -90,6 +108,11 @@ class TiledMosaic:
         self.border = params.border
         self.max_tiles_in_memory = params.max_tiles_in_memory
         self.max_footprint_px = int(params.max_footprint_px)
+        self.exposure = params.exposure
+        self._gain = (None if params.exposure == "none" else
+                      SequentialGain(self.channels, per_channel=params.exposure == "channel_gain",
+                                     pull=GAIN_PULL))
+        self.last_gain: np.ndarray | None = None  # gain (channels,) applied to the last frame added, if any
         self._store = store
         self._tiles: OrderedDict[TileKey, Tile] = OrderedDict()  # in memory, least recent first
         self._spilled: set[TileKey] = set()  # not in memory; current data is in the store
@@ -100,7 +123,8 @@ class TiledMosaic:
         self.lost_tiles = 0  # spilled tiles the store could not give back
 
     # ------------------------------------------------------------------ adding frames
-    def add(self, frame: np.ndarray, M: np.ndarray, mask: np.ndarray | None = None) -> set[TileKey]:
+    def add(self, frame: np.ndarray, M: np.ndarray, mask: np.ndarray | None = None,
+            gain: np.ndarray | float | None = None) -> set[TileKey]:
         """Glue ``frame`` into the map at pose ``M``.
 
         Parameters
@@ -110,6 +134,9 @@ class TiledMosaic:
             Pose: frame pixel ``(u, v)`` goes to map pixel ``M @ (u, v, 1)``.
         mask : array (h, w) or None
             Non-zero where the frame is valid (e.g. after undistortion); eroded by ``border``.
+        gain : float, array (channels,) or None
+            Multiply the frame's values by this gain (e.g. from
+            :func:`photomap.core.exposure.joint_gains`) instead of fitting one (``exposure``).
 
         Returns
         -------
@@ -135,6 +162,21 @@ class TiledMosaic:
         A = M.copy()
         A[:, 2] -= (x0, y0)
         C = self.channels
+        if gain is not None:
+            try:
+                gain = np.broadcast_to(np.asarray(gain, np.float64), (C,)).copy()
+            except (TypeError, ValueError):
+                raise InputError(f"gain must be a number or {C} numbers, got {gain!r}") from None
+            if not np.all(np.isfinite(gain) & (gain > 0)):
+                raise InputError(f"gain must be positive and finite, got {gain!r}")
+        elif self._gain is not None:
+            gain = self._fit_gain(img, valid, M, (x0, y0, x1, y1))
+        self.last_gain = gain
+        if gain is not None and np.any(gain != 1):  # saturating uint8 products, ~10x faster than cv2.LUT
+            if C == 3:
+                img = cv2.transform(img, np.diag(gain).astype(np.float32))
+            else:
+                img = cv2.convertScaleAbs(img, alpha=float(gain[0])).reshape(h, w, 1)
         if self.blend == "overwrite":
             if C == 3:  # cvtColor + one channel write: ~10x faster than np.dstack
                 src = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA)
@@ -145,8 +187,7 @@ class TiledMosaic:
                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             cover = warped[..., C] == 255
         else:
-            src = cv2.merge([*cv2.split(img.astype(np.float32) * (weight if C == 1 else weight[..., None])),
-                             weight])
+            src = cv2.merge([*cv2.split(img.astype(np.float32) * weight[..., None]), weight])
             warped = cv2.warpAffine(src, A, (bw, bh), flags=cv2.INTER_LINEAR,
                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
             cover = warped[..., C] > 0
@@ -200,8 +241,63 @@ class TiledMosaic:
                 if not alpha.any():
                     continue
                 pose = t @ np.array([[1.0, 0.0, ox], [0.0, 1.0, oy], [0.0, 0.0, 1.0]])
-                touched |= self.add(image, pose[:2], mask=alpha == 255)
+                touched |= self.add(image, pose[:2], mask=alpha == 255, gain=1.0)  # already compensated
         return touched
+
+    def _fit_gain(self, img: np.ndarray, valid: np.ndarray, M: np.ndarray,
+                  box: tuple[int, int, int, int]) -> np.ndarray:
+        """The exposure gain (channels,) of frame ``img`` (uint8 (h, w, C)) at pose ``M``, from
+        its overlap with the map.
+
+        Samples the map pixels of ``box`` (``x0, y0, x1, y1``, exclusive: the frame's footprint)
+        whose coordinates are multiples of a stride (about ``GAIN_SAMPLES`` of them): the frame
+        there (bilinear, as the warp; covered where ``valid`` is, as in :meth:`add`) and the map.
+        """
+        bx0, by0, bx1, by1 = box
+        s = max(1, math.isqrt((bx1 - bx0) * (by1 - by0) // GAIN_SAMPLES))
+        gx0, gy0 = bx0 + (-bx0) % s, by0 + (-by0) % s  # first grid point inside the box
+        xs = np.arange(gx0, bx1, s, dtype=np.float64)
+        ys = np.arange(gy0, by1, s, dtype=np.float64)
+        inv = cv2.invertAffineTransform(M)  # map pixels -> frame pixels
+        map_u = (inv[0, 0] * xs[None, :] + inv[0, 1] * ys[:, None] + inv[0, 2]).astype(np.float32)
+        map_v = (inv[1, 0] * xs[None, :] + inv[1, 1] * ys[:, None] + inv[1, 2]).astype(np.float32)
+        C, ts = self.channels, self.tile_size
+        new = cv2.remap(img, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        new = new.reshape(len(ys), len(xs), C).astype(np.float32)
+        new_cover = cv2.remap(valid, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                              borderValue=0) == 255
+        old = np.zeros(new.shape, np.float32)
+        old_cover = np.zeros(new_cover.shape, bool)
+        for ty in range(by0 // ts, (by1 - 1) // ts + 1):
+            ry0 = max(ty * ts, gy0)
+            ry0 += (-ry0) % s
+            ry1 = min((ty + 1) * ts, by1)
+            if ry0 >= ry1:
+                continue
+            for tx in range(bx0 // ts, (bx1 - 1) // ts + 1):
+                rx0 = max(tx * ts, gx0)
+                rx0 += (-rx0) % s
+                rx1 = min((tx + 1) * ts, bx1)
+                if rx0 >= rx1:
+                    continue
+                tile = self._peek((tx, ty))
+                if tile is None:
+                    continue
+                src = (slice(ry0 - ty * ts, ry1 - ty * ts, s), slice(rx0 - tx * ts, rx1 - tx * ts, s))
+                if self.blend == "overwrite":
+                    have, value = tile["cover"][src] == 255, tile["color"][src]
+                else:
+                    weight = tile["weight"][src]
+                    have = weight > 0
+                    value = tile["sum"][src] / np.where(have, weight, 1)[..., None]
+                dst = (slice((ry0 - gy0) // s, (ry0 - gy0) // s + have.shape[0]),
+                       slice((rx0 - gx0) // s, (rx0 - gx0) // s + have.shape[1]))
+                old[dst] = value
+                old_cover[dst] = have
+        both = new_cover & old_cover
+        n_new = np.count_nonzero(new_cover)
+        new_fraction = 1.0 - np.count_nonzero(both) / n_new if n_new else 1.0
+        return self._gain.update(new[both], old[both], new_fraction)
 
     def _to_channels(self, frame: np.ndarray) -> np.ndarray:
         """``frame`` as uint8 (h, w, channels)."""
@@ -357,6 +453,9 @@ class TiledMosaic:
         """Forget every tile: an empty map."""
         self.clear_tiles(self.tiles())
         self._extent, self._extent_stale = None, False
+        if self._gain is not None:
+            self._gain.reset()
+        self.last_gain = None
 
     # ------------------------------------------------------------------ extent and rendering
     def _grow_extent(self, x0: int, y0: int, x1: int, y1: int) -> None:
