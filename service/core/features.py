@@ -33,12 +33,12 @@ frames. Pure: arrays in, arrays out; no I/O, logging or configuration.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-import scipy.fft
 
 from photomap.core.ifmi import Prior, Registration
 
@@ -390,6 +390,17 @@ def _ncc(a: np.ndarray, b: np.ndarray, centre: bool) -> float:
     return float(np.einsum("i,i->", a, b)) / den if den > 0 else float("nan")
 
 
+@functools.lru_cache(maxsize=8)
+def _offsets(fh: int, fw: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Offset radius (fh x fw) and the x, y offsets of the columns and rows of a DFT correlation."""
+    dy = np.fft.fftfreq(fh, 1.0 / fh)
+    dx = np.fft.fftfreq(fw, 1.0 / fw)
+    radius = np.hypot(dx[None, :], dy[:, None]).astype(np.float32)
+    for a in (radius, dx, dy):
+        a.flags.writeable = False
+    return radius, dx, dy
+
+
 def verify_overlap(reference: np.ndarray, moving: np.ndarray, matrix: np.ndarray, *,
                    size: int = 160, blur: float = 1.0, tolerance: float = 0.02,
                    min_pixels: int = 300) -> OverlapCheck:
@@ -433,45 +444,48 @@ def verify_overlap(reference: np.ndarray, moving: np.ndarray, matrix: np.ndarray
     sel = inner.astype(bool)
     ncc = _ncc(ref_s[sel], warped[sel], True)
     weight = inner.astype(np.float32)
-    ga = _gradients(ref_s, blur) * weight[:, :, None]
-    gb = _gradients(warped, blur) * weight[:, :, None]
-    gncc = _ncc(ga[sel], gb[sel], False)
-    # Masked normalised cross-correlation of the gradient fields for every offset d (linear,
-    # zero-padded FFTs): sum_p ga(p).gb(p+d) over the pixels where both overlap masks hold,
-    # divided by the gradient energies of ga and gb over those same pixels.
-    fh, fw = scipy.fft.next_fast_len(2 * h, real=True), scipy.fft.next_fast_len(2 * w, real=True)
+    ga = _gradients(ref_s, blur)
+    gb = _gradients(warped, blur)
+    ga *= weight[:, :, None]
+    gb *= weight[:, :, None]
+    # Masked normalised cross-correlation of the gradient fields for every offset d (linear:
+    # zero-padded DFTs): corr[d] = sum_p ga(p).gb(p+d) over the pixels where both overlap masks
+    # hold, divided by the gradient energies of ga and gb over those same pixels.
+    fh, fw = cv2.getOptimalDFTSize(2 * h), cv2.getOptimalDFTSize(2 * w)
 
-    def spectrum(x: np.ndarray) -> np.ndarray:
-        return scipy.fft.rfft2(x, s=(fh, fw), axes=(0, 1), workers=1)
+    def dft(x: np.ndarray) -> np.ndarray:
+        return cv2.dft(cv2.copyMakeBorder(np.ascontiguousarray(x), 0, fh - h, 0, fw - w, cv2.BORDER_CONSTANT))
 
     def correlate(fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
-        return scipy.fft.irfft2(np.conj(fx) * fy, s=(fh, fw), workers=1)
+        """sum_p x(p) y(p + d) from the DFTs of x and y."""
+        return cv2.idft(cv2.mulSpectrums(fy, fx, 0, conjB=True), flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
 
-    fa, fb = spectrum(ga), spectrum(gb)
-    fm = spectrum(weight)
-    cross = scipy.fft.irfft2((np.conj(fa) * fb).sum(axis=2), s=(fh, fw), workers=1)
-    ea = correlate(spectrum(np.einsum("ijk,ijk->ij", ga, ga)), fm)  # energy of ga where gb(p+d) exists
-    eb = correlate(fm, spectrum(np.einsum("ijk,ijk->ij", gb, gb)))  # energy of gb(p+d) where ga exists
+    fax, fay, fbx, fby = dft(ga[:, :, 0]), dft(ga[:, :, 1]), dft(gb[:, :, 0]), dft(gb[:, :, 1])
+    fm = dft(weight)
+    cross = cv2.idft(cv2.mulSpectrums(fbx, fax, 0, conjB=True) + cv2.mulSpectrums(fby, fay, 0, conjB=True),
+                     flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+    ea = correlate(dft(cv2.multiply(ga[:, :, 0], ga[:, :, 0]) + cv2.multiply(ga[:, :, 1], ga[:, :, 1])), fm)
+    eb = correlate(fm, dft(cv2.multiply(gb[:, :, 0], gb[:, :, 0]) + cv2.multiply(gb[:, :, 1], gb[:, :, 1])))
     area = correlate(fm, fm)
-    dy = scipy.fft.fftfreq(fh, 1.0 / fh)[:, None]
-    dx = scipy.fft.fftfreq(fw, 1.0 / fw)[None, :]
-    radius = np.hypot(dx, dy)
+    radius, dx, dy = _offsets(fh, fw)
     # offsets that keep at least half of the overlap (a sliver gives noisy correlations)
     usable = area >= 0.5 * n
-    den = np.sqrt(np.maximum(ea, 0.0) * np.maximum(eb, 0.0))
-    floor = 1e-9 * float(den.max()) if den.size else 0.0
-    corr = np.where(usable & (den > floor), cross / np.maximum(den, floor + 1e-30), -1.0)
+    den = cv2.sqrt(cv2.max(ea, 0.0) * cv2.max(eb, 0.0))
+    floor = 1e-6 * float(den.max())
+    usable &= den > floor
+    corr = np.where(usable, cross / np.maximum(den, floor + 1e-30), -1.0).astype(np.float32)
+    gncc = float(corr[0, 0]) if usable[0, 0] else nan
     tol = max(1.5, tolerance * max(h, w))
     # peaks: local maxima over a neighbourhood of about the tolerance (not noise on a shoulder)
     k = 2 * max(1, int(round(tol / 2))) + 1
-    peaks = usable & (corr >= cv2.dilate(corr.astype(np.float32), np.ones((k, k), np.uint8)))
+    peaks = usable & (corr >= cv2.dilate(corr, np.ones((k, k), np.uint8)))
     own = peaks & (radius <= tol)
     # the placement's own peak: a shifted placement has only the shoulder of a peak farther away
     score = float(corr[own].max()) if own.any() else 0.0
     far = peaks & (radius > tol)
     rival = float(corr[far].max()) if far.any() else 0.0
-    iy, ix = np.unravel_index(int(np.argmax(np.where(usable, corr, -np.inf))), corr.shape)
-    offset = (-float(dx[0, ix]) / f, -float(dy[iy, 0]) / f)
+    iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    offset = (-float(dx[ix]) / f, -float(dy[iy]) / f)
     ratio = rival / score if score > 0 else math.inf
     return OverlapCheck(score, ratio, offset, gncc, ncc, overlap, n)
 
