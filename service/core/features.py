@@ -451,7 +451,9 @@ def verify_overlap(reference: np.ndarray, moving: np.ndarray, matrix: np.ndarray
     # Masked normalised cross-correlation of the gradient fields for every offset d (linear:
     # zero-padded DFTs): corr[d] = sum_p ga(p).gb(p+d) over the pixels where both overlap masks
     # hold, divided by the gradient energies of ga and gb over those same pixels.
-    fh, fw = cv2.getOptimalDFTSize(2 * h), cv2.getOptimalDFTSize(2 * w)
+    # Padding by half the frame keeps offsets up to h/2, w/2 free of wrap-around; larger ones
+    # leave less than half of any overlap in common and are not used anyway.
+    fh, fw = cv2.getOptimalDFTSize(h + (h + 1) // 2), cv2.getOptimalDFTSize(w + (w + 1) // 2)
 
     def dft(x: np.ndarray) -> np.ndarray:
         return cv2.dft(cv2.copyMakeBorder(np.ascontiguousarray(x), 0, fh - h, 0, fw - w, cv2.BORDER_CONSTANT))
@@ -469,7 +471,7 @@ def verify_overlap(reference: np.ndarray, moving: np.ndarray, matrix: np.ndarray
     area = correlate(fm, fm)
     radius, dx, dy = _offsets(fh, fw)
     # offsets that keep at least half of the overlap (a sliver gives noisy correlations)
-    usable = area >= 0.5 * n
+    usable = (area >= 0.5 * n) & (np.abs(dy)[:, None] <= fh - h) & (np.abs(dx)[None, :] <= fw - w)
     den = cv2.sqrt(cv2.max(ea, 0.0) * cv2.max(eb, 0.0))
     floor = 1e-6 * float(den.max())
     usable &= den > floor
