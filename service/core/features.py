@@ -345,16 +345,17 @@ class OverlapCheck:
     """Photometric agreement of two frames over their overlap under a candidate placement.
 
     The gradients of the reference and of the warped moving frame are cross-correlated over the
-    overlap for every relative offset (normalised: 1 = identical gradients). ``score``: the best
-    correlation within the tolerance of zero offset (the placement's own alignment, allowing for
-    what a similarity cannot model); ``ratio``: the best correlation farther away (at least twice
-    the tolerance) over ``score`` (below 1: no other nearby offset explains the images better; near
-    or above 1: the placement is off, e.g. by a period of periodic ground, or the match is noise);
-    ``offset``: where the overall best correlation lies (reference pixels, x, y; the moving frame
-    would fit better moved by it). ``gradient_ncc``, ``ncc``: NCC of the gradient vectors and of
-    the intensities at zero offset, for comparison. ``overlap``: fraction of the reference covered
-    by the warped moving frame; ``pixels``: overlap pixels compared at the check resolution.
-    The correlations are NaN when the overlap is too small to compare.
+    overlap for every relative offset (masked and normalised: 1 = identical gradients over the
+    pixels both cover). ``score``: the highest correlation *peak* (local maximum) within the
+    tolerance of zero offset, the placement's own alignment (0 when there is none: a placement
+    that is off sits on the shoulder of a peak farther away); ``ratio``: the highest peak beyond
+    the tolerance over ``score`` (below 1: nothing else explains the images as well; near or
+    above 1: the placement is off, e.g. by one period of periodic ground, or the match is noise;
+    ``inf`` without an own peak); ``offset``: where the overall best correlation lies (reference
+    pixels, x, y: the moving frame would fit better moved by it). ``gradient_ncc``, ``ncc``: NCC
+    of the gradient vectors and of the intensities at zero offset, for comparison. ``overlap``:
+    fraction of the reference covered by the warped moving frame; ``pixels``: overlap pixels
+    compared at the check resolution. All correlations are NaN when the overlap is too small.
     """
 
     score: float
@@ -415,7 +416,7 @@ def verify_overlap(reference: np.ndarray, moving: np.ndarray, matrix: np.ndarray
     blur : Gaussian sigma (pixels at the check resolution) applied before the gradients.
     tolerance : offsets up to this fraction of the reference's longer side count as the
         placement's own (camera tilt, parallax and lens distortion leave a similarity a few pixels
-        off in parts of the frame); the competing offsets start at twice it.
+        off in parts of the frame); peaks beyond it are rivals.
     min_pixels : fewer overlap pixels at the check resolution: the correlations are NaN.
     """
     ref = _gray(reference).astype(np.float32, copy=False)
