@@ -150,6 +150,10 @@ class MappingConfig(_Section):
 
     _name = "mapping"
     min_confidence: float = _num(0.12, 0.0, 1.0)
+    trust_confidence: float = _num(0.3, 0.0, 1.0)
+    verify_placements: bool = True
+    second_opinion: str = _choice("sift", "sift", "orb", "none")
+    second_opinion_px: int = _num(640, 64, 16384)
     max_lost_frames: int = _num(10, 0, 100000)
     keyframes: bool = True
     keyframe_confidence: float = _num(0.5, 0.0, 1.0)

@@ -151,6 +151,11 @@ class PoseGraph:
         return len(self._edges)
 
     @property
+    def has_priors(self) -> bool:
+        """True when some node has a position, GPS, heading or altitude prior."""
+        return bool(self._position or self._gps or self._heading or self._scale)
+
+    @property
     def edge_kinds(self) -> list[str]:
         return [e[4] for e in self._edges]
 

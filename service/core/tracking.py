@@ -1,6 +1,9 @@
 """Poses from pairwise registrations: reference/keyframe choice, motion prior, map segments.
 
-Pure: frames (already at the working resolution) in, poses out; no I/O, no threads.
+Each frame is placed against the current reference by a :class:`~photomap.core.matching.PairMatcher`
+(iFMI; the overlap check and a feature second opinion when the placement is not what the motion
+model expected). Pure: frames (at the working resolution, with their input image for the
+features) in, poses out; no I/O, no threads.
 
 Conventions: a pose is a 2x3 matrix mapping pixels of a frame at the *input* resolution to map
 pixels. The map of a segment is the first frame of that segment scaled by ``map_scale`` (map
@@ -18,8 +21,9 @@ from typing import Any, Callable
 import numpy as np
 
 from photomap.config import MappingConfig
+from photomap.core.ifmi import Prior, Registration
+from photomap.core.matching import Expectation, Match, PairMatcher, View
 from photomap.geometry import pose_angle_deg, pose_scale, scaling, to_h
-from photomap.core.ifmi import PreparedFrame, Prior, Registrar, Registration
 
 REFERENCE = "reference"
 REGISTERED = "registered"
@@ -49,45 +53,49 @@ class TrackStep:
     keyframe: bool = False
     # telemetry expected another motion than the images show (vision won): what was seen
     disagreement: str | None = None
+    # which method placed the frame (ifmi, sift, orb) and how it was accepted
+    method: str = "ifmi"
+    how: str = ""
 
 
 @dataclass
 class _Reference:
-    prepared: PreparedFrame
+    view: View
     pose: np.ndarray  # 3x3 input pixels -> map pixels
     index: int
     sample: Any = None  # its telemetry sample, if any
-    best: float = 0.0  # the best confidence of a frame registered against it
+    best: float = 0.0  # the best iFMI confidence of a frame registered against it
 
 
 class Tracker:
-    """Chains pairwise iFMI registrations into poses.
+    """Chains pairwise placements into poses.
 
-    Each frame is registered against the current reference. With ``keyframes`` the reference
+    Each frame is placed against the current reference. With ``keyframes`` the reference
     stays while the confidence against it is at least ``keyframe_confidence`` times the best
     confidence seen against it (so the rule adapts to the ground's texture), and while the next
     frame is predicted to be less than ``keyframe_max_shift`` frame sizes away (error then grows per
-    keyframe, not per frame); otherwise every registered frame becomes the next reference. A frame
-    below ``min_confidence`` is not posed, the reference is kept and the next frames are tried
-    against it. When a frame fails against the reference but registers with the previous
-    (failed) frame, the link to the map is lost but the camera still sees coherent ground: a new
-    segment is anchored at that previous frame. After ``max_lost_frames`` failures in a row a new
-    segment starts at the current frame.
+    keyframe, not per frame); otherwise every registered frame becomes the next reference (and
+    so does a frame the features placed). A frame that no placement is accepted for is not posed,
+    the reference is kept and the next frames are tried against it. When a frame fails against
+    the reference but is placed against the previous (failed) frame, the link to the map is lost
+    but the camera still sees coherent ground: a new segment is anchored at that previous frame.
+    After ``max_lost_frames`` failures in a row a new segment starts at the current frame.
 
-    ``working_scale`` is the working resolution over the input resolution; ``params`` the
-    ``mapping`` settings (``map_scale``, ``min_confidence``, ``max_lost_frames``, ``keyframes``,
-    ``keyframe_confidence``, ``keyframe_max_shift``, ``motion_prior`` and its tolerances);
-    ``telemetry_prior(reference_sample, sample)`` gives the expected registration from telemetry.
+    ``matcher`` places frames (at the working resolution); ``working_scale`` is the working
+    resolution over the input resolution; ``params`` the ``mapping`` settings (``map_scale``,
+    ``max_lost_frames``, ``keyframes``, ``keyframe_confidence``, ``keyframe_max_shift``,
+    ``motion_prior`` and its tolerances); ``telemetry_prior(reference_sample, sample)`` gives the
+    expected registration from telemetry.
     """
 
-    def __init__(self, registrar: Registrar, working_scale: float = 1.0,
+    def __init__(self, matcher: PairMatcher, working_scale: float = 1.0,
                  params: MappingConfig = MappingConfig(), *,
                  telemetry_prior: Callable[[Any, Any], Prior | None] | None = None) -> None:
-        self.registrar = registrar
+        self.matcher = matcher
+        self.registrar = matcher.registrar
         self._to_small = scaling(working_scale)
         self._from_small = np.linalg.inv(self._to_small)
         self._map = np.diag([params.map_scale, params.map_scale, 1.0])
-        self.min_confidence = params.min_confidence
         self.max_lost_frames = params.max_lost_frames
         self.keyframes = params.keyframes
         self.keyframe_confidence = params.keyframe_confidence
@@ -102,13 +110,12 @@ class Tracker:
         self._last: tuple[int, np.ndarray] | None = None  # (index, 3x3 pose) of the last posed frame
         self._velocity: np.ndarray | None = None  # 3x3 motion between the last two posed frames
         self._lost = 0
-        self._pending: tuple[int, PreparedFrame, Any] | None = None  # the last frame that failed
+        self._pending: tuple[int, View, Any] | None = None  # the last frame that failed
 
-    def _new_segment(self, prepared: PreparedFrame, index: int, events: list[str],
-                     sample: Any = None) -> TrackStep:
+    def _new_segment(self, view: View, index: int, events: list[str], sample: Any = None) -> TrackStep:
         self.segment = self.segments
         self.segments += 1
-        self._ref = _Reference(prepared, self._map.copy(), index, sample)
+        self._ref = _Reference(view, self._map.copy(), index, sample)
         self._last, self._velocity, self._lost = (index, self._map.copy()), None, 0
         self._pending = None
         if self.segment > 0:
@@ -144,16 +151,16 @@ class Tracker:
         if self._last is not None:
             self._last = (self._last[0], c @ self._last[1])
 
-    def _prior(self, index: int) -> Prior | None:
+    def _prior(self, index: int) -> tuple[Prior | None, Expectation | None]:
         """Expected registration against the reference, from a constant-velocity model.
 
         Without a motion model (start, gaps) the expectation is "no rotation, no scale change"
         with no restriction: it is only tried as an extra hypothesis when the search is weak.
         """
         if not self.motion_prior:
-            return None
+            return None, None
         if self._last is None or self._velocity is None or index - self._last[0] != 1:
-            return _HINT
+            return _HINT, None
         last_index, last_pose = self._last
         predicted = last_pose @ self._velocity
         rel = self._to_small @ np.linalg.inv(self._ref.pose) @ predicted @ self._from_small
@@ -164,62 +171,69 @@ class Tracker:
         h, w = self.registrar.shape
         c = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
         tol = 4.0 + 0.25 * float(np.hypot(*(step @ c - c)[:2]))
-        return Prior(angle_deg=angle, angle_tol_deg=self.prior_angle_tol_deg, scale=scale,
-                     scale_tol=self.prior_scale_tol, shift=(float(rel[0, 2]), float(rel[1, 2])),
-                     shift_tol=tol)
+        prior = Prior(angle_deg=angle, angle_tol_deg=self.prior_angle_tol_deg, scale=scale,
+                      scale_tol=self.prior_scale_tol, shift=(float(rel[0, 2]), float(rel[1, 2])),
+                      shift_tol=tol)
+        expected = Expectation(rel[:2].copy(), 2.0 * tol, min(self.prior_angle_tol_deg, 10.0),
+                               min(self.prior_scale_tol, 0.1))
+        return prior, expected
 
-    def _register(self, ref: PreparedFrame, ref_sample: Any, prepared: PreparedFrame, index: int,
-                  sample: Any) -> tuple[Registration, str | None]:
-        """Register with the telemetry prior when there is one; vision decides on disagreement.
-
-        Returns the registration and, when telemetry was overruled, what it disagreed about.
-        """
-        tprior = self.telemetry_prior(ref_sample, sample) if self.telemetry_prior else None
-        motion = self._prior(index)
+    def _place(self, ref: _Reference, view: View, index: int, sample: Any) -> tuple[Match, str | None]:
+        """Place ``view`` against ``ref``: with the telemetry prior when there is one (vision
+        decides on disagreement), else the motion model's; then free (any rotation, features
+        allowed) when that is not accepted. Returns the match and, when telemetry was overruled,
+        what it disagreed about."""
+        tprior = self.telemetry_prior(ref.sample, sample) if self.telemetry_prior else None
+        motion, expected = self._prior(index)
         if tprior is not None and motion is not None and motion.shift is not None:
             tprior = dataclasses.replace(tprior, shift=motion.shift, shift_tol=motion.shift_tol)
-        if tprior is None:
-            return self.registrar.register(ref, prepared, motion), None
-        reg = self.registrar.register(ref, prepared, tprior)
-        if reg.confidence >= self.keyframe_confidence:
-            return reg, None
-        free = self.registrar.register(ref, prepared, motion)
-        if free.confidence > reg.confidence + 0.05 and free.confidence >= self.min_confidence:
-            return free, (f"frame {index}: telemetry disagrees with the images (expected "
-                          f"{tprior.angle_deg if tprior.angle_deg is not None else float('nan'):.1f} deg, "
-                          f"{tprior.scale if tprior.scale is not None else float('nan'):.3f}; images say "
-                          f"{free.angle_deg:.1f} deg, {free.scale:.3f}): vision wins")
-        return reg, None
+        if tprior is not None:
+            told = self.matcher.match(ref.view, view, tprior, expected, second_opinion=False)
+            if told.accepted and told.confidence >= self.keyframe_confidence:
+                return told, None
+            free = self.matcher.match(ref.view, view, motion, expected)
+            if free.accepted and (not told.accepted or free.confidence > told.confidence + 0.05):
+                return free, (f"frame {index}: telemetry disagrees with the images (expected "
+                              f"{tprior.angle_deg if tprior.angle_deg is not None else float('nan'):.1f} deg, "
+                              f"{tprior.scale if tprior.scale is not None else float('nan'):.3f}; images say "
+                              f"{pose_angle_deg(free.matrix):.1f} deg, {pose_scale(free.matrix):.3f}): vision wins")
+            return told, None
+        restricted = motion is not None and motion is not _HINT
+        match = self.matcher.match(ref.view, view, motion, expected, second_opinion=not restricted)
+        if not match.accepted and restricted:  # a turn the motion model did not expect
+            match = self.matcher.match(ref.view, view, None, None)
+        return match, None
 
-    def step(self, frame: np.ndarray, index: int, sample: Any = None) -> TrackStep:
-        """Pose frame ``index`` (at the working resolution, grey or BGR).
+    def step(self, frame: np.ndarray, index: int, sample: Any = None, image: np.ndarray | None = None
+             ) -> TrackStep:
+        """Pose frame ``index`` (``frame`` at the working resolution, grey or BGR; ``image`` the
+        input frame it was downscaled from, for the feature second opinion).
 
         ``sample`` is the frame's telemetry (or None); with ``telemetry_prior`` it gives the
         expected rotation and scale against the reference.
         """
-        prepared = self.registrar.prepare(frame)
+        view = self.matcher.view(frame, image)
         events: list[str] = []
         if self._ref is None:
-            return self._new_segment(prepared, index, events, sample)
-        reg, disagreement = self._register(self._ref.prepared, self._ref.sample, prepared, index, sample)
+            return self._new_segment(view, index, events, sample)
+        match, disagreement = self._place(self._ref, view, index, sample)
         anchor = None
-        if reg.confidence < self.min_confidence and self._pending is not None \
-                and self._pending[0] == index - 1:
+        if not match.accepted and self._pending is not None and self._pending[0] == index - 1:
             pending_index, pending, pending_sample = self._pending
-            retry = self.registrar.register(pending, prepared, _HINT)
-            if retry.confidence >= self.min_confidence:
+            retry = self.matcher.match(pending, view, _HINT)
+            if retry.accepted:
                 anchor = pending_index
                 self._new_segment(pending, anchor, events, pending_sample)
-                reg = retry
-        if reg.confidence < self.min_confidence:
+                match = retry
+        if not match.accepted:
             self._lost += 1
             if self._lost > self.max_lost_frames:
-                return self._new_segment(prepared, index, events, sample)
-            self._pending = (index, prepared, sample)
-            return TrackStep(LOW_CONFIDENCE, None, reg.confidence, self.segment, reg, events,
-                             disagreement=disagreement)
+                return self._new_segment(view, index, events, sample)
+            self._pending = (index, view, sample)
+            return TrackStep(LOW_CONFIDENCE, None, match.confidence, self.segment, match.registration, events,
+                             disagreement=disagreement, method=match.method, how=match.how)
         self._pending = None
-        rel = self._from_small @ to_h(reg.matrix) @ self._to_small  # input px of frame -> of reference
+        rel = self._from_small @ to_h(match.matrix) @ self._to_small  # input px of frame -> of reference
         pose = self._ref.pose @ rel
         if self._last is not None and index - self._last[0] == 1:
             self._velocity = np.linalg.inv(self._last[1]) @ pose
@@ -227,12 +241,15 @@ class Tracker:
             self._velocity = None
         self._last = (index, pose)
         self._lost = 0
-        step = TrackStep(REGISTERED, pose[:2].copy(), reg.confidence, self.segment, reg, events,
-                         reference=self._ref.index, relative=rel, disagreement=disagreement)
-        self._ref.best = max(self._ref.best, reg.confidence)
-        if not self.keyframes or reg.confidence < self.keyframe_confidence * self._ref.best \
-                or self._next_shift(reg.matrix) > self.keyframe_max_shift:
-            self._ref = _Reference(prepared, pose, index, sample)
+        step = TrackStep(REGISTERED, pose[:2].copy(), match.confidence, self.segment, match.registration,
+                         events, reference=self._ref.index, relative=rel, disagreement=disagreement,
+                         method=match.method, how=match.how)
+        if match.method == "ifmi":
+            self._ref.best = max(self._ref.best, match.confidence)
+        if not self.keyframes or match.method != "ifmi" \
+                or match.confidence < self.keyframe_confidence * self._ref.best \
+                or self._next_shift(match.matrix) > self.keyframe_max_shift:
+            self._ref = _Reference(view, pose, index, sample)
             step.keyframe = True
         if anchor is not None:
             step.anchor, step.anchor_pose = anchor, self._map[:2].copy()

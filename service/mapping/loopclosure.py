@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from photomap.config import MappingConfig, PosegraphConfig
-from photomap.core.ifmi import Registrar
+from photomap.core.matching import PairMatcher
 from photomap.core.keyframes import KeyframeGraph, KeyframePriors
 from photomap.core.places import place_signature, place_similarity
 from photomap.core.tracking import TrackStep
@@ -80,8 +80,9 @@ class LoopCloser:
     ----------
     store : KeyframeStore
         Where keyframe images go.
-    registrar : Registrar
-        At the working resolution.
+    matcher : PairMatcher
+        Places keyframes against each other (iFMI at the working resolution, checked; features
+        as a second opinion for joins).
     frame_size : (w, h)
         Input frame size.
     working_scale : float
@@ -92,13 +93,17 @@ class LoopCloser:
     join_candidates : int
         Keyframes of other segments tried per new keyframe of a segment (the nearest by GPS,
         else the most similar by place signature).
+    settle_on_priors : bool
+        At the end, optimise every segment with telemetry priors even without loop closures
+        (stills: chains of few, weak links, that the GPS and altitude of each still hold together).
     """
 
-    def __init__(self, store: KeyframeStore, registrar: Registrar, frame_size: tuple[int, int],
+    def __init__(self, store: KeyframeStore, matcher: PairMatcher, frame_size: tuple[int, int],
                  working_scale: float, params: MappingConfig, graph_params: PosegraphConfig,
-                 use_priors: bool = False, join_candidates: int = 4) -> None:
+                 use_priors: bool = False, join_candidates: int = 4, settle_on_priors: bool = False) -> None:
         self.store = store
-        self.registrar = registrar
+        self.matcher = matcher
+        self.registrar = matcher.registrar
         self.frame_size = frame_size
         self.working_scale = working_scale
         self.params = params
@@ -109,6 +114,7 @@ class LoopCloser:
         self.relative: dict[int, dict[int, tuple[int, np.ndarray]]] = {}
         self.corrections = 0
         self.join_candidates = join_candidates
+        self.settle_on_priors = settle_on_priors
         self.joins: list[Join] = []
         self._merged_into: dict[int, int] = {}  # joined segment -> the segment it joined
         self._segment_of: dict[int, int] = {}  # keyframe -> its segment (after joins)
@@ -173,7 +179,7 @@ class LoopCloser:
         edge = (step.reference, step.relative, step.confidence) if step.reference is not None else None
         graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge, priors)
         updates: list[Update] = []
-        join = self._try_join(index, step.segment, small)
+        join = self._try_join(index, step.segment, small, image)
         if join is not None:
             updates.append(join)
             graph = self.graphs[join.into]
@@ -202,16 +208,19 @@ class LoopCloser:
         key = {k: -place_similarity(sig, self._signature[k]) for k in others}
         return sorted(others, key=key.get)[:self.join_candidates]
 
-    def _try_join(self, index: int, segment: int, small: np.ndarray) -> Join | None:
-        """Register keyframe ``index`` of ``segment`` against other segments; join the first match."""
+    def _try_join(self, index: int, segment: int, small: np.ndarray, image: np.ndarray) -> Join | None:
+        """Place keyframe ``index`` of ``segment`` against other segments' keyframes; join the
+        first placement the images confirm (the overlap check, or the features' second opinion)."""
         candidates = self._join_candidates(index, segment)
         if not candidates:
             return None
-        prepared = self.registrar.prepare(small)
+        view = self.matcher.view(small, image)
         for match in candidates:
-            reg = self.registrar.register(self.registrar.prepare(self.store.small(match)), prepared)
-            if reg.confidence < self.params.loop_min_confidence:
+            old = self.store.image(match)
+            placed = self.matcher.match(self.matcher.view(self.store.small(match), old), view, always_check=True)
+            if not placed.accepted:
                 continue
+            reg = placed
             into = self._segment_of[match]
             measured = self._from_small @ to_h(reg.matrix) @ self._to_small  # input px: index -> match
             old = self.graphs[into].pose_of(match)
@@ -276,8 +285,15 @@ class LoopCloser:
                           tuple((kf.index, kf.pose.copy()) for kf in graph.keyframes))
 
     def flush(self) -> list[Correction]:
-        """Finish every pending optimisation (at the end of the run); returns their corrections."""
+        """Finish every pending optimisation (at the end of the run); returns their corrections.
+
+        With ``settle_on_priors``, segments whose keyframes carry telemetry priors (GPS, heading,
+        altitude) are optimised once more with them, loop closed or not, so that a weak chain
+        (stills) agrees with the GPS track and the altitude.
+        """
         out = []
+        if self.settle_on_priors:
+            self._wanted |= {s for s, g in self.graphs.items() if len(g.keyframes) >= 2 and g.graph.has_priors}
         while self._running is not None or self._wanted:
             correction = self.poll(wait=True) if self._running is not None else self._start()
             if correction is not None:

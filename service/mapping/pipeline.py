@@ -34,6 +34,7 @@ from threadpoolctl import threadpool_limits
 
 from photomap.config import Config
 from photomap.core.ifmi import Registrar
+from photomap.core.matching import PairMatcher
 from photomap.core.maprelative import map_correction
 from photomap.core.mosaic import TiledMosaic
 from photomap.core.records import PoseRow
@@ -267,11 +268,15 @@ class MappingPipeline:
         self._working_scale = f
         mapping = self.cfg.mapping
         registrar = Registrar((self._small[1], self._small[0]), self.cfg.registration)
-        self.tracker = Tracker(registrar, f, mapping,
+        matcher = PairMatcher(registrar, min_confidence=mapping.min_confidence,
+                              trust_confidence=mapping.trust_confidence, verify=mapping.verify_placements,
+                              second_opinion=mapping.second_opinion, second_opinion_px=mapping.second_opinion_px)
+        self.tracker = Tracker(matcher, f, mapping,
                                telemetry_prior=self.telemetry.prior if self.telemetry else None)
         if mapping.keyframes and mapping.loop_closure:
-            self.loops = LoopCloser(KeyframeStore(self._cache() / "keyframes"), registrar, self.frame_size,
-                                    f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None)
+            self.loops = LoopCloser(KeyframeStore(self._cache() / "keyframes"), matcher, self.frame_size,
+                                    f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None,
+                                    settle_on_priors=self.telemetry is not None and self.telemetry.mode == "stills")
 
     def _cache(self) -> Path:
         """The run's cache folder (configured, or a temporary one removed at the end)."""
@@ -336,7 +341,7 @@ class MappingPipeline:
             small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
             t1 = time.perf_counter()
             started = self.tracker.segments
-            step = self.tracker.step(small, frame.index, sample)
+            step = self.tracker.step(small, frame.index, sample, image)
             register_s = time.perf_counter() - t1
             self.stats.register_s += register_s
             if step.keyframe and step.reference is not None and self.cfg.mapping.map_relative:
@@ -372,6 +377,8 @@ class MappingPipeline:
             self.stats.registered += 1
             self.stats.confidence_sum += step.confidence
         row = PoseRow(frame.index, frame.t, step.pose, step.confidence, step.status, step.segment)
+        if step.pose is not None:
+            row.extra["method"] = step.method  # which method placed the frame: ifmi, sift, orb
         if sample is not None:
             row.extra["alt_m"] = sample.height_above_ground
             row.extra.update(self.telemetry.row_columns(frame.index))  # which pixels the pose maps
