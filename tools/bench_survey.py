@@ -149,6 +149,8 @@ def measure(sim: Path, out: Path, overrides: list[str]) -> dict:
         summary = replay(str(video), out, cfg, mavlink=str(sim / "telemetry.tlog"))
         t1 = time.monotonic()
     end_map = next(t for name, t, _ in phases if name == "outputs (all)")
+    previews = [(a, b) for name, a, b in phases if name == "mosaic.png" and b <= end_map]
+    phases = [p for p in phases if p[1] >= end_map]  # the end of the run (not checkpoint previews)
     entry = summary["mosaics"][0]
     x, y, w, h = entry["bounds"]
     result = {"overrides": overrides, "frames": summary["frames_in"], "registered": summary["registered"],
@@ -158,7 +160,9 @@ def measure(sim: Path, out: Path, overrides: list[str]) -> dict:
               "rss_start_mb": base, "peak_mapping_mb": rss.peak(t0, end_map),
               "peak_mb": rss.peak(), "ru_maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
               "georeference": summary.get("georeference"), "exports": summary.get("exports"),
-              "phases": [{"name": n, "s": b - a, "peak_mb": rss.peak(a, b)} for n, a, b in phases]}
+              "phases": [{"name": n, "s": b - a, "peak_mb": rss.peak(a, b)} for n, a, b in phases],
+              "previews": {"count": len(previews), "s": sum(b - a for a, b in previews),
+                           "peak_mb": max((rss.peak(a, b) or 0 for a, b in previews), default=None)}}
     return result
 
 
@@ -211,6 +215,9 @@ def report(args, r: dict, cog: dict, elapsed: float, load: tuple[float, float]) 
              f"| peak RSS while mapping | {r['peak_mapping_mb']:.0f} MB |"]
     for p in r["phases"]:
         lines.append(f"| peak RSS in {p['name']} | {p['peak_mb'] or 0:.0f} MB ({p['s']:.1f} s) |")
+    pv = r["previews"]
+    lines.append(f"| checkpoint previews (preview.png, {pv['count']} while mapping) | peak {pv['peak_mb'] or 0:.0f} MB, "
+                 f"{pv['s']:.0f} s in all ({100 * pv['s'] / r['mapping_s']:.0f} % of the mapping time) |")
     return "\n".join(lines) + "\n"
 
 

