@@ -107,10 +107,9 @@ def batch_part(root: Path, frames: int, repeat: int) -> dict:
 
 def run_batch_threads(flights, out: Path, cfg, threads: int) -> dict:
     """run_batch on one worker with ``threads`` threads in this process (Dask's processes=False)."""
-    import distributed
+    from photomap.cli.batch import local_cluster
 
-    cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=threads, processes=False,
-                                       dashboard_address=None, silence_logs=logging.ERROR)
+    cluster = local_cluster(1, processes=False, threads_per_worker=threads)
     try:
         return run_batch(flights, out, cfg, scheduler=cluster.scheduler_address, echo=None)
     finally:
