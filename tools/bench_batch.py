@@ -76,11 +76,13 @@ def batch_part(root: Path, frames: int, repeat: int) -> dict:
     configs = [("serial replay, this process", None), ("batch, 1 worker process", (1, True)),
                ("batch, 2 worker processes", (2, True)), ("batch, 1 worker, 2 threads", (2, False))]
     times: dict[str, list[float]] = {name: [] for name, _ in configs}
+    cpu: dict[str, list[float]] = {name: [] for name, _ in configs}
     same: dict[str, list] = {name: [] for name, _ in configs}
     for rep in range(repeat):
         for name, how in configs:
             out = root / f"rep{rep}-{len(times[name])}-{name.split(',')[0].replace(' ', '')}{id(how)}"
             t = time.perf_counter()
+            c0 = _cpu_s()
             if how is None:
                 for f in flights:
                     replay(f.input, out / f.name, cfg, mavlink=f.mavlink)
@@ -89,7 +91,8 @@ def batch_part(root: Path, frames: int, repeat: int) -> dict:
             else:  # one worker process... as threads of this process: LocalCluster(processes=False)
                 run_batch_threads(flights, out, cfg, threads=how[0])
             times[name].append(time.perf_counter() - t)
-            log.info("%s: %.1f s", name, times[name][-1])
+            cpu[name].append(_cpu_s() - c0)
+            log.info("%s: %.1f s (CPU %.1f s)", name, times[name][-1], cpu[name][-1])
             if how is not None:
                 serial = next(p for p in root.iterdir() if p.name.startswith(f"rep{rep}-") and "serial" in p.name)
                 same[name].append([_same_outputs(out / f.name, serial / f.name) for f in flights])
@@ -99,10 +102,20 @@ def batch_part(root: Path, frames: int, repeat: int) -> dict:
         med = statistics.median(times[name])
         checks = [c for rep in same[name] for c in rep]
         rows.append({"name": name, "median_s": med, "all_s": times[name], "speedup": base / med,
+                     "cpu_s": statistics.median(cpu[name]),
+                     "cores_used": statistics.median(c / w for c, w in zip(cpu[name], times[name])),
                      "trajectories_equal": all(c[0] for c in checks) if checks else None,
                      "max_pose_diff": max((c[1] for c in checks), default=None),
                      "mosaics_equal": all(c[2] for c in checks) if checks else None})
     return {"frames": frames, "flights": len(flights), "repeat": repeat, "rows": rows}
+
+
+def _cpu_s() -> float:
+    """CPU seconds of this process and its finished children (the local workers, once closed)."""
+    import resource
+
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def run_batch_threads(flights, out: Path, cfg, threads: int) -> dict:
@@ -182,14 +195,16 @@ def report(args, b: dict, m: list[dict], elapsed: float, load: tuple[float, floa
              "cluster start-up and shutdown included). Serial: `replay` of one flight after the other in one "
              "process (no start-up per flight: the strictest baseline). Outputs: every batch flight's "
              "trajectory.csv and mosaic.png against the serial replay's.", "",
-             "| configuration | median s | runs s | speed-up over serial | trajectories equal (max pose diff) "
-             "| mosaic.png pixels equal |", "|---|---|---|---|---|---|"]
+             "*CPU s*: user + system time of this process and its workers; *cores used*: CPU s over wall s "
+             "(2 would be both cores to ourselves: below it, other jobs had them).", "",
+             "| configuration | median s | runs s | speed-up over serial | CPU s | cores used | trajectories equal "
+             "(max pose diff) | mosaic.png pixels equal |", "|---|---|---|---|---|---|---|---|"]
     for r in b["rows"]:
         eq = "-" if r["trajectories_equal"] is None else (
             f"{'yes' if r['trajectories_equal'] else '**no**'} ({r['max_pose_diff']:.1g})")
         mo = "-" if r["mosaics_equal"] is None else ("yes" if r["mosaics_equal"] else "**no**")
         lines.append(f"| {r['name']} | {r['median_s']:.1f} | {', '.join(f'{v:.1f}' for v in r['all_s'])} | "
-                     f"{r['speedup']:.2f}x | {eq} | {mo} |")
+                     f"{r['speedup']:.2f}x | {r['cpu_s']:.1f} | {r['cores_used']:.2f} | {eq} | {mo} |")
     lines += ["", "### photomap merge against the simulator's truth", "",
               "Error: distance (merged-map px) between where `map_to_merged` puts each frame centre of the "
               "second map and where the truth does. *True overlap*: the part of the smaller map that the "

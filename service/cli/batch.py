@@ -441,8 +441,11 @@ def run_batch(specs: Sequence[FlightSpec], out_dir: str | Path, cfg: Config, *,
     ----------
     scheduler : address of a running Dask scheduler (``tcp://host:8786``); None = a LocalCluster
         of ``workers`` (default: the usable cores) single-threaded workers, closed at the end.
-    processes : LocalCluster workers as processes (default, measured faster: mapping holds the
-        GIL in Python between OpenCV/numpy calls, tools/bench_batch.py) or as threads of this one.
+    processes : LocalCluster workers as processes (default) or as threads of this process.
+        Measured (tools/bench_batch.py, docs/benchmarks.md): threads were no faster on the 2-core
+        machine (the mapping holds the GIL between OpenCV/numpy calls, and a replay already runs
+        its decoder in a thread beside its worker), and a process isolates a flight whose decoder
+        crashes, its memory, and its log file; a process costs about 1.5 CPU s of imports.
     progress : a bar on stderr (only when it is a terminal); ``echo`` gets one line per finished
         flight (None: silent).
 

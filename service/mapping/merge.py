@@ -111,7 +111,7 @@ class Placement:
     placed: bool
     transform: np.ndarray | None = None
     confidence: float = 0.0
-    coarse_confidence: float = 0.0
+    coarse_confidence: float | None = None  # the overview's iFMI peak (None: a georeference prior)
     coarse: str = "ifmi"
     overlap: float = 0.0
     levels: list[dict] = field(default_factory=list)
@@ -292,7 +292,7 @@ class MapRegistrar:
         """Place ``mov`` in ``ref``'s map; ``prior`` (3x3 source px -> ref source px, e.g. from
         both georeferences) replaces the coarse iFMI step."""
         if prior is not None:
-            T, coarse_conf, how = np.asarray(prior, float), 1.0, "georeference"
+            T, coarse_conf, how = np.asarray(prior, float), None, "georeference"
             side = max(ref.bounds[2], ref.bounds[3])
             s0 = min(1.0, 0.5 * self.overview / side)
         else:
@@ -317,22 +317,22 @@ class MapRegistrar:
             if k == 0:
                 overlap = fraction
             if not centres:
-                return Placement(False, None, coarse_conf, coarse_conf, how, overlap, levels,
+                return Placement(False, None, 0.0, coarse_conf, how, overlap, levels,
                                  reason=f"no overlap found (overlap {fraction:.1%} of the smaller map)")
             S, info = self.refine_level(ref, mov, T, s, centres)
             levels.append(info)
             if S is None:
-                return Placement(False, None, coarse_conf, coarse_conf, how, overlap, levels,
+                return Placement(False, None, 0.0, coarse_conf, how, overlap, levels,
                                  reason=f"windows at scale {s:.3g} do not agree ({info['windows_confident']} "
                                         f"confident of {info['windows_tried']})")
             T = S
             last_conf = info["median_confidence"]
         final = levels[-1]
         if final["inliers"] < min(self.min_patches, max(final["windows_tried"], 1)) or final["inliers"] < 2:
-            return Placement(False, None, coarse_conf, coarse_conf, how, overlap, levels,
+            return Placement(False, None, 0.0, coarse_conf, how, overlap, levels,
                              reason=f"only {final['inliers']} agreeing windows at full resolution")
         if last_conf is None or last_conf < self.min_confidence:
-            return Placement(False, None, coarse_conf, coarse_conf, how, overlap, levels,
+            return Placement(False, None, 0.0, coarse_conf, how, overlap, levels,
                              reason=f"windows at full resolution are not confident ({last_conf})")
         return Placement(True, T, float(last_conf), coarse_conf, how, overlap, levels)
 
@@ -393,7 +393,8 @@ def merge_runs(run_dirs: Sequence[str | Path], out_dir: str | Path, cfg: Config,
             p = Placement(False, reason=f"registration failed: {exc}")
         entry: dict = {"run": str(m.dir), "reference": False, "placed": p.placed,
                        "confidence": round(p.confidence, 4), "coarse": p.coarse,
-                       "coarse_confidence": round(p.coarse_confidence, 4), "overlap": round(p.overlap, 4),
+                       "coarse_confidence": None if p.coarse_confidence is None else round(p.coarse_confidence, 4),
+                       "overlap": round(p.overlap, 4),
                        "levels": p.levels}
         if p.placed:
             src_to_merged = ref.src_to_map @ p.transform
