@@ -47,6 +47,7 @@ from photomap.io.geotiff import write_cog_if_available
 from photomap.io.mapsource import ImageSource, MapRaster, RenderFn, TileFolderSource, mosaic_source
 from photomap.io.runfiles import RunFiles
 from photomap.io.tilestore import DiskTileStore
+from photomap.io.tileworld import write_tile_georeference
 from photomap.io.trajectory_files import atomic_write_bytes, write_json
 from photomap.mapping.outputs import remove_sidecars, write_png, write_tiles
 
@@ -451,6 +452,11 @@ def _write_merged(out: Path, merged: TiledMosaic, ref: RunMap, cfg: Config) -> d
         summary["georeference"] = {"crs": f"EPSG:{ref.epsg}", "map_to_crs": m2c.tolist(),
                                    "metres_per_pixel": math.sqrt(abs(float(np.linalg.det(m2c[:, :2])))),
                                    "world_file": "mosaic.pgw"}
+        if info.get("tiles"):
+            try:
+                write_tile_georeference(out / "tiles", merged.tile_size, m2c, ref.epsg)
+            except (PhotomapError, OSError) as exc:
+                log.warning("tile world files not written: %s", exc)
         if cfg.output.geotiff:
             try:
                 cog = write_cog_if_available(out / "map.tif", MapRaster(mosaic_source(merged), merged.bounds(),
