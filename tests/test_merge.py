@@ -9,10 +9,12 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import shared_data
 from photomap.cli.main import main
 from photomap.cli.replay import replay
 from photomap.config import load_config
 from photomap.core.mapmerge import robust_similarity, spread_points
+from photomap.mapping.merge import merge_runs
 from photomap.io.trajectory_files import read_groundtruth, read_trajectory_csv
 from photomap.sim.simulate import simulate_flight
 
@@ -119,3 +121,24 @@ def test_spread_points_stay_inside_and_apart():
         assert np.hypot(x - 150, y - 100) <= 60.5
     d = [np.hypot(p[0] - q[0], p[1] - q[1]) for i, p in enumerate(pts) for q in pts[i + 1:]]
     assert min(d) >= 30
+
+
+def test_two_real_surveys_of_one_site(tmp_path):
+    """Brighton beach stills split in two overlapping "flights" (stills 0-10 and 7-17, one camera
+    at one height, its picture held north by the gimbal): the second map goes onto the first with
+    about no rotation and scale, and its windows agree to a pixel or two."""
+    images = sorted((shared_data("brighton_beach") / "images").glob("*.jpg"))
+    runs = []
+    for name, part in (("a", images[:11]), ("b", images[7:])):
+        folder = tmp_path / name
+        folder.mkdir()
+        for p in part:
+            (folder / p.name).symlink_to(p)
+        replay(str(folder), tmp_path / f"run_{name}", load_config())
+        runs.append(tmp_path / f"run_{name}")
+    summary = merge_runs(runs, tmp_path / "merged", load_config(), use_georeference=False)
+    mov = summary["runs"][1]
+    assert mov["placed"], mov.get("reason")
+    assert abs(mov["angle_deg"]) < 5.0 and abs(mov["scale"] - 1.0) < 0.08
+    last = mov["levels"][-1]
+    assert last["scale"] == 1.0 and last["inliers"] >= 5 and last["rms_px"] < 2.0
