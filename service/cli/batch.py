@@ -442,10 +442,13 @@ def run_batch(specs: Sequence[FlightSpec], out_dir: str | Path, cfg: Config, *,
     scheduler : address of a running Dask scheduler (``tcp://host:8786``); None = a LocalCluster
         of ``workers`` (default: the usable cores) single-threaded workers, closed at the end.
     processes : LocalCluster workers as processes (default) or as threads of this process.
-        Measured (tools/bench_batch.py, docs/benchmarks.md): threads were no faster on the 2-core
-        machine (the mapping holds the GIL between OpenCV/numpy calls, and a replay already runs
-        its decoder in a thread beside its worker), and a process isolates a flight whose decoder
-        crashes, its memory, and its log file; a process costs about 1.5 CPU s of imports.
+        Measured (tools/bench_batch.py, docs/benchmarks.md, 4 flights of 400 frames on the busy
+        2-core machine, where neither got more than about one core): threads were 3-15 % faster,
+        as a process costs about 1.5 CPU s of start-up and imports; both were within the runs'
+        spread of each other. Processes stay the default: a flight whose decoder crashes takes
+        only its own worker down, each flight's memory is returned when it ends, its log file
+        gets only its lines, and two pipelines in one process share one GIL (the mapping holds
+        it between OpenCV/numpy calls), which a machine with free cores would feel.
     progress : a bar on stderr (only when it is a terminal); ``echo`` gets one line per finished
         flight (None: silent).
 
