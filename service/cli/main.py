@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("photomap.cli.replay", "map a logged video or a folder of images"),
     "simulate": ("photomap.cli.simulate", "fly a virtual camera over a terrain image: video, telemetry, ground truth"),
     "evaluate": ("photomap.eval.evaluate", "compare a run's trajectory with ground truth: errors, ATE, drift, plots"),
+    "batch": ("photomap.cli.batch", "map many logged flights at once on every core or a Dask cluster"),
+    "merge": ("photomap.cli.merge", "merge the maps of several runs over one site into one map"),
     "export": ("photomap.cli.export", "export a run for GIS and ground stations: GeoTIFF, web tiles, KML/GeoJSON, evo, report"),
 }
 

@@ -526,7 +526,13 @@ class TiledMosaic:
         for every tile that meets the region; map coordinates, x1/y1 exclusive."""
         ts = self.tile_size
         tx0, tx1, ty0, ty1 = x // ts, (x + w - 1) // ts, y // ts, (y + h - 1) // ts
-        for key in self.tiles():
+        if (tx1 - tx0 + 1) * (ty1 - ty0 + 1) < len(self._tiles) + len(self._spilled):
+            # a small region of a large map (a GeoTIFF window): look its keys up, same order
+            keys = [(tx, ty) for ty in range(ty0, ty1 + 1) for tx in range(tx0, tx1 + 1)
+                    if (tx, ty) in self._tiles or (tx, ty) in self._spilled]
+        else:
+            keys = self.tiles()
+        for key in keys:
             if tx0 <= key[0] <= tx1 and ty0 <= key[1] <= ty1:
                 ox, oy = key[0] * ts, key[1] * ts
                 mx0, mx1 = max(ox, x), min(ox + ts, x + w)

@@ -7,13 +7,16 @@ recorded in ``run.json`` (``origin_xy``: map pixel of the PNG's top-left pixel c
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
 
-from photomap.core.mosaic import TiledMosaic
+from photomap.core.mosaic import TiledMosaic, _area_weights
 from photomap.geo.georef import Georeference, aux_xml_text, compose, png_to_map, prj_text, world_file_text
+from photomap.io.pngstream import PngStreamWriter
 from photomap.io.trajectory_files import atomic_write_bytes
 
 
@@ -23,26 +26,116 @@ def _bgra(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return np.dstack([image, alpha])
 
 
-def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
-    """The map of ``mosaic``, downscaled to at most ``max_px`` on its longer side; its placement.
+def render_bands(mosaic: TiledMosaic, scale: float
+                 ) -> tuple[tuple[int, int, int, int], tuple[int, int], Iterator[tuple[np.ndarray, np.ndarray]]]:
+    """The map of ``mosaic`` at ``scale``, band by band from the top, one tile row at a time.
 
-    Returns None for an empty map, else ``file``, ``origin_xy``, ``scale``, ``pixel_scale``,
-    ``bounds`` (map rectangle x, y, w, h) and ``size`` (PNG w, h).
+    Returns ``(bounds, (W, H), bands)``: the map rectangle, the output size, and an iterator of
+    ``(image uint8 (n, W, C), alpha uint8 (n, W))`` bands whose rows, stacked, equal
+    ``mosaic.render(scale)`` exactly (the same area weights, summed in the same tile order). Each
+    tile is read once; memory is one band (about a tile row) instead of the whole map, so a
+    survey-size map is never one array.
     """
     bounds = mosaic.bounds()
     if bounds is None:
+        raise ValueError("the map is empty")
+    if not 0 < scale <= 1:
+        raise ValueError(f"render scale must be in (0, 1], got {scale!r}")
+    x, y, w, h = bounds
+    full = scale == 1
+    ow, oh = (w, h) if full else (max(1, round(w * scale)), max(1, round(h * scale)))
+    return bounds, (ow, oh), _bands(mosaic, x, y, w, h, ow, oh, full)
+
+
+def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int, full: bool
+           ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    ts, C = mosaic.tile_size, mosaic.channels
+    rows: dict[int, list[tuple[int, int]]] = {}
+    for key in mosaic.tiles():  # sorted by row, then column (the order render() sums in)
+        if x // ts <= key[0] <= (x + w - 1) // ts and y // ts <= key[1] <= (y + h - 1) // ts:
+            rows.setdefault(key[1], []).append(key)
+
+    def pixels(key):
+        image, alpha = mosaic.tile_image(key)
+        return (image[..., None] if image.ndim == 2 else image), alpha
+
+    if full:
+        for ty in range(y // ts, (y + h - 1) // ts + 1):
+            my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
+            image = np.zeros((my1 - my0, w, C), np.uint8)
+            alpha = np.zeros((my1 - my0, w), np.uint8)
+            for key in rows.get(ty, ()):
+                ox = key[0] * ts
+                mx0, mx1 = max(ox, x), min(ox + ts, x + w)
+                t_img, t_alpha = pixels(key)
+                image[:, mx0 - x:mx1 - x] = t_img[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
+                alpha[:, mx0 - x:mx1 - x] = t_alpha[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
+            yield image, alpha
+        return
+    step_y, step_x = h / oh, w / ow
+    start = 0  # first output row not yet emitted; acc holds rows start .. start + len(acc)
+    acc = np.zeros((0, ow, C + 1), np.float32)
+    for ty in range(y // ts, (y + h - 1) // ts + 1):
+        my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
+        j0 = int(math.floor((my0 - y) / step_y))
+        j1 = min(oh, int(math.ceil((my1 - y) / step_y)))
+        if j0 > start:  # rows above this tile row are complete
+            done = min(j0 - start, acc.shape[0])
+            yield _finish(acc[:done], C)
+            if j0 - start > done:
+                yield _finish(np.zeros((j0 - start - done, ow, C + 1), np.float32), C)
+            acc = acc[done:]
+            start = j0
+        if j1 - start > acc.shape[0]:
+            acc = np.concatenate([acc, np.zeros((j1 - start - acc.shape[0], ow, C + 1), np.float32)])
+        for key in rows.get(ty, ()):
+            ox, oy = key[0] * ts, ty * ts
+            mx0, mx1 = max(ox, x), min(ox + ts, x + w)
+            t_img, t_alpha = pixels(key)
+            src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
+            a = t_alpha[src].astype(np.float32) / 255
+            if not a.any():
+                continue
+            pre = np.dstack([t_img[src] * a[..., None], a])
+            u0, wx = _area_weights(mx0 - x, mx1 - x, step_x, ow)
+            v0, wy = _area_weights(my0 - y, my1 - y, step_y, oh)
+            block = np.tensordot(wy, pre, axes=(1, 0))
+            block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)
+            acc[v0 - start:v0 - start + wy.shape[0], u0:u0 + wx.shape[0]] += block
+    if acc.shape[0]:
+        yield _finish(acc, C)
+    if start + acc.shape[0] < oh:
+        yield _finish(np.zeros((oh - start - acc.shape[0], ow, C + 1), np.float32), C)
+
+
+def _finish(acc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
+    """Alpha-weighted sums -> (image, alpha), as ``TiledMosaic.render`` finishes them."""
+    cover = acc[..., C]
+    image = np.zeros(acc.shape[:2] + (C,), np.uint8)
+    covered = cover > 1e-6
+    image[covered] = np.clip(np.rint(acc[..., :C][covered] / cover[covered][:, None]), 0, 255)
+    return image, np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
+
+
+def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
+    """The map of ``mosaic``, downscaled to at most ``max_px`` on its longer side; its placement.
+
+    Written band by band (:func:`render_bands`, :class:`~photomap.io.pngstream.PngStreamWriter`):
+    memory stays about one tile row of the PNG whatever the map's size.
+    Returns None for an empty map, else ``file``, ``origin_xy``, ``scale``, ``pixel_scale``,
+    ``bounds`` (map rectangle x, y, w, h) and ``size`` (PNG w, h).
+    """
+    if mosaic.bounds() is None:
         return None
-    _, _, w, h = bounds
+    _, _, w, h = mosaic.bounds()
     scale = min(1.0, max_px / max(w, h))
-    image, alpha, origin = mosaic.render(scale=scale)
-    ok, buf = cv2.imencode(".png", _bgra(image, alpha))
-    if not ok:
-        raise RuntimeError(f"PNG encoding of {path.name} failed")
-    atomic_write_bytes(path, buf.tobytes())
+    bounds, (ow, oh), bands = render_bands(mosaic, scale)
+    with PngStreamWriter(path, ow, oh, channels=4) as png:
+        for image, alpha in bands:
+            png.write(_bgra(image[..., 0] if image.shape[2] == 1 else image, alpha))
     # exact per-axis scale of the PNG: output size over the map rectangle's size
-    return {"file": path.name, "origin_xy": list(origin), "scale": scale,
-            "pixel_scale": [image.shape[1] / w, image.shape[0] / h],
-            "bounds": [int(v) for v in bounds], "size": [int(image.shape[1]), int(image.shape[0])]}
+    return {"file": path.name, "origin_xy": [int(bounds[0]), int(bounds[1])], "scale": scale,
+            "pixel_scale": [ow / w, oh / h], "bounds": [int(v) for v in bounds], "size": [int(ow), int(oh)]}
 
 
 def write_tiles(folder: Path, mosaic: TiledMosaic) -> None:

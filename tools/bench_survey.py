@@ -1,0 +1,274 @@
+"""Survey-size maps in bounded memory: peak RSS of a long georeferenced lawn-mower survey.
+
+A lawn-mower survey (10,000 frames of 320x240 by default) is simulated with telemetry by
+``photomap simulate`` over a large procedural terrain (12000 x 8000 terrain px at 0.1 m, the camera
+at 30-34 m: about one terrain pixel per frame pixel, so the map is about as large as the terrain),
+the speed chosen so that the strips cover it once. It is then mapped by ``photomap replay``'s
+library function (:func:`photomap.cli.replay.replay`, with the .tlog: georeferenced, so the run
+ends with mosaic.png, tiles/, the north-up COG map.tif and the track files) in a fresh process
+whose RSS a thread samples every 50 ms (psutil; ``ru_maxrss`` as a cross-check of the peak
+between samples). The time spent in each output (mosaic.png, tiles/, the GeoTIFF and track
+files) is recorded, and the peak RSS inside each. The COG is then opened with rasterio: layout,
+tiling, overviews.
+
+    python tools/bench_survey.py [--frames N] [--terrain-size WxH] [--max-tiles N] [--work DIR]
+                                 [--out FILE | --no-report] [--quick]
+
+``--quick``: 1,500 frames over 4000 x 3000 (a smoke test). The full run (about 10-15 minutes on 2
+cores) replaces the section between ``<!-- survey:start -->`` and ``<!-- survey:end -->`` of
+``docs/benchmarks.md``. Needs psutil (``bench`` extra) and rasterio (``geo`` extra).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import logging
+import math
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from tools.report import replace_section  # noqa: E402
+
+log = logging.getLogger("bench_survey")
+MB = 1024.0 * 1024.0
+TARGET_MB = 1024.0
+SIZE = (320, 240)
+FPS = 10.0
+ALTITUDE = (30.0, 34.0)
+HFOV = 60.0
+GSD = 0.1  # procedural terrains
+
+
+def survey_speed(terrain: tuple[int, int], frames: int) -> float:
+    """Ground speed (m/s) at which ``frames`` frames fly the lawn-mower loop over ``terrain`` once
+    (strip length times strips, as :func:`photomap.sim.flight.plan_flight` lays them out)."""
+    from photomap.sim.flight import Camera, footprint_radius
+
+    cam = Camera.from_hfov(SIZE[0], SIZE[1], HFOV)
+    smax = ALTITUDE[1] / (cam.fx * GSD)
+    radius = footprint_radius(cam, ALTITUDE[1] / GSD, 0.0) + 2.0 * max(smax, 1.0) + 4.0
+    spacing = 0.7 * min(SIZE) * (sum(ALTITUDE) / 2) / (cam.fx * GSD)
+    w, h = terrain[0] - 2 * radius, terrain[1] - 2 * radius
+    if w < h:
+        w, h = h, w
+    strips = math.ceil(h / spacing) + 1
+    strips += strips % 2
+    length = strips * w + h + w
+    return 0.97 * length / (frames - 1) * GSD * FPS
+
+
+def simulate(work: Path, frames: int, terrain: tuple[int, int], seed: int) -> Path:
+    """The survey's video + telemetry in ``work/sim`` (reused when already there)."""
+    sim = work / "sim"
+    meta = sim / "meta.yaml"
+    if meta.is_file() and f"frames: {frames}\n" in meta.read_text() and f"width: {terrain[0]}\n" in meta.read_text():
+        log.info("reusing the simulated survey in %s", sim)
+        return sim
+    speed = survey_speed(terrain, frames)
+    cmd = [sys.executable, "-m", "photomap", "simulate", "--out", str(sim), "--terrain", "texture",
+           "--set", f"simulate.terrain_size={terrain[0]}x{terrain[1]}", "--pattern", "lawnmower",
+           "--frames", str(frames), "--size", f"{SIZE[0]}x{SIZE[1]}", "--fps", str(FPS),
+           "--speed", f"{speed:.3f}", "--yaw-mode", "fixed", "--set", "simulate.yaw0=0",
+           "--altitude", f"{ALTITUDE[0]}:{ALTITUDE[1]}", "--scale-rate", "0.01", "--codec", "mjpg",
+           "--seed", str(seed), "-q"]
+    log.info("simulating %d frames over %dx%d terrain px at %.1f m/s", frames, *terrain, speed)
+    t = time.perf_counter()
+    subprocess.run(cmd, check=True, cwd=REPO)
+    log.info("  simulated in %.0f s", time.perf_counter() - t)
+    return sim
+
+
+# --------------------------------------------------------------------------- the measured child
+class RssSampler:
+    def __init__(self, interval: float = 0.05) -> None:
+        import psutil
+
+        self._p = psutil.Process()
+        self._interval = interval
+        self._stop = threading.Event()
+        self.samples: list[tuple[float, float]] = []
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.samples.append((time.monotonic(), self._p.memory_info().rss / MB))
+            self._stop.wait(self._interval)
+
+    def __enter__(self) -> RssSampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def peak(self, t0: float = -math.inf, t1: float = math.inf) -> float | None:
+        vals = [r for t, r in self.samples if t0 <= t <= t1]
+        return max(vals) if vals else None
+
+
+def measure(sim: Path, out: Path, overrides: list[str]) -> dict:
+    """Map the survey in this process; RSS per phase."""
+    import photomap.mapping.pipeline as pm
+    from photomap.cli.replay import replay
+    from photomap.config import load_config
+
+    phases: list[tuple[str, float, float]] = []
+
+    def timed(name, fn):
+        def wrapper(*a, **k):
+            t0 = time.monotonic()
+            try:
+                return fn(*a, **k)
+            finally:
+                phases.append((name, t0, time.monotonic()))
+        return wrapper
+
+    pm.write_png = timed("mosaic.png", pm.write_png)
+    pm.write_tiles = timed("tiles/", pm.write_tiles)
+    pm.write_geo_outputs = timed("map.tif + track files", pm.write_geo_outputs)
+    finish = pm.MappingPipeline.finish
+    pm.MappingPipeline.finish = timed("outputs (all)", finish)
+    cfg = load_config(overrides=overrides)
+    video = next(p for p in sim.iterdir() if p.name.startswith("video."))
+    with RssSampler() as rss:
+        t0 = time.monotonic()
+        base = rss._p.memory_info().rss / MB
+        summary = replay(str(video), out, cfg, mavlink=str(sim / "telemetry.tlog"))
+        t1 = time.monotonic()
+    end_map = next(t for name, t, _ in phases if name == "outputs (all)")
+    previews = [(a, b) for name, a, b in phases if name == "mosaic.png" and b <= end_map]
+    phases = [p for p in phases if p[1] >= end_map]  # the end of the run (not checkpoint previews)
+    entry = summary["mosaics"][0]
+    x, y, w, h = entry["bounds"]
+    result = {"overrides": overrides, "frames": summary["frames_in"], "registered": summary["registered"],
+              "segments": summary["segments"], "wall_s": t1 - t0, "mapping_s": end_map - t0,
+              "map_px": [w, h], "one_array_mb": w * h * 4 / MB, "png_size": entry["size"],
+              "tiles": len(list((out / entry["tiles"]).glob("tile_*.png"))) if entry.get("tiles") else 0,
+              "rss_start_mb": base, "peak_mapping_mb": rss.peak(t0, end_map),
+              "peak_mb": rss.peak(), "ru_maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+              "georeference": summary.get("georeference"), "exports": summary.get("exports"),
+              "phases": [{"name": n, "s": b - a, "peak_mb": rss.peak(a, b)} for n, a, b in phases],
+              "previews": {"count": len(previews), "s": sum(b - a for a, b in previews),
+                           "peak_mb": max((rss.peak(a, b) or 0 for a, b in previews), default=None)}}
+    return result
+
+
+def measure_subprocess(sim: Path, out: Path, overrides: list[str]) -> dict:
+    spec = json.dumps({"sim": str(sim), "out": str(out), "overrides": overrides})
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--measure", spec],
+                          capture_output=True, text=True, cwd=REPO)
+    if proc.returncode != 0:
+        raise RuntimeError(f"the measured run failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def check_cog(path: Path) -> dict:
+    import rasterio
+
+    with rasterio.open(path) as src:
+        return {"size": [src.width, src.height], "count": src.count, "crs": str(src.crs),
+                "res_m": list(src.res), "blocks": list(src.block_shapes[0]), "overviews": src.overviews(1),
+                "layout": src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT"), "compression": str(src.compression),
+                "file_mb": path.stat().st_size / MB}
+
+
+def report(args, r: dict, cog: dict, elapsed: float, load: tuple[float, float]) -> str:
+    when = datetime.date.today().isoformat()
+    w, h = r["map_px"]
+    lines = ["## Survey-size maps", "",
+             f"Written by `tools/bench_survey.py{' --quick' if args.quick else ''}` on {when} (Python "
+             f"{platform.python_version()}, {os.cpu_count()} cores, {elapsed:.0f} s; 1-minute load average "
+             f"{load[0]:.1f} at the start and {load[1]:.1f} at the end: other processes shared the cores, "
+             "times are lower bounds).", "",
+             f"A georeferenced lawn-mower survey of {r['frames']} frames of {SIZE[0]}x{SIZE[1]} "
+             f"(`photomap simulate --terrain texture --set simulate.terrain_size={args.terrain_size} "
+             f"--pattern lawnmower --yaw-mode fixed --altitude {ALTITUDE[0]:g}:{ALTITUDE[1]:g} --fps {FPS:g} "
+             "--codec mjpg`, with telemetry.tlog) mapped by `photomap replay` with "
+             f"`{' '.join('--set ' + o for o in r['overrides']) or 'the default config'}` in a fresh process; "
+             "RSS sampled every 50 ms (psutil).", "",
+             "| | |", "|---|---|",
+             f"| frames in / registered / segments | {r['frames']} / {r['registered']} / {r['segments']} |",
+             f"| map | {w} x {h} px ({w * h / 1e6:.0f} Mpx; as one BGRA array {r['one_array_mb']:.0f} MB), "
+             f"{r['tiles']} full-resolution tiles |",
+             f"| mosaic.png | {r['png_size'][0]} x {r['png_size'][1]} px |",
+             f"| map.tif | {cog.get('size', ['-', '-'])[0]} x {cog.get('size', ['-', '-'])[1]} px, "
+             f"{cog.get('res_m', [0])[0]:.3f} m, layout {cog.get('layout')}, {cog.get('blocks')} blocks, "
+             f"overviews {cog.get('overviews')}, {cog.get('compression')}, {cog.get('file_mb', 0):.0f} MB |",
+             f"| wall time (mapping) | {r['wall_s']:.0f} s ({r['mapping_s']:.0f} s, "
+             f"{r['frames'] / r['mapping_s']:.0f} fps) |",
+             f"| RSS after imports | {r['rss_start_mb']:.0f} MB |",
+             f"| **peak RSS** (sampled / ru_maxrss) | **{r['peak_mb']:.0f} MB** / {r['ru_maxrss_mb']:.0f} MB "
+             f"(target < {TARGET_MB:.0f} MB: {'yes' if r['ru_maxrss_mb'] < TARGET_MB else '**no**'}) |",
+             f"| peak RSS while mapping | {r['peak_mapping_mb']:.0f} MB |"]
+    for p in r["phases"]:
+        lines.append(f"| peak RSS in {p['name']} | {p['peak_mb'] or 0:.0f} MB ({p['s']:.1f} s) |")
+    pv = r["previews"]
+    lines.append(f"| checkpoint previews (preview.png, {pv['count']} while mapping) | peak {pv['peak_mb'] or 0:.0f} MB, "
+                 f"{pv['s']:.0f} s in all ({100 * pv['s'] / r['mapping_s']:.0f} % of the mapping time) |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=None, help="frames of the survey (default 10000)")
+    ap.add_argument("--terrain-size", default=None, help="WxH terrain px (default 12000x8000)")
+    ap.add_argument("--max-tiles", type=int, default=256, help="mosaic.max_tiles_in_memory (default 256)")
+    ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--work", type=Path, default=None, help="keep the simulation and the run here")
+    ap.add_argument("--quick", action="store_true", help="1500 frames over 4000x3000 (smoke test)")
+    ap.add_argument("--out", type=Path, default=None, help="markdown file whose survey section is replaced "
+                    "(default docs/benchmarks.md; none with --quick)")
+    ap.add_argument("--measure", metavar="JSON", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING if args.measure else logging.INFO,
+                        format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    if args.measure:
+        spec = json.loads(args.measure)
+        print(json.dumps(measure(Path(spec["sim"]), Path(spec["out"]), spec["overrides"])))
+        return 0
+    args.frames = args.frames or (1500 if args.quick else 10_000)
+    args.terrain_size = args.terrain_size or ("4000x3000" if args.quick else "12000x8000")
+    terrain = tuple(int(v) for v in args.terrain_size.lower().split("x"))
+    out_md = args.out if args.out is not None else (None if args.quick else REPO / "docs" / "benchmarks.md")
+    start, load0 = time.perf_counter(), os.getloadavg()[0]
+    tmp = None
+    work = args.work
+    if work is None:
+        tmp = tempfile.TemporaryDirectory(prefix="bench-survey-")
+        work = Path(tmp.name)
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        sim = simulate(work, args.frames, terrain, args.seed)
+        overrides = [f"mosaic.max_tiles_in_memory={args.max_tiles}"]
+        run = work / "run"
+        log.info("mapping the survey (%s)", " ".join(overrides))
+        r = measure_subprocess(sim, run, overrides)
+        cog = check_cog(run / "map.tif") if (run / "map.tif").is_file() else {}
+        log.info("peak RSS %.0f MB (ru_maxrss %.0f MB); map %s px", r["peak_mb"], r["ru_maxrss_mb"], r["map_px"])
+        body = report(args, r, cog, time.perf_counter() - start, (load0, os.getloadavg()[0]))
+        print(body)
+        print(json.dumps({**r, "cog": cog}, indent=1, default=str), file=sys.stderr)
+        if out_md is not None:
+            replace_section(out_md, "survey", body)
+            log.info("wrote the survey section of %s", out_md)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
