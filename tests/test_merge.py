@@ -125,8 +125,8 @@ def test_spread_points_stay_inside_and_apart():
 
 def test_two_real_surveys_of_one_site(tmp_path):
     """Brighton beach stills split in two overlapping "flights" (stills 6-13 and 10-17, one camera
-    at one height, its picture held north by the gimbal): the second map goes onto the first with
-    about no rotation and scale, and its windows agree to a pixel or two."""
+    at one height): the second map goes onto the first with the small rotation between their
+    first stills and no scale, and its windows agree to a pixel or two."""
     images = sorted((shared_data("brighton_beach") / "images").glob("*.jpg"))
     runs = []
     for name, part in (("a", images[6:14]), ("b", images[10:])):  # the beach and park strips
