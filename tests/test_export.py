@@ -475,3 +475,35 @@ def test_cog_of_a_rotated_map_is_written_by_windows_and_resampled_right(tmp_path
     uv = np.c_[e - m2c[0, 2], nn - m2c[1, 2]] @ np.linalg.inv(m2c[:, :2]).T
     err = np.abs(green[rows[pick], cols[pick]].astype(float) - pattern(uv[:, 0], uv[:, 1]))
     assert np.median(err) < 0.5 and err.max() < 2.0  # bilinear on a smooth pattern, 8-bit rounding
+
+
+def test_track_files_grow_during_a_live_run(flight, tmp_path):
+    """At each checkpoint the track is rewritten from the current GPS fit: a ground station that
+    reloads track.geojson sees the coverage grow, at the simulator's true positions."""
+    from photomap.cli.wiring import open_telemetry
+    from photomap.config import load_config
+    from photomap.drivers.video import VideoFileSource
+    from photomap.mapping.pipeline import MappingPipeline
+
+    sim = flight[0]
+    out = tmp_path / "live"
+    cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
+    join, _, cfg = open_telemetry(str(sim / "telemetry.tlog"), cfg, input_spec=str(sim / "video.mp4"))
+    seen = {}
+
+    def watch(event):
+        path = out / "track.geojson"
+        if path.is_file():
+            seen.setdefault(event.index, json.loads(path.read_text()))
+
+    MappingPipeline(VideoFileSource(sim / "video.mp4"), cfg, out, sinks=[watch], telemetry=join).run()
+    early = min(seen)
+    assert early < 60  # long before the end of the 90 frames
+    tracks = [f for f in seen[early]["features"] if f["geometry"]["type"] == "LineString"]
+    assert tracks and len(tracks[0]["geometry"]["coordinates"]) < 90
+    meta = yaml.safe_load((sim / "meta.yaml").read_text())
+    truth = read_groundtruth(sim / "groundtruth.csv")
+    lon, lat = tracks[0]["geometry"]["coordinates"][0]
+    c = truth.H[0] @ np.array([319.5, 239.5, 1.0])
+    tlat, tlon = pixel_to_latlon(c[0] / c[2], c[1] / c[2], meta["gsd"], meta["origin"]["lat"], meta["origin"]["lon"])
+    assert math.hypot((lat - tlat) * 111_320.0, (lon - tlon) * 111_320.0 * math.cos(math.radians(lat))) < 1.0

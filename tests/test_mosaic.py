@@ -349,3 +349,14 @@ def test_config_section_builds_a_mosaic():
         MosaicConfig(blend="median")
     with pytest.raises(ValueError, match="store"):
         TiledMosaic(MosaicConfig(max_tiles_in_memory=8))
+
+
+def test_twenty_megapixel_stills_are_mapped_but_a_wild_pose_is_not():
+    """A 20 MP DJI still (5472x3648) covers more map pixels than max_footprint_px by itself: it is
+    mapped (a footprint up to 4 times the frame's pixels is fine), a pose 3x larger is refused."""
+    m = TiledMosaic(MosaicConfig(channels=1, tile_size=1024))
+    still = np.full((3648, 5472), 128, np.uint8)
+    assert m.add(still, np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+    assert m.add(still, np.array([[1.0, 0.0, 1800.0], [0.0, 1.0, 0.0]]))
+    with pytest.raises(InputError, match="footprint"):
+        m.add(still, np.array([[3.0, 0.0, 0.0], [0.0, 3.0, 0.0]]))

@@ -93,8 +93,8 @@ class TiledMosaic:
         docstring), ``border`` (frame pixels kept out of the map), ``max_tiles_in_memory``
         (the least recently touched tiles beyond it go to ``store`` and come back when touched or
         read; ``None``: no cap) and ``max_footprint_px`` (a frame whose map footprint, its bounding
-        box, exceeds this many map pixels is refused with :class:`InputError`, so that a wild pose
-        cannot exhaust memory). ``cache_dir`` is the caller's (where ``store`` keeps its files).
+        box, exceeds this many map pixels and 4 times the frame's own pixels is refused with
+        :class:`InputError`, so that a wild pose cannot exhaust memory). ``cache_dir`` is the caller's (where ``store`` keeps its files).
     store : TileStore or None
         Where spilled tiles go; required with ``max_tiles_in_memory``.
     """
@@ -153,7 +153,7 @@ class TiledMosaic:
         x0, y0 = (int(v) for v in np.floor(mapped.min(axis=0)))
         x1, y1 = (int(v) + 1 for v in np.ceil(mapped.max(axis=0)))
         bw, bh = x1 - x0, y1 - y0
-        if bw * bh > self.max_footprint_px:
+        if bw * bh > max(self.max_footprint_px, 4 * w * h):
             raise InputError(f"frame footprint of {bw}x{bh} map pixels exceeds the limit of "
                              f"{self.max_footprint_px} (pose scale {math.sqrt(abs(np.linalg.det(M[:, :2]))):.3g})")
 

@@ -47,7 +47,7 @@ from photomap.io.report import write_report
 from photomap.io.tilestore import DiskTileStore
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
 from photomap.mapping.events import FrameEvent, FrameSink
-from photomap.mapping.geo_outputs import write_geo_outputs
+from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.outputs import remove_sidecars, write_png, write_sidecars, write_tiles
 from photomap.mapping.telemetry_join import TelemetryJoin
@@ -574,6 +574,27 @@ class MappingPipeline:
             write_png(self.out_dir / "preview.png", self.mosaics[self._largest_segments()[0]],
                       self.cfg.output.preview_px)
         write_json(self.out_dir / "run.json", summary)
+        self._live_track(summary)
+
+    def _live_track(self, summary: dict) -> None:
+        """Rewrite track.kml / track.geojson from the main map's current GPS fit (a ground
+        station that reloads them sees the coverage grow); nothing while the GPS does not fit."""
+        if self.telemetry is None or not self.mosaics or self.telemetry.stats.stopped_at_frame is not None:
+            return
+        w, h = self.frame_size
+        main = self._largest_segments()[0]
+        rows = [r for r in self._rows if r.glued and r.segment == main and self.telemetry.kept(r.frame)]
+        if len(rows) < self.cfg.georef.min_fixes:
+            return
+        fit = self.telemetry.fit_segment(w, h, [np.asarray(r.M) for r in rows],
+                                         [self.telemetry.kept(r.frame) for r in rows], [r.frame for r in rows])
+        if fit.geo is None or fit.problem is not None:
+            return
+        try:
+            refresh_track_files(self.out_dir, self._rows, self.frame_size, {main: (fit.geo.map_to_crs[:2], fit.geo.epsg)},
+                                t0_unix=summary.get("video_start_unix"), footprints=self.cfg.output.footprints)
+        except (OSError, PhotomapError) as exc:
+            log.warning("track files not refreshed: %s", exc)
 
     def _georeference(self, summary: dict, maps: list[dict]) -> None:
         """Metric scale and georeference per segment, world files beside the mosaics, when the
