@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("photomap.cli.replay", "map a logged video or a folder of images"),
     "simulate": ("photomap.cli.simulate", "fly a virtual camera over a terrain image: video, telemetry, ground truth"),
     "evaluate": ("photomap.eval.evaluate", "compare a run's trajectory with ground truth: errors, ATE, drift, plots"),
+    "recover": ("photomap.cli.recover", "rebuild the map of a killed run (or one whose final write failed) from its checkpoint"),
     "export": ("photomap.cli.export", "export a run for GIS and ground stations: GeoTIFF, web tiles, KML/GeoJSON, evo, report"),
 }
 

@@ -25,6 +25,7 @@ from photomap.drivers.frames import FrameSource
 from photomap.drivers.mavlink import TelemetryReader, load_tlog
 from photomap.drivers.stills_telemetry import open_stills_telemetry as stills_telemetry
 from photomap.errors import InputError
+from photomap.io.preflight import check_output_dir
 from photomap.live.viewer import Viewer
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.pipeline import MappingPipeline
@@ -187,6 +188,7 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
     INFO every that many seconds (:class:`~photomap.cli.oplog.StatusReporter`), unless the
     progress bar is shown. At the end the run's counts are logged at INFO (as fields in JSON lines).
     """
+    check_output_dir(out_dir, expected_frames=total, min_free_mb=cfg.output.min_free_mb)  # before any frame
     view = Viewer.from_config(cfg.viewer, viewer)
     if view.url:
         hint = f" ({view.connect_hint})" if view.connect_hint else ""

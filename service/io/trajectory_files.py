@@ -212,7 +212,7 @@ def read_trajectory_csv(path: str | Path) -> list[PoseRow]:
             conf = (rec["confidence"] or "").strip()
             seg = (rec["segment"] or "").strip()
             rows.append(PoseRow(
-                frame=int(rec["frame"]), t=float(rec["t"]), M=M,
+                frame=int(rec["frame"]), t=float((rec["t"] or "").strip() or "nan"), M=M,
                 confidence=float(conf) if conf else math.nan, status=status,
                 segment=int(seg) if seg else 0,
                 extra={c: _parse_extra(rec.get(c)) for c in extra_cols},

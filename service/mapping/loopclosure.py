@@ -259,7 +259,8 @@ class LoopCloser:
         if segment not in self.graphs:  # joined into another segment while it was optimised
             while segment in self._merged_into:
                 segment = self._merged_into[segment]
-            self._wanted.add(segment)
+            if segment in self.graphs:  # else it was forgotten
+                self._wanted.add(segment)
             return None
         if dropped:
             log.warning("dropped %d loop closure(s) that disagree with the rest of the map", len(dropped))
@@ -274,6 +275,18 @@ class LoopCloser:
         latest = graph.keyframes[-1]
         return Correction(segment, new, fixes[latest.index],
                           tuple((kf.index, kf.pose.copy()) for kf in graph.keyframes))
+
+    def forget(self, segment: int) -> None:
+        """Drop ``segment`` (the pipeline found nothing worth keeping in it): its graph, its
+        frames' relative poses and its keyframes (also on disk) are gone; no join can reach it."""
+        self.graphs.pop(segment, None)
+        self.relative.pop(segment, None)
+        self._wanted.discard(segment)
+        for k in [k for k, s in self._segment_of.items() if s == segment]:
+            del self._segment_of[k]
+            self._signature.pop(k, None)
+            self._position.pop(k, None)
+            self.store.discard(k)
 
     def flush(self) -> list[Correction]:
         """Finish every pending optimisation (at the end of the run); returns their corrections."""

@@ -23,6 +23,19 @@ def _bgra(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return np.dstack([image, alpha])
 
 
+def png_placement(name: str, mosaic: TiledMosaic, max_px: int) -> dict | None:
+    """What :func:`write_png` returns for ``mosaic``, without rendering or writing anything
+    (e.g. to georeference a map whose PNG could not be written); None for an empty map."""
+    bounds = mosaic.bounds()
+    if bounds is None:
+        return None
+    x, y, w, h = bounds
+    scale = min(1.0, max_px / max(w, h))
+    ow, oh = (w, h) if scale == 1 else (max(1, round(w * scale)), max(1, round(h * scale)))
+    return {"file": name, "origin_xy": [int(x), int(y)], "scale": scale, "pixel_scale": [ow / w, oh / h],
+            "bounds": [int(v) for v in bounds], "size": [int(ow), int(oh)]}
+
+
 def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
     """The map of ``mosaic``, downscaled to at most ``max_px`` on its longer side; its placement.
 
