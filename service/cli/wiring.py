@@ -247,8 +247,15 @@ def print_summary(summary: dict, out_dir: str | Path) -> None:
           f"{summary['ms_per_frame'] or 0:.1f} ms/frame ({summary['fps'] or 0:.1f} fps)")
     if mosaics:
         print(f"map: {out / mosaics[0]['file']}")
+    elif summary.get("map_unwritten") and not summary.get("map_kept_in"):
+        print(f"map: could not be written ({', '.join(summary['map_unwritten'])})")
     else:
         print("map: nothing was mapped")
+    if summary.get("map_kept_in"):
+        print(f"map: not all written ({'; '.join(f'{k}: {v}' for k, v in summary['write_errors'].items())}); "
+              f"kept in {out / summary['map_kept_in']}: free space, then `photomap recover {out}`")
+    elif summary.get("write_errors"):
+        print(f"not written: {'; '.join(f'{k}: {v}' for k, v in summary['write_errors'].items())}")
     geo = summary.get("georeference")
     if geo:
         print(f"georeferenced: {geo['crs']}, {summary['metres_per_pixel']:.3f} m per map pixel "

@@ -729,6 +729,8 @@ class MappingPipeline:
         self._close_gaps()
         if self._state is not None:
             self._state.wait()
+        if self.loops is not None and self.loops.store.folder.parent == state_folder(self.out_dir):
+            shutil.rmtree(self.loops.store.folder, ignore_errors=True)  # re-rendered: room for the outputs
         self._attempt("trajectory.csv", self._write_trajectory)
         summary = self.summary()
         maps, unwritten = [], []
@@ -769,13 +771,19 @@ class MappingPipeline:
                        if (i.get("georeference") or {}).get("crs")}
             kept = self._save_state(summary, final=True, extra={"georeference": georefs, "complete": True})
             where = state_folder(self.out_dir)
+            names = ", ".join(i["file"] for i in unwritten)
             if kept:
                 log.error("the map could not be written in full (%s); it is kept in %s: free space and run "
-                          "`photomap recover %s`", ", ".join(i["file"] for i in unwritten), where, self.out_dir)
+                          "`photomap recover %s`", names, where, self.out_dir)
+            elif self._state is not None and self._state.state.generation > 0:
+                log.error("the map could not be written (%s); checkpoint %d in %s holds it as it was then: "
+                          "free space and run `photomap recover %s`", names, self._state.state.generation,
+                          where, self.out_dir)
+                kept = True
             else:
-                log.error("the map could not be written (%s) and no checkpoint holds it",
-                          ", ".join(i["file"] for i in unwritten))
+                log.error("the map could not be written (%s) and no checkpoint holds it", names)
             summary["map_kept_in"] = where.name if kept else None
+            summary["map_unwritten"] = [i["file"] for i in unwritten]
         elif self._state is not None:
             self._state.remove()
         elif self._checkpointing:  # keyframes kept for a restart: not needed any more

@@ -1,0 +1,177 @@
+"""Memory of a run whatever the input: RSS per frame on a long normal flight, peak RSS on black video,
+and what a checkpoint costs the worker.
+
+Each case runs in a fresh interpreter (so one case's freed memory does not inflate the next one's
+peak); a thread samples the process RSS (psutil) every 50 ms together with the frames done.
+
+- ``flight``: the long lawn-mower flight of ``tools/bench_pipeline.py`` (640x480, rendered frame
+  by frame: the source never holds more than one frame), mapped by :class:`MappingPipeline`.
+- ``black``: all-black 640x480 frames (a lens cap, a dead camera): nothing registers.
+
+Reported: RSS when 10 %, 50 % and 100 % of the frames were mapped, the growth per frame after
+10 % (least-squares slope of RSS over frames done, KB/frame), the peak, segments kept and dropped,
+and the checkpoint's worker time (copying the changed tiles) and writer time (medians).
+
+    python tools/bench_memory.py [--frames N] [--black N] [--interval S] [--out docs/benchmarks.md]
+
+Targets (issue 11): a normal flight grows < 0.5 KB/frame after 10 %; 6000 black frames peak
+below 400 MB, also with ``config/photomap-onboard.yaml``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from photomap.config import load_config  # noqa: E402
+from photomap.drivers.frames import CaptureStats, Frame, SourceBase  # noqa: E402
+from photomap.mapping.pipeline import MappingPipeline  # noqa: E402
+from tools.bench_pipeline import MB, SEED, RssSampler, SimulatedSource, long_flight  # noqa: E402
+
+ONBOARD = REPO / "config" / "photomap-onboard.yaml"
+
+
+class BlackSource(SourceBase):
+    """``n`` all-black frames of ``size`` (w, h) at 30 fps (replay)."""
+
+    live = False
+
+    def __init__(self, n: int, size: tuple[int, int] = (640, 480)) -> None:
+        self.stats, self.n, self.size, self._closed = CaptureStats(), n, size, False
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self) -> Iterator[Frame]:
+        for k in range(self.n):
+            if self._closed:
+                break
+            self.stats.read += 1
+            yield Frame(k, k / 30.0, np.zeros((self.size[1], self.size[0], 3), np.uint8), "black")
+
+    def close(self) -> None:
+        self._closed = True
+
+
+def slope_kb_per_frame(samples: list[tuple[float, float, int]], n: int, start: float = 0.1) -> float | None:
+    """Least-squares slope of RSS (KB) over frames done, from ``start`` of the frames to the end."""
+    pts = [(done, rss) for _, rss, done in samples if n * start <= done < n]
+    if len(pts) < 5:
+        return None
+    x, y = np.array(pts, float).T
+    return float(np.polyfit(x, y * 1024.0, 1)[0])
+
+
+def run_case(case: str, n: int, config: str | None, overrides: list[str]) -> dict:
+    """Map one case in this process while sampling RSS."""
+    import psutil
+
+    rss0 = psutil.Process().memory_info().rss / MB
+    if case == "flight":
+        terrain, truth, camera = long_flight(n)
+        source = SimulatedSource(terrain, truth, camera, seed=SEED)
+    else:
+        source = BlackSource(n)
+    cfg = load_config(config, overrides)
+    with tempfile.TemporaryDirectory(prefix="bench-memory-") as tmp, RssSampler() as sampler:
+        before = sampler.rss_mb()
+
+        def on_frame(event) -> None:
+            sampler.frames_done += 1
+
+        pipe = MappingPipeline(source, cfg, tmp, sinks=[on_frame], input_name=case)
+        t = time.perf_counter()
+        summary = pipe.run()
+        wall = time.perf_counter() - t
+        disk = sum(f.stat().st_size for f in Path(tmp).rglob("*") if f.is_file())
+    at = {f"rss_at_{p}_mb": next((rss for _, rss, done in sampler.samples if done >= n * p / 100), None)
+          for p in (10, 50, 100)}
+    ck = summary.get("checkpoint") or {}
+    return {"case": case, "config": Path(config).name if config else "default", "overrides": overrides,
+            "frames": summary["frames_in"], "registered": summary["registered"],
+            "segments": summary["segments"], "segments_dropped": summary.get("segments_dropped", 0),
+            "fps": summary["frames_in"] / wall, "rss_start_mb": rss0, "rss_before_mb": before,
+            "peak_mb": max(rss for _, rss, _ in sampler.samples),
+            "kb_per_frame": slope_kb_per_frame(sampler.samples, n), "outputs_mb": disk / 1e6,
+            "checkpoints": ck.get("written", 0), "ck_worker_ms": ck.get("median_worker_ms"),
+            "ck_write_ms": ck.get("median_write_ms"), "ck_bytes": ck.get("bytes_written", 0), **at}
+
+
+def run_subprocess(case: str, n: int, config: str | None, overrides: list[str]) -> dict:
+    spec = json.dumps({"case": case, "n": n, "config": config, "overrides": overrides})
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--case", spec],
+                          capture_output=True, text=True, cwd=REPO)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{case} {config} {overrides} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def table(results: list[dict]) -> list[str]:
+    lines = ["| case | config | frames | registered | segments (dropped) | fps | RSS before | RSS at 10/50/100 % | "
+             "growth after 10 % | peak RSS | checkpoints | checkpoint: worker / writer (median) | disk |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        at = "/".join("-" if r[f"rss_at_{p}_mb"] is None else f"{r[f'rss_at_{p}_mb']:.0f}" for p in (10, 50, 100))
+        slope = "-" if r["kb_per_frame"] is None else f"{r['kb_per_frame']:.2f} KB/frame"
+        extra = f" {' '.join(r['overrides'])}" if r["overrides"] else ""
+        lines.append(f"| {r['case']} | {r['config']}{extra} | {r['frames']} | {r['registered']} | "
+                     f"{r['segments']} ({r['segments_dropped']}) | {r['fps']:.1f} | {r['rss_before_mb']:.0f} MB | "
+                     f"{at} MB | {slope} | {r['peak_mb']:.0f} MB | {r['checkpoints']} | "
+                     f"{r['ck_worker_ms'] if r['ck_worker_ms'] is not None else '-'} ms / "
+                     f"{r['ck_write_ms'] if r['ck_write_ms'] is not None else '-'} ms | {r['outputs_mb']:.0f} MB |")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=10000, help="frames of the normal flight (0 = skip)")
+    ap.add_argument("--black", type=int, default=6000, help="black frames (0 = skip)")
+    ap.add_argument("--interval", type=float, default=10.0, help="output.checkpoint_interval (s)")
+    ap.add_argument("--out", help="write the table into this markdown file (section bench_memory)")
+    ap.add_argument("--case", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.case:
+        spec = json.loads(args.case)
+        print(json.dumps(run_case(spec["case"], spec["n"], spec["config"], spec["overrides"])))
+        return 0
+    ck = [f"output.checkpoint_interval={args.interval}"]
+    cases = []
+    if args.black:
+        cases += [("black", args.black, None, ck), ("black", args.black, str(ONBOARD), ck)]
+    if args.frames:
+        cases += [("flight", args.frames, str(ONBOARD), ck), ("flight", args.frames, None, ck)]
+    results = []
+    for case, n, config, overrides in cases:
+        print(f"{case} x{n} ({Path(config).name if config else 'default'}) ...", file=sys.stderr, flush=True)
+        results.append(run_subprocess(case, n, config, overrides))
+        print("\n".join(table(results[-1:])[2:]), file=sys.stderr, flush=True)
+    lines = table(results)
+    print("\n".join(lines))
+    if args.out:
+        from tools.report import replace_section
+        body = [f"Measured {datetime.date.today()} with `python tools/bench_memory.py` on a busy 2-core machine "
+                f"(other jobs running; timings are indicative). RSS sampled every 50 ms (psutil), each case "
+                f"in a fresh interpreter; *growth* is the least-squares slope of RSS over frames done after "
+                f"10 % of the frames. Checkpoint: worker = copying the tiles changed since the last "
+                f"checkpoint, writer = PNG encoding + fsync + manifest in the background thread.", "", *lines]
+        replace_section(Path(args.out), "memory", "\n".join(["### Memory whatever the input", "", *body]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
