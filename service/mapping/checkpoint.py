@@ -29,7 +29,8 @@ from photomap.errors import InputError, PhotomapError
 from photomap.io.runfiles import parse_crs, parse_map_to_crs
 from photomap.io.statestore import STATE_DIR, CheckpointError, MapState, load_manifest, restore_mosaic
 from photomap.io.tilestore import DiskTileStore
-from photomap.io.trajectory_files import write_json
+from photomap.core.records import STATUSES
+from photomap.io.trajectory_files import read_trajectory_csv, write_json
 from photomap.mapping.outputs import remove_sidecars, write_png, write_sidecars, write_tiles
 
 log = logging.getLogger(__name__)
@@ -206,6 +207,15 @@ def recover_run(run_dir: str | Path, *, max_mosaic_px: int = 8192, max_tiles_in_
             maps.append(info)
     finally:
         shutil.rmtree(cache, ignore_errors=True)
+    try:  # the counts of the trajectory that survived (run.json may be of another checkpoint)
+        rows = read_trajectory_csv(run_dir / "trajectory.csv")
+    except InputError:
+        rows = None
+    if rows is not None:
+        counts = {s: sum(r.status == s for r in rows) for s in STATUSES}
+        summary.update({"registered": counts["reference"] + counts["registered"],
+                        "low_confidence": counts["low_confidence"], "corrupt": counts["corrupt"],
+                        "dropped": counts["dropped"], "skipped": counts["low_confidence"] + counts["corrupt"]})
     summary["mosaics"] = maps
     summary["recovered"] = {"generation": manifest.get("generation"), "time_unix": manifest.get("time_unix"),
                             "frames_in": manifest.get("frames_in"), "problems": problems}
