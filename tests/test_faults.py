@@ -116,18 +116,21 @@ def test_checkpoint_survives_a_kill_at_every_write(tmp_path, monkeypatch):
     state.write(state.snapshot({0: mosaic}, {"order": [0]}))
     truth = {k: mosaic.tile_image(k) for k in mosaic.tiles()}
     mosaic.add(rng.integers(0, 255, (100, 150, 3), dtype=np.uint8), np.array([[1.0, 0, 90], [0, 1, 40]]))
-    real = statestore.atomic_write_bytes
+    real = {name: getattr(statestore, name) for name in ("_write_file", "_fsync_file", "atomic_write_bytes")}
     kills = 0
     for k in range(1, 100):
         calls = {"n": 0}
 
-        def dying(path, data, k=k):
-            calls["n"] += 1
-            if calls["n"] == k:
-                raise OSError(errno.EIO, "Input/output error (killed here)")
-            return real(path, data)
+        def dying(name, k=k):
+            def op(*args):
+                calls["n"] += 1
+                if calls["n"] == k:
+                    raise OSError(errno.EIO, "Input/output error (killed here)")
+                return real[name](*args)
+            return op
 
-        monkeypatch.setattr(statestore, "atomic_write_bytes", dying)
+        for name in real:
+            monkeypatch.setattr(statestore, name, dying(name))
         snap = state.snapshot({0: mosaic}, {"order": [0]})
         try:
             state.write(snap)
@@ -143,7 +146,7 @@ def test_checkpoint_survives_a_kill_at_every_write(tmp_path, monkeypatch):
             continue
         break
     assert kills >= 3  # the tiles and the manifest each had their turn
-    monkeypatch.setattr(statestore, "atomic_write_bytes", real)
+    monkeypatch.undo()
     manifest = load_manifest(tmp_path / "state")
     assert manifest["generation"] == 2
     restored, report = restore_mosaic(tmp_path / "state", manifest, 0)
@@ -229,6 +232,7 @@ def _enospc_after(monkeypatch, budget: int) -> dict:
 
     for module in (trajectory_files, outputs, statestore):
         monkeypatch.setattr(module, "atomic_write_bytes", writer)
+    monkeypatch.setattr(statestore, "_write_file", writer)
     monkeypatch.setattr(cv2, "imwrite", imwrite)
     return used
 
@@ -303,13 +307,18 @@ def test_disk_full_on_a_small_tmpfs(flight, tmp_path):
                           "--set", "output.min_free_mb=1", "--set", "output.checkpoint_interval=0.05")
         assert result.returncode == 4, result.stderr
         assert "Traceback" not in result.stderr and "No space left on device" in result.stderr
-        assert "photomap recover" in result.stdout + result.stderr
         copy = tmp_path / "copy"
         shutil.copytree(small / "run", copy)
     finally:
         _umount(small)
-    assert photomap("recover", str(copy)).returncode == 0
+    if not (copy / "mosaic.png").exists():  # the map did not fit: the checkpoint holds it
+        assert "photomap recover" in result.stdout + result.stderr
+        assert photomap("recover", str(copy)).returncode == 0
+    else:  # the map fitted, other outputs did not: each named once
+        assert "not written:" in result.stdout
     assert cv2.imread(str(copy / "mosaic.png"), cv2.IMREAD_UNCHANGED)[..., 3].any()
+    for line in result.stderr.splitlines():  # one line per failing output, not one per attempt
+        assert sum(other == line[9:] for other in (x[9:] for x in result.stderr.splitlines())) == 1
 
 
 # ------------------------------------------------------------------------------------ output folder

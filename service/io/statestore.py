@@ -173,8 +173,10 @@ class MapState:
                 path = self._tile_path(seg, key, gen)
                 path.parent.mkdir(exist_ok=True)
                 new_files.append(path)
-                atomic_write_bytes(path, buf.tobytes())
+                _write_file(path, buf)  # a new name: no manifest names it before it is synced
                 nbytes += len(buf)
+            for path in new_files:  # one journal commit for all of them, not one per tile
+                _fsync_file(path)
             fresh = {(seg, key): st for seg, key, st, _ in snap.tiles}
             written: dict[int, dict[TileKey, _Written]] = {}
             for seg, current in snap.stamps.items():
@@ -224,6 +226,20 @@ class MapState:
     def remove(self) -> None:
         """Delete the state folder (the final outputs hold the map)."""
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def _write_file(path: Path, data) -> None:
+    """Write ``data`` to the new file ``path`` (no fsync: see :func:`_fsync_file`)."""
+    with open(path, "wb") as f:
+        f.write(data)
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _fsync_dir(folder: Path) -> None:
