@@ -34,7 +34,9 @@ from photomap.mapping import checkpoint as checkpoint_module
 from photomap.mapping.checkpoint import recover_run
 from photomap.mapping.pipeline import MappingPipeline
 
-SIM = ["--frames", "100", "--size", "320x240", "--pattern", "figure8", "--fps", "10", "--altitude", "25:35",
+LONG = os.environ.get("PHOTOMAP_FAULTS") == "long"  # tools/faults.py: more kills, both codecs, longer videos
+
+SIM = ["--frames", "80", "--size", "320x240", "--pattern", "figure8", "--fps", "10", "--altitude", "25:35",
        "--speed", "6", "--yaw-mode", "heading", "--gsd", "0.1", "--set", "simulate.terrain_zoom=3", "-q"]
 
 
@@ -47,6 +49,14 @@ def _python_env() -> dict:
 def photomap(*args: str, timeout: float = 120, **kw) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "photomap", *args], capture_output=True, text=True,
                           timeout=timeout, env=_python_env(), **kw)
+
+
+def in_process(capsys, *args: str) -> tuple[int, str, str]:
+    """``photomap ARGS`` in this process: (exit code, stdout, stderr)."""
+    capsys.readouterr()
+    code = cli.main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, err
 
 
 @pytest.fixture(scope="module")
@@ -156,7 +166,7 @@ def test_checkpoint_survives_a_kill_at_every_write(tmp_path, monkeypatch):
     assert names == {f"{tx}_{ty}_g{g}.png" for tx, ty, g in manifest["tiles"]["0"]}  # nothing left over
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize("seed", range(1, 11) if LONG else [1, 2])
 def test_sigkill_leaves_a_map_that_recover_rebuilds(flight, reference, tmp_path, seed):
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "photomap", "replay", str(flight / "video.avi"), "--out", str(out),
@@ -200,7 +210,7 @@ def test_interrupt_writes_the_map_and_removes_the_checkpoint(flight, tmp_path, s
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 0, stderr
     summary = json.loads((out / "run.json").read_text())
-    assert summary["complete"] is True and 0 < summary["frames_in"] < 100
+    assert summary["complete"] is True and 0 < summary["frames_in"] < 80
     assert not (out / "checkpoint").exists() and not (out / "preview.png").exists()
     assert cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED).shape[2] == 4
     assert len(read_trajectory_csv(out / "trajectory.csv")) == summary["frames_in"]
@@ -322,16 +332,17 @@ def test_disk_full_on_a_small_tmpfs(flight, tmp_path):
 
 
 # ------------------------------------------------------------------------------------ output folder
-def test_out_is_a_file(flight, tmp_path):
+def test_out_is_a_file(flight, tmp_path, capsys):
     target = tmp_path / "file.txt"
     target.write_text("not a folder")
-    result = photomap("replay", str(flight / "video.avi"), "--out", str(target), "--no-progress", "-q")
-    assert result.returncode == 4
-    assert result.stderr.strip().splitlines()[-1].startswith("photomap replay: error: output folder")
-    assert "Traceback" not in result.stderr and target.read_text() == "not a folder"
+    code, out, err = in_process(capsys, "replay", str(flight / "video.avi"), "--out", str(target), "--no-progress", "-q")
+    assert code == 4
+    assert err.strip().splitlines() == [f"photomap replay: error: output folder {target} is a file, not a folder: "
+                                        "choose another --out"]
+    assert target.read_text() == "not a folder"
 
 
-def test_read_only_out_is_refused_before_any_frame(flight, tmp_path):
+def test_read_only_out_is_refused_before_any_frame(flight, tmp_path, capsys):
     ro = tmp_path / "ro"
     mounted = _mount_tmpfs(ro, "ro,size=1m")
     if not mounted:
@@ -340,11 +351,11 @@ def test_read_only_out_is_refused_before_any_frame(flight, tmp_path):
         ro.mkdir(exist_ok=True)
         ro.chmod(0o500)
     try:
-        result = photomap("replay", str(flight / "video.avi"), "--out", str(ro), "--no-progress", "-q")
-        assert result.returncode == 4
-        lines = result.stderr.strip().splitlines()
-        assert len(lines) == 1 and "not writable" in lines[0], result.stderr
-        assert "frames:" not in result.stdout  # refused before mapping
+        code, out, err = in_process(capsys, "replay", str(flight / "video.avi"), "--out", str(ro), "--no-progress", "-q")
+        assert code == 4
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and "not writable" in lines[0], err
+        assert "frames:" not in out  # refused before mapping
         assert list(ro.iterdir()) == []
     finally:
         if mounted:
@@ -353,17 +364,17 @@ def test_read_only_out_is_refused_before_any_frame(flight, tmp_path):
             ro.chmod(0o700)
 
 
-def test_unrecovered_checkpoint_is_not_overwritten(flight, tmp_path):
+def test_unrecovered_checkpoint_is_not_overwritten(flight, tmp_path, capsys):
     out = tmp_path / "run"
     (out / "checkpoint").mkdir(parents=True)
     (out / "checkpoint" / "manifest.json").write_text("{}")
-    result = photomap("replay", str(flight / "video.avi"), "--out", str(out), "--no-progress", "-q")
-    assert result.returncode == 4 and "photomap recover" in result.stderr
+    code, _, err = in_process(capsys, "replay", str(flight / "video.avi"), "--out", str(out), "--no-progress", "-q")
+    assert code == 4 and "photomap recover" in err
     assert (out / "checkpoint" / "manifest.json").read_text() == "{}"
 
 
 # ------------------------------------------------------------------------------------ bad input
-@pytest.mark.parametrize("codec,name", [("mjpg", "video.avi"), ("mp4v", "video.mp4")])
+@pytest.mark.parametrize("codec,name", [("mjpg", "video.avi")] + ([("mp4v", "video.mp4")] if LONG else []))
 def test_corrupt_video(tmp_path, codec, name):
     sim = tmp_path / "sim"
     assert cli.main(["simulate", "--out", str(sim), "--codec", codec, *SIM]) == 0
@@ -391,10 +402,11 @@ def test_shuffled_frames_are_not_glued(flight, tmp_path):
     frames = _frames(flight / "video.avi")
     truth = read_groundtruth(flight / "groundtruth.csv")
     order = np.random.default_rng(3).permutation(len(frames))
+    if LONG:
+        order = np.concatenate([order, np.random.default_rng(4).permutation(len(frames))])
     pipe = MappingPipeline(ListSource([frames[i] for i in order]), load_config(), tmp_path / "run")
     summary = pipe.run()
     rows = read_trajectory_csv(tmp_path / "run" / "trajectory.csv")
-    assert summary["segments_started"] > 1
     w, h = 320, 240
     centre = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
     by_segment: dict[int, list] = {}
@@ -422,13 +434,14 @@ def test_black_video_keeps_memory_bounded(tmp_path):
     """Nothing registers on black frames: the one-frame segments the tracker keeps starting are
     dropped (their frames counted low_confidence), so maps do not pile up."""
     seen = []
-    pipe = MappingPipeline(BlackSource(400), load_config(overrides=["output.checkpoint_interval=0.01"]), tmp_path)
+    pipe = MappingPipeline(BlackSource(2000 if LONG else 200), load_config(overrides=["output.checkpoint_interval=0.01"]), tmp_path)
     pipe.sinks = (lambda event: seen.append(len(pipe.mosaics)),)
     summary = pipe.run()
-    assert summary["segments_started"] > 20 and summary["segments_dropped"] >= summary["segments_started"] - 1
+    assert summary["segments_started"] > summary["frames_in"] / 15  # one every max_lost_frames + 1 frames
+    assert summary["segments_dropped"] >= summary["segments_started"] - 1 and summary["segments"] <= 1
     assert max(seen) <= 2
     counts = status_counts_agree(tmp_path)
-    assert counts["low_confidence"] >= 395 and summary["complete"]
+    assert counts["low_confidence"] >= summary["frames_in"] - 5 and summary["complete"]
 
 
 # ------------------------------------------------------------------------------------ telemetry
@@ -448,7 +461,7 @@ def test_garbage_mavlink_log(flight, tmp_path):
                       "--mavlink", str(bad))
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
     summary = json.loads((out / "run.json").read_text())
-    assert summary["complete"] and summary["registered"] > 90
+    assert summary["complete"] and summary["registered"] > 70
     assert summary["telemetry"]["link"]["parse_errors"] > 0 if "link" in summary["telemetry"] else True
     assert (out / "mosaic.png").is_file()
     status_counts_agree(out)
@@ -464,7 +477,7 @@ def test_silent_link(flight, tmp_path):
                       "--mavlink", f"udpin:127.0.0.1:{port}", "--set", "mapping.loop_closure=false", timeout=120)
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
     summary = json.loads((out / "run.json").read_text())
-    assert summary["registered"] > 90 and summary["georeference"] is None
+    assert summary["registered"] > 70 and summary["georeference"] is None
     assert summary["telemetry"]["status"] != "ok"
     assert (out / "mosaic.png").is_file()
 
@@ -472,11 +485,19 @@ def test_silent_link(flight, tmp_path):
 # ------------------------------------------------------------------------------------ config
 @pytest.mark.parametrize("override", ["mapping.min_confidence=abc", "output.checkpoint_interval=-1",
                                       "mosaic.tile_size=0", "nosuch.key=1", "output.min_free_mb=-5"])
-def test_bad_config_values_are_one_line(flight, tmp_path, override):
+def test_bad_config_values_are_one_line(flight, tmp_path, override, capsys):
     out = tmp_path / "run"
-    result = photomap("replay", str(flight / "video.avi"), "--out", str(out), "--no-progress", "-q",
-                      "--set", override)
-    assert result.returncode == 2
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("photomap replay: error:"), result.stderr
+    code, _, err = in_process(capsys, "replay", str(flight / "video.avi"), "--out", str(out), "--no-progress", "-q",
+                              "--set", override)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("photomap replay: error:"), err
     assert not out.exists()
+
+
+def test_bad_config_file_is_one_line(flight, tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("mapping:\n  min_confidence: [1, 2\n")  # not even YAML
+    code, _, err = in_process(capsys, "replay", str(flight / "video.avi"), "--out", str(tmp_path / "run"),
+                              "--config", str(bad))
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
