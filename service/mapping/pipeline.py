@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 import queue
 import shutil
 import tempfile
@@ -73,7 +74,7 @@ class RunStats:
     confidence_sum: float = 0.0
     worker_s: float = 0.0
     register_s: float = 0.0
-    events: list[str] = field(default_factory=list)
+    events: deque = field(default_factory=lambda: deque(maxlen=100))  # the latest (bounded memory)
 
     def summary(self, wall_s: float) -> dict:
         posed = self.registered
@@ -93,7 +94,7 @@ class RunStats:
             "ms_register_per_frame": 1000.0 * self.register_s / self.frames_in if self.frames_in else None,
             "wall_time_s": wall_s,
             "fps": self.frames_in / wall_s if wall_s > 0 else None,
-            "events": self.events[-100:],
+            "events": list(self.events),
         }
 
 
