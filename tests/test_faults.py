@@ -501,3 +501,26 @@ def test_bad_config_file_is_one_line(flight, tmp_path, capsys):
     code, _, err = in_process(capsys, "replay", str(flight / "video.avi"), "--out", str(tmp_path / "run"),
                               "--config", str(bad))
     assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+class GappyLiveSource(ListSource):
+    """A live source that drops frames (gaps in the indices), also after the last frame it gives."""
+
+    live = True
+
+    def __iter__(self):
+        for i, image in enumerate(self.frames):
+            if i % 7 == 3 or i >= len(self.frames) - 2:
+                self.stats.dropped += 1  # never handed over
+                continue
+            self.stats.read += 1
+            yield Frame(i, i / self.fps, image, "camera")
+
+
+def test_dropped_frames_counted_alike(flight, tmp_path):
+    frames = _frames(flight / "video.avi", 30)
+    source = GappyLiveSource(frames)
+    summary = MappingPipeline(source, load_config(), tmp_path).run()
+    counts = status_counts_agree(tmp_path)
+    assert counts["dropped"] == source.stats.dropped == summary["dropped"] == 4 + 2
+    assert len(read_trajectory_csv(tmp_path / "trajectory.csv")) == len(frames)
