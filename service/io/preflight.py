@@ -53,7 +53,7 @@ def check_output_dir(out_dir: str | Path, *, expected_frames: int | None = None,
         raise OutputError(f"cannot create the output folder {path}: {_reason(exc)}") from None
     if (path / state_dir / "manifest.json").is_file():
         raise OutputError(f"{path} holds the checkpoint of a run that did not finish: recover its map "
-                          f"with `photomap recover {path}` or choose another --out")
+                          f"with `photomap recover {path} --remove-checkpoint` or choose another --out")
     fd, probe = None, None
     try:
         fd, probe = tempfile.mkstemp(dir=path, prefix=".photomap-probe-")

@@ -167,7 +167,7 @@ class MappingPipeline:
         state = state_folder(self.out_dir)
         if (state / MANIFEST).is_file():
             raise OutputError(f"{self.out_dir} holds the checkpoint of a run that did not finish: recover its map "
-                              f"with `photomap recover {self.out_dir}` or choose another output folder")
+                              f"with `photomap recover {self.out_dir} --remove-checkpoint` or choose another output folder")
         if state.is_dir():  # a run that stopped before its first checkpoint: nothing to recover
             shutil.rmtree(state, ignore_errors=True)
         self.sinks = tuple(sinks)
