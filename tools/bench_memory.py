@@ -111,6 +111,45 @@ def run_case(case: str, n: int, config: str | None, overrides: list[str]) -> dic
             "ck_write_ms": ck.get("median_write_ms"), "ck_bytes": ck.get("bytes_written", 0), **at}
 
 
+def records_growth(n: int, config: str | None, overrides: list[str]) -> dict:
+    """Python heap growth per frame from 20 % to the end of the flight that is *not* map tiles
+    (tracemalloc; tiles are bounded by ``mosaic.max_tiles_in_memory``, records are not)."""
+    import tracemalloc
+
+    terrain, truth, camera = long_flight(n)
+    source = SimulatedSource(terrain, truth, camera, seed=SEED)
+    cfg = load_config(config, overrides)
+    snaps = {}
+
+    def on_frame(event) -> None:
+        if event.index == n // 5:
+            snaps["a"] = (event.index, tracemalloc.take_snapshot())
+        elif event.index == n - 1:
+            snaps["b"] = (event.index, tracemalloc.take_snapshot())
+
+    tracemalloc.start(8)
+    with tempfile.TemporaryDirectory(prefix="bench-memory-") as tmp:
+        MappingPipeline(source, cfg, tmp, sinks=[on_frame], input_name="records").run()
+    tracemalloc.stop()
+    (ia, a), (ib, b) = snaps["a"], snaps["b"]
+    tiles = other = 0
+    by_line: dict[str, int] = {}
+    for stat in b.compare_to(a, "traceback"):
+        files = [f.filename for f in stat.traceback]
+        if any(f.endswith(("core/mosaic.py", "io/tilestore.py")) for f in files):
+            tiles += stat.size_diff
+        elif not any(f.endswith(("sim/flight.py", "bench_pipeline.py")) for f in files):  # the source's frames
+            other += stat.size_diff
+            frame = next((f for f in reversed(stat.traceback) if "photomap" in f.filename or "/service/" in f.filename),
+                         stat.traceback[-1])
+            key = f"{Path(frame.filename).name}:{frame.lineno}"
+            by_line[key] = by_line.get(key, 0) + stat.size_diff
+    frames = ib - ia
+    top = sorted(by_line.items(), key=lambda kv: -kv[1])[:6]
+    return {"frames": frames, "tiles_kb_per_frame": tiles / 1024 / frames, "records_kb_per_frame": other / 1024 / frames,
+            "top": [(k, round(v / 1024 / frames, 3)) for k, v in top]}
+
+
 def run_subprocess(case: str, n: int, config: str | None, overrides: list[str]) -> dict:
     spec = json.dumps({"case": case, "n": n, "config": config, "overrides": overrides})
     proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--case", spec],
@@ -141,13 +180,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=10000, help="frames of the normal flight (0 = skip)")
     ap.add_argument("--black", type=int, default=6000, help="black frames (0 = skip)")
     ap.add_argument("--interval", type=float, default=10.0, help="output.checkpoint_interval (s)")
+    ap.add_argument("--records", type=int, default=2000, help="frames of the tracemalloc run (0 = skip)")
     ap.add_argument("--out", help="write the table into this markdown file (section bench_memory)")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.case:
         spec = json.loads(args.case)
-        print(json.dumps(run_case(spec["case"], spec["n"], spec["config"], spec["overrides"])))
+        run = records_growth if spec["case"] == "records" else run_case
+        print(json.dumps(run(spec["case"], spec["n"], spec["config"], spec["overrides"])
+                         if run is run_case else run(spec["n"], spec["config"], spec["overrides"])))
         return 0
     ck = [f"output.checkpoint_interval={args.interval}"]
     cases = []
@@ -161,6 +203,13 @@ def main(argv: list[str] | None = None) -> int:
         results.append(run_subprocess(case, n, config, overrides))
         print("\n".join(table(results[-1:])[2:]), file=sys.stderr, flush=True)
     lines = table(results)
+    if args.records:
+        print(f"records x{args.records} (tracemalloc) ...", file=sys.stderr, flush=True)
+        rec = run_subprocess("records", args.records, str(ONBOARD), ck)
+        lines += ["", f"Python heap growth from 20 % to 100 % of a {args.records}-frame flight (tracemalloc, "
+                      f"onboard config): map tiles {rec['tiles_kb_per_frame']:.2f} KB/frame (bounded by "
+                      f"`mosaic.max_tiles_in_memory`), everything else {rec['records_kb_per_frame']:.3f} KB/frame; "
+                      "largest: " + ", ".join(f"`{k}` {v:.3f}" for k, v in rec["top"]) + " KB/frame."]
     print("\n".join(lines))
     if args.out:
         from tools.report import replace_section

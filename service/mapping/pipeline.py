@@ -50,6 +50,7 @@ from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.geo_outputs import write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
+from photomap.mapping.memory import limit_heap_growth, release_free_memory
 from photomap.mapping.outputs import png_placement, remove_sidecars, write_png, write_sidecars, write_tiles
 from photomap.mapping.telemetry_join import TelemetryJoin
 
@@ -214,6 +215,7 @@ class MappingPipeline:
     def run(self) -> dict:
         """Map the whole source (until its end or :meth:`stop`); returns the run summary."""
         self._started = self._last_checkpoint = time.monotonic()
+        limit_heap_growth()  # flat RSS over long runs (see photomap.mapping.memory)
         failure: list[BaseException] = []
 
         def work() -> None:
@@ -666,6 +668,7 @@ class MappingPipeline:
         if self._state is not None:
             summary["checkpoint"] = self._state.summary()
         self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
+        release_free_memory()
 
     def _georeference(self, summary: dict, maps: list[dict]) -> None:
         """Metric scale and georeference per segment, world files beside the mosaics, when the
