@@ -310,11 +310,11 @@ def _umount(path: Path) -> None:
 
 def test_disk_full_on_a_small_tmpfs(flight, tmp_path):
     small = tmp_path / "small"
-    if not _mount_tmpfs(small, "size=2m"):
+    if not _mount_tmpfs(small, "size=1m"):
         pytest.skip("cannot mount a tmpfs here (not root, or no mount permission)")
     try:
         result = photomap("replay", str(flight / "video.avi"), "--out", str(small / "run"), "--no-progress", "-q",
-                          "--set", "output.min_free_mb=1", "--set", "output.checkpoint_interval=0.05")
+                          "--set", "output.min_free_mb=0.5", "--set", "output.checkpoint_interval=0.05")
         assert result.returncode == 4, result.stderr
         assert "Traceback" not in result.stderr and "No space left on device" in result.stderr
         copy = tmp_path / "copy"

@@ -42,7 +42,7 @@ FAULTS = {
         "mapping goes on to the last frame; each failing output is named in write_errors; the checkpoint keeps "
         "the map and `recover` writes it once there is room"),
     "test_disk_full_on_a_small_tmpfs": (
-        "disk full (2 MB tmpfs)", "`--out` on a 2 MB tmpfs",
+        "disk full (1 MB tmpfs)", "`--out` on a 1 MB tmpfs",
         "exit 4, one line per failing output, no traceback; the map is either in mosaic.png or recoverable"),
     "test_out_is_a_file": ("`--out` is a file", "an existing file as `--out`",
                            "exit 4, one line, the file untouched"),
@@ -66,6 +66,9 @@ FAULTS = {
         "exit 0, a map, counts agree"),
     "test_silent_link": ("silent MAVLink link", "`udpin:` port where nobody sends (`--realtime`)",
                          "exit 0, vision-only map, no georeference, telemetry status says why"),
+    "test_dropped_frames_counted_alike": (
+        "live source dropping frames", "gaps in a live source's indices, two frames dropped after the last one",
+        "trajectory.csv has a `dropped` row for each, run.json counts the same"),
     "test_bad_config_values_are_one_line": (
         "bad config values", "`--set` with a wrong type, out-of-range values, an unknown key",
         "exit 2, exactly one line on stderr, nothing created"),

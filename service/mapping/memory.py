@@ -4,10 +4,9 @@ A run allocates and frees large arrays all the time (frames, warped footprints, 
 copies) from several threads. glibc's malloc raises its mmap threshold each time such an array
 is freed, so later ones come from the heap arenas, where freed memory stays resident and
 fragments: a 2500-frame flight measured (tools/bench_memory.py) RSS growing ~17-20 KB a frame
-with only ~0.5 KB/frame of live Python objects and a fixed number of map tiles in memory. A fixed
-mmap threshold (large arrays are mapped and unmapped: returned to the system when freed), at most
-two arenas, and ``malloc_trim`` at each checkpoint keep it flat. Elsewhere (another libc, another
-OS) these are no-ops.
+with only ~0.5 KB/frame of live Python objects and a fixed number of map tiles in memory. At most
+two arenas and ``malloc_trim`` at each checkpoint (free pages go back to the system) keep it
+flat. Elsewhere (another libc, another OS) these are no-ops.
 """
 
 from __future__ import annotations
@@ -42,14 +41,17 @@ def _glibc():
     return _libc or None
 
 
-def limit_heap_growth(mmap_threshold: int = 128 * 1024, arenas: int = 2) -> bool:
-    """Arrays of ``mmap_threshold`` bytes and more are mmapped (fixed threshold), at most
-    ``arenas`` malloc arenas; once per process. Returns whether it applied."""
+def limit_heap_growth(arenas: int = 2, mmap_threshold: int | None = None) -> bool:
+    """At most ``arenas`` malloc arenas and, when given, a fixed mmap threshold (bytes: larger
+    arrays are mapped and unmapped; 128 KiB measured twice the worker's time per frame, so it is
+    off by default); once per process. Returns whether it applied."""
     global _applied
     libc = _glibc()
     if libc is None or _applied:
         return _applied
-    ok = bool(libc.mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(libc.mallopt(_M_ARENA_MAX, int(arenas)))
+    ok = bool(libc.mallopt(_M_ARENA_MAX, int(arenas)))
+    if mmap_threshold is not None:
+        ok = ok and bool(libc.mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold)))
     _applied = ok
     log.debug("malloc: mmap threshold %d B, %d arenas: %s", mmap_threshold, arenas, "set" if ok else "refused")
     return ok
