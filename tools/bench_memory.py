@@ -183,6 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=10000, help="frames of the normal flight (0 = skip)")
     ap.add_argument("--black", type=int, default=6000, help="black frames (0 = skip)")
     ap.add_argument("--interval", type=float, default=10.0, help="output.checkpoint_interval (s)")
+    ap.add_argument("--with-default", action="store_true",
+                    help="also map the flight with the default config (no tile cap)")
     ap.add_argument("--records", type=int, default=2000, help="frames of the tracemalloc run (0 = skip)")
     ap.add_argument("--out", help="write the table into this markdown file (section bench_memory)")
     ap.add_argument("--case", help=argparse.SUPPRESS)
@@ -199,7 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.black:
         cases += [("black", args.black, None, ck), ("black", args.black, str(ONBOARD), ck)]
     if args.frames:
-        cases += [("flight", args.frames, str(ONBOARD), ck), ("flight", args.frames, None, ck)]
+        cases += [("flight", args.frames, str(ONBOARD), ck)]
+        if args.with_default:  # every tile in memory: grows with the map by design
+            cases.append(("flight", args.frames, None, ck))
     results = []
     for case, n, config, overrides in cases:
         print(f"{case} x{n} ({Path(config).name if config else 'default'}) ...", file=sys.stderr, flush=True)
