@@ -293,7 +293,8 @@ def test_disk_full_keeps_the_map_in_the_checkpoint(flight, tmp_path, monkeypatch
     assert recovered["mosaics"][0]["file"] == "mosaic.png"
     image = cv2.imread(str(tmp_path / "run" / "mosaic.png"), cv2.IMREAD_UNCHANGED)
     assert (image[..., 3] == 255).sum() > 20000
-    status_counts_agree(tmp_path / "run") if (tmp_path / "run" / "trajectory.csv").exists() else None
+    counts = status_counts_agree(tmp_path / "run")  # recover took the counts of the trajectory that survived
+    assert counts["reference"] + counts["registered"] > 0
 
 
 def _mount_tmpfs(path: Path, options: str) -> bool:
@@ -462,7 +463,7 @@ def test_garbage_mavlink_log(flight, tmp_path):
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
     summary = json.loads((out / "run.json").read_text())
     assert summary["complete"] and summary["registered"] > 70
-    assert summary["telemetry"]["link"]["parse_errors"] > 0 if "link" in summary["telemetry"] else True
+    assert summary["telemetry"]["link"]["parse_errors"] > 0  # the garbage was seen, and skipped
     assert (out / "mosaic.png").is_file()
     status_counts_agree(out)
 
