@@ -135,12 +135,14 @@ def records_growth(n: int, config: str | None, overrides: list[str]) -> dict:
         MappingPipeline(source, cfg, tmp, sinks=[on_frame], input_name="records").run()
     tracemalloc.stop()
     (ia, a), (ib, b) = snaps["a"], snaps["b"]
-    tiles = other = 0
+    tiles = other = in_flight = 0
     by_line: dict[str, int] = {}
     for stat in b.compare_to(a, "traceback"):
         files = [f.filename for f in stat.traceback]
         if any(f.endswith(("core/mosaic.py", "io/tilestore.py")) for f in files):
             tiles += stat.size_diff
+        elif any(f.endswith("io/statestore.py") for f in files):
+            in_flight += stat.size_diff  # tile copies of a checkpoint being written (<= its budget)
         elif not any(f.endswith(("sim/flight.py", "bench_pipeline.py")) for f in files):  # the source's frames
             other += stat.size_diff
             frame = next((f for f in reversed(stat.traceback) if "photomap" in f.filename or "/service/" in f.filename),
@@ -150,6 +152,7 @@ def records_growth(n: int, config: str | None, overrides: list[str]) -> dict:
     frames = ib - ia
     top = sorted(by_line.items(), key=lambda kv: -kv[1])[:6]
     return {"frames": frames, "tiles_kb_per_frame": tiles / 1024 / frames, "records_kb_per_frame": other / 1024 / frames,
+            "checkpoint_in_flight_mb": in_flight / 2**20,
             "top": [(k, round(v / 1024 / frames, 3)) for k, v in top]}
 
 
@@ -215,7 +218,8 @@ def main(argv: list[str] | None = None) -> int:
         rec = run_subprocess("records", args.records, str(ONBOARD), ck)
         lines += ["", f"Python heap growth from 20 % to 100 % of a {args.records}-frame flight (tracemalloc, "
                       f"onboard config): map tiles {rec['tiles_kb_per_frame']:.2f} KB/frame (bounded by "
-                      f"`mosaic.max_tiles_in_memory`), everything else {rec['records_kb_per_frame']:.3f} KB/frame; "
+                      f"`mosaic.max_tiles_in_memory`), a checkpoint being written {rec['checkpoint_in_flight_mb']:.1f} MB "
+                      f"(its tile copies), everything else {rec['records_kb_per_frame']:.3f} KB/frame; "
                       "largest: " + ", ".join(f"`{k}` {v:.3f}" for k, v in rec["top"]) + " KB/frame."]
     print("\n".join(lines))
     if args.out:

@@ -165,9 +165,12 @@ class MapState:
         gen = self.generation + 1
         new_files: list[Path] = []
         nbytes = 0
+        fresh = {(seg, key): st for seg, key, st, _ in snap.tiles}
         try:
-            for seg, key, _, bgra in snap.tiles:
+            for i, (seg, key, st, bgra) in enumerate(snap.tiles):
+                snap.tiles[i] = (seg, key, st, None)  # the copy goes as soon as it is encoded
                 ok, buf = cv2.imencode(".png", bgra, _PNG_FAST)
+                del bgra
                 if not ok:
                     raise OSError(f"PNG encoding of tile {key} failed")
                 path = self._tile_path(seg, key, gen)
@@ -177,7 +180,6 @@ class MapState:
                 nbytes += len(buf)
             for path in new_files:  # one journal commit for all of them, not one per tile
                 _fsync_file(path)
-            fresh = {(seg, key): st for seg, key, st, _ in snap.tiles}
             written: dict[int, dict[TileKey, _Written]] = {}
             for seg, current in snap.stamps.items():
                 old = self._written.get(seg, {})
