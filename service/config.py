@@ -182,6 +182,8 @@ class OutputConfig(_Section):
     data_dir: str = "~/photomap-flights"
     geotiff: bool = True
     footprints: str = _choice("spaced", "all", "keyframes", "spaced", "none")
+    checkpoint_map: bool = True
+    min_free_mb: float = _num(50.0, 0.0, None)
 
 
 @dataclass(frozen=True)

@@ -17,3 +17,9 @@ class InputError(PhotomapError):
     """A missing or unreadable input: camera, video, image folder, log."""
 
     exit_code = 3
+
+
+class OutputError(PhotomapError):
+    """The output folder cannot take the run's files: not a folder, not writable, disk full."""
+
+    exit_code = 4

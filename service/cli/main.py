@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("photomap.eval.evaluate", "compare a run's trajectory with ground truth: errors, ATE, drift, plots"),
     "batch": ("photomap.cli.batch", "map many logged flights at once on every core or a Dask cluster"),
     "merge": ("photomap.cli.merge", "merge the maps of several runs over one site into one map"),
+    "recover": ("photomap.cli.recover", "rebuild the map of a killed run (or one whose final write failed) from its checkpoint"),
     "export": ("photomap.cli.export", "export a run for GIS and ground stations: GeoTIFF, web tiles, KML/GeoJSON, evo, report"),
 }
 

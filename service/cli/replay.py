@@ -16,6 +16,7 @@ from pathlib import Path
 from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
                                  open_stills_telemetry, open_telemetry, print_summary)
 from photomap.config import Config
+from photomap.errors import OutputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -70,4 +71,6 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
                      realtime=args.realtime, mavlink=args.mavlink, video_start=args.video_start,
                      viewer=args.viewer, geo=args.geo, status_interval=getattr(args, "status_interval", 0.0))
     print_summary(summary, args.out)
+    if summary.get("write_errors"):
+        return OutputError.exit_code
     return 0 if summary["registered"] > 0 else 1

@@ -18,6 +18,7 @@ from pathlib import Path
 from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
                                  open_telemetry, print_summary)
 from photomap.config import Config
+from photomap.errors import OutputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -57,4 +58,4 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         if reader is not None:
             reader.stop()
     print_summary(summary, out)
-    return 0
+    return OutputError.exit_code if summary.get("write_errors") else 0

@@ -25,6 +25,7 @@ from photomap.drivers.frames import FrameSource
 from photomap.drivers.mavlink import TelemetryReader, load_tlog
 from photomap.drivers.stills_telemetry import open_stills_telemetry as stills_telemetry
 from photomap.errors import InputError
+from photomap.io.preflight import check_output_dir
 from photomap.live.viewer import Viewer
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.pipeline import MappingPipeline
@@ -190,6 +191,7 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
     INFO every that many seconds (:class:`~photomap.cli.oplog.StatusReporter`), unless the
     progress bar is shown. At the end the run's counts are logged at INFO (as fields in JSON lines).
     """
+    check_output_dir(out_dir, expected_frames=total, min_free_mb=cfg.output.min_free_mb)  # before any frame
     view = Viewer.from_config(cfg.viewer, viewer)
     if view.url:
         hint = f" ({view.connect_hint})" if view.connect_hint else ""
@@ -248,8 +250,15 @@ def print_summary(summary: dict, out_dir: str | Path) -> None:
           f"{summary['ms_per_frame'] or 0:.1f} ms/frame ({summary['fps'] or 0:.1f} fps)")
     if mosaics:
         print(f"map: {out / mosaics[0]['file']}")
+    elif summary.get("map_unwritten") and not summary.get("map_kept_in"):
+        print(f"map: could not be written ({', '.join(summary['map_unwritten'])})")
     else:
         print("map: nothing was mapped")
+    if summary.get("map_kept_in"):
+        print(f"map: not all written ({'; '.join(f'{k}: {v}' for k, v in summary['write_errors'].items())}); "
+              f"kept in {out / summary['map_kept_in']}: free space, then `photomap recover {out}`")
+    elif summary.get("write_errors"):
+        print(f"not written: {'; '.join(f'{k}: {v}' for k, v in summary['write_errors'].items())}")
     geo = summary.get("georeference")
     if geo:
         print(f"georeferenced: {geo['crs']}, {summary['metres_per_pixel']:.3f} m per map pixel "

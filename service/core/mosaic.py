@@ -121,6 +121,9 @@ class TiledMosaic:
         self._extent: list[int] | None = None  # covered pixels: x0, y0, x1, y1 (exclusive)
         self._extent_stale = False
         self.lost_tiles = 0  # spilled tiles the store could not give back
+        self.spill_failures = 0  # tiles the store could not take (kept in memory instead)
+        self._stamps: dict[TileKey, int] = {}  # tile -> stamp of its last change (see tile_stamps)
+        self._stamp = 0
 
     # ------------------------------------------------------------------ adding frames
     def add(self, frame: np.ndarray, M: np.ndarray, mask: np.ndarray | None = None,
@@ -221,6 +224,9 @@ class TiledMosaic:
                     tile["weight"][dst_sl] += sub[..., C]
                 self._clean.discard(key)
                 touched.add(key)
+        for key in touched:
+            self._stamp += 1
+            self._stamps[key] = self._stamp
         return touched
 
     def merge(self, other: TiledMosaic, transform: np.ndarray, chunk: int = 1024) -> set[TileKey]:
@@ -398,9 +404,33 @@ class TiledMosaic:
         while cap is not None and self._tiles and len(self._tiles) + n > cap:
             key, tile = self._tiles.popitem(last=False)
             if key not in self._clean:
-                self._store.put(key, tile)
+                try:
+                    self._store.put(key, tile)
+                except Exception:  # e.g. disk full: keep the tile (over the cap) rather than lose it
+                    self._tiles[key] = tile
+                    self._tiles.move_to_end(key, last=False)
+                    self.spill_failures += 1
+                    return
             self._clean.discard(key)
             self._spilled.add(key)
+
+    def spill(self) -> None:
+        """Move every tile in memory to the store (a map that no longer grows), and drop cached
+        frame masks. No effect without a store."""
+        if self._store is None:
+            return
+        cap, self.max_tiles_in_memory = self.max_tiles_in_memory, 0
+        try:
+            self._make_room(0)
+        finally:
+            self.max_tiles_in_memory = cap
+        self._frame_cache.clear()
+
+    def tile_stamps(self) -> dict[TileKey, int]:
+        """``{key: stamp}`` of every tile: a stamp grows whenever the tile's pixels change, so a
+        writer that remembers the stamps it saved knows which tiles changed since (incremental
+        checkpoints). A cleared tile loses its stamp."""
+        return dict(self._stamps)
 
     @property
     def tiles_in_memory(self) -> int:
@@ -427,6 +457,28 @@ class TiledMosaic:
         image, alpha = self._tile_pixels(tile)
         return (image[..., 0] if self.channels == 1 else image).copy(), alpha.copy()
 
+    def set_tile(self, key: TileKey, image: np.ndarray, alpha: np.ndarray) -> None:
+        """Replace tile ``key`` by the pixels ``image`` (uint8 (ts, ts, C) or (ts, ts)) where
+        ``alpha`` (uint8 (ts, ts)) is non-zero, e.g. a tile saved by :meth:`tile_image`; the
+        inverse of :meth:`tile_image` (a feather tile gets weight 1 where covered)."""
+        key = (int(key[0]), int(key[1]))
+        ts = self.tile_size
+        img = np.asarray(image, np.uint8).reshape(ts, ts, -1)
+        if img.shape[2] != self.channels:
+            raise InputError(f"tile {key} has {img.shape[2]} channels, the map {self.channels}")
+        covered = np.asarray(alpha).reshape(ts, ts) != 0
+        tile = self._load(key)
+        if self.blend == "overwrite":
+            tile["color"][...] = np.where(covered[..., None], img, 0)
+            tile["cover"][...] = np.where(covered, np.uint8(255), np.uint8(0))
+        else:
+            tile["sum"][...] = np.where(covered[..., None], img.astype(np.float32), 0)
+            tile["weight"][...] = covered.astype(np.float32)
+        self._clean.discard(key)
+        self._stamp += 1
+        self._stamps[key] = self._stamp
+        self._extent_stale = True
+
     def _tile_pixels(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
         """(image uint8 (ts, ts, C), alpha uint8 (ts, ts)) of a tile's arrays (maybe views)."""
         if self.blend == "overwrite":
@@ -445,6 +497,7 @@ class TiledMosaic:
             self._tiles.pop(key, None)
             self._spilled.discard(key)
             self._clean.discard(key)
+            self._stamps.pop(key, None)
             if self._store is not None:
                 self._store.discard(key)
         self._extent_stale = True

@@ -202,6 +202,13 @@ class Tracker:
         match = self.matcher.match(ref.view, view, motion, expected, second_opinion=not restricted)
         if not match.accepted and restricted:  # a turn the motion model did not expect
             match = self.matcher.match(ref.view, view, None, None)
+        elif restricted and match.how == "confirmed" and match.confidence < self.matcher.min_confidence:
+            # the motion model's search found only a weak peak that the overlap check let through:
+            # a near miss passes that check too (frames out of order, a sudden turn). A free
+            # search that finds a clearly stronger placement wins.
+            free = self.matcher.match(ref.view, view, None, None, second_opinion=False)
+            if free.accepted and free.confidence > max(match.confidence, self.matcher.min_confidence):
+                match = free
         return match, None
 
     def step(self, frame: np.ndarray, index: int, sample: Any = None, image: np.ndarray | None = None

@@ -20,6 +20,8 @@ class KeyframeStore:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self._jpeg = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
+        self._unsaved: dict[int, np.ndarray] = {}  # working images the disk refused (disk full)
+        self.failures = 0
 
     def _path(self, index: int, kind: str) -> Path:
         return self.folder / f"kf{index:07d}.{kind}"
@@ -27,11 +29,35 @@ class KeyframeStore:
     def put(self, index: int, small: np.ndarray, image: np.ndarray) -> None:
         """Keep keyframe ``index``: ``small`` (working resolution, grey or BGR) and ``image``."""
         gray = small if small.ndim == 2 else cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
-        cv2.imwrite(str(self._path(index, "png")), gray)
-        cv2.imwrite(str(self._path(index, "jpg")), image, self._jpeg)
+        if not self._write(self._path(index, "png"), ".png", gray):
+            # e.g. disk full: loop closure still needs it (a small grey image), keep it here
+            self._unsaved[index] = gray.copy()
+            self.failures += 1
+            return
+        if not self._write(self._path(index, "jpg"), ".jpg", image, self._jpeg):
+            self.failures += 1  # no re-render from this keyframe: image() gives None
+
+    @staticmethod
+    def _write(path: Path, ext: str, image: np.ndarray, params: list[int] | None = None) -> bool:
+        """Encode in memory, then write: a full disk is an OSError here (False), not libpng's
+        message on stderr; a partial file is removed."""
+        try:
+            ok, buf = cv2.imencode(ext, image, params or [])
+        except cv2.error:
+            return False
+        if not ok:
+            return False
+        try:
+            path.write_bytes(buf.tobytes())
+        except OSError:
+            path.unlink(missing_ok=True)
+            return False
+        return True
 
     def small(self, index: int) -> np.ndarray:
         """The grey working-resolution image of keyframe ``index``; FileNotFoundError if lost."""
+        if index in self._unsaved:
+            return self._unsaved[index]
         img = cv2.imread(str(self._path(index, "png")), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise FileNotFoundError(self._path(index, "png"))
@@ -40,3 +66,9 @@ class KeyframeStore:
     def image(self, index: int) -> np.ndarray | None:
         """The input frame of keyframe ``index`` (BGR), or None if it cannot be read."""
         return cv2.imread(str(self._path(index, "jpg")), cv2.IMREAD_COLOR)
+
+    def discard(self, index: int) -> None:
+        """Forget keyframe ``index`` (its files too)."""
+        self._unsaved.pop(index, None)
+        for kind in ("png", "jpg"):
+            self._path(index, kind).unlink(missing_ok=True)

@@ -21,6 +21,7 @@ and tracker.
 from __future__ import annotations
 
 import logging
+from array import array
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -72,6 +73,37 @@ class Join:
 Update = Correction | Join
 
 
+class RelativePoses:
+    """Frame -> (keyframe, measured 3x3 affine: input px of the frame -> of the keyframe), kept
+    compact (64 bytes a frame in flat arrays instead of ~350 in a dict of tuples of arrays): one
+    entry per registered frame of a long flight."""
+
+    def __init__(self) -> None:
+        self._frames = array("q")
+        self._refs = array("q")
+        self._values = array("d")  # the affine's first two rows, 6 values a frame
+
+    def __setitem__(self, frame: int, item: tuple[int, np.ndarray]) -> None:
+        ref, rel = item
+        self._frames.append(int(frame))
+        self._refs.append(int(ref))
+        self._values.extend(np.asarray(rel, float)[:2].ravel().tolist())
+
+    def update(self, other: RelativePoses) -> None:
+        self._frames.extend(other._frames)
+        self._refs.extend(other._refs)
+        self._values.extend(other._values)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def items(self):
+        """``(frame, (keyframe, 3x3))`` in the order they were added."""
+        values = np.array(self._values, float).reshape(-1, 2, 3)  # a copy: the arrays may grow meanwhile
+        for frame, ref, rel in zip(self._frames, self._refs, values):
+            yield frame, (ref, np.vstack([rel, [0.0, 0.0, 1.0]]))
+
+
 class LoopCloser:
     """Keyframe graphs of all segments of a run (used from the worker thread; the optimiser runs
     on snapshots in its own thread).
@@ -111,7 +143,7 @@ class LoopCloser:
         self.use_priors = use_priors
         self.graphs: dict[int, KeyframeGraph] = {}
         # segment -> frame -> (keyframe, 3x3 measured: input px of frame -> of keyframe)
-        self.relative: dict[int, dict[int, tuple[int, np.ndarray]]] = {}
+        self.relative: dict[int, RelativePoses] = {}
         self.corrections = 0
         self.join_candidates = join_candidates
         self.settle_on_priors = settle_on_priors
@@ -170,7 +202,7 @@ class LoopCloser:
         if step.pose is None:
             return self._polled()
         if step.reference is not None:
-            self.relative.setdefault(step.segment, {})[index] = (step.reference, step.relative)
+            self.relative.setdefault(step.segment, RelativePoses())[index] = (step.reference, step.relative)
         if not step.keyframe:
             return self._polled()
         priors = self._priors(sample)
@@ -228,7 +260,7 @@ class LoopCloser:
             transform = old @ measured @ np.linalg.inv(new)
             self.graphs[into].absorb(self.graphs.pop(segment), transform,
                                      (match, index, measured, reg.confidence))
-            self.relative.setdefault(into, {}).update(self.relative.pop(segment, {}))
+            self.relative.setdefault(into, RelativePoses()).update(self.relative.pop(segment, RelativePoses()))
             for k, s in self._segment_of.items():
                 if s == segment:
                     self._segment_of[k] = into
@@ -268,7 +300,8 @@ class LoopCloser:
         if segment not in self.graphs:  # joined into another segment while it was optimised
             while segment in self._merged_into:
                 segment = self._merged_into[segment]
-            self._wanted.add(segment)
+            if segment in self.graphs:  # else it was forgotten
+                self._wanted.add(segment)
             return None
         if dropped:
             log.warning("dropped %d loop closure(s) that disagree with the rest of the map", len(dropped))
@@ -277,12 +310,24 @@ class LoopCloser:
         self.corrections += 1
         keyframes = {kf.index: kf.pose for kf in graph.keyframes}
         new = dict(keyframes)
-        for frame, (ref, rel) in self.relative.get(segment, {}).items():
+        for frame, (ref, rel) in self.relative.get(segment, RelativePoses()).items():
             if frame not in new and ref in keyframes:
                 new[frame] = keyframes[ref] @ rel
         latest = graph.keyframes[-1]
         return Correction(segment, new, fixes[latest.index],
                           tuple((kf.index, kf.pose.copy()) for kf in graph.keyframes))
+
+    def forget(self, segment: int) -> None:
+        """Drop ``segment`` (the pipeline found nothing worth keeping in it): its graph, its
+        frames' relative poses and its keyframes (also on disk) are gone; no join can reach it."""
+        self.graphs.pop(segment, None)
+        self.relative.pop(segment, None)
+        self._wanted.discard(segment)
+        for k in [k for k, s in self._segment_of.items() if s == segment]:
+            del self._segment_of[k]
+            self._signature.pop(k, None)
+            self._position.pop(k, None)
+            self.store.discard(k)
 
     def flush(self) -> list[Correction]:
         """Finish every pending optimisation (at the end of the run); returns their corrections.

@@ -26,6 +26,19 @@ def _bgra(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return np.dstack([image, alpha])
 
 
+def png_placement(name: str, mosaic: TiledMosaic, max_px: int) -> dict | None:
+    """What :func:`write_png` returns for ``mosaic``, without rendering or writing anything
+    (e.g. to georeference a map whose PNG could not be written); None for an empty map."""
+    bounds = mosaic.bounds()
+    if bounds is None:
+        return None
+    x, y, w, h = bounds
+    scale = min(1.0, max_px / max(w, h))
+    ow, oh = (w, h) if scale == 1 else (max(1, round(w * scale)), max(1, round(h * scale)))
+    return {"file": name, "origin_xy": [int(x), int(y)], "scale": scale, "pixel_scale": [ow / w, oh / h],
+            "bounds": [int(v) for v in bounds], "size": [int(ow), int(oh)]}
+
+
 def render_bands(mosaic: TiledMosaic, scale: float
                  ) -> tuple[tuple[int, int, int, int], tuple[int, int], Iterator[tuple[np.ndarray, np.ndarray]]]:
     """The map of ``mosaic`` at ``scale``, band by band from the top, one tile row at a time.

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 import queue
 import shutil
 import tempfile
@@ -41,15 +42,18 @@ from photomap.core.records import PoseRow
 from photomap.core.tracking import LOW_CONFIDENCE, TrackStep, Tracker
 from photomap.drivers.frames import Frame, FrameSource
 from photomap.geometry import frame_centre, pose_angle_deg
-from photomap.errors import PhotomapError
+from photomap.errors import OutputError, PhotomapError
 from photomap.io.keyframestore import KeyframeStore
 from photomap.io.report import write_report
+from photomap.io.statestore import MANIFEST
 from photomap.io.tilestore import DiskTileStore
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
+from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
-from photomap.mapping.outputs import remove_sidecars, write_png, write_sidecars, write_tiles
+from photomap.mapping.memory import limit_heap_growth, release_free_memory
+from photomap.mapping.outputs import png_placement, remove_sidecars, write_png, write_sidecars, write_tiles
 from photomap.mapping.telemetry_join import TelemetryJoin
 
 log = logging.getLogger(__name__)
@@ -68,11 +72,12 @@ class RunStats:
     corrupt: int = 0
     errors: int = 0
     segments: int = 0
+    segments_dropped: int = 0
     map_fixes: int = 0
     confidence_sum: float = 0.0
     worker_s: float = 0.0
     register_s: float = 0.0
-    events: list[str] = field(default_factory=list)
+    events: deque = field(default_factory=lambda: deque(maxlen=100))  # the latest (bounded memory)
 
     def summary(self, wall_s: float) -> dict:
         posed = self.registered
@@ -85,13 +90,14 @@ class RunStats:
             "errors": self.errors,
             "dropped": self.dropped,
             "segments": self.segments,
+            "segments_dropped": self.segments_dropped,
             "map_relative_fixes": self.map_fixes,
             "mean_confidence": self.confidence_sum / posed if posed else None,
             "ms_per_frame": 1000.0 * self.worker_s / self.frames_in if self.frames_in else None,
             "ms_register_per_frame": 1000.0 * self.register_s / self.frames_in if self.frames_in else None,
             "wall_time_s": wall_s,
             "fps": self.frames_in / wall_s if wall_s > 0 else None,
-            "events": self.events[-100:],
+            "events": list(self.events),
         }
 
 
@@ -185,7 +191,18 @@ class MappingPipeline:
         self.source = source
         self.cfg = cfg
         self.out_dir = Path(out_dir)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+        except (FileExistsError, NotADirectoryError):
+            raise OutputError(f"output folder {self.out_dir} is a file, not a folder") from None
+        except OSError as exc:
+            raise OutputError(f"cannot create the output folder {self.out_dir}: {exc.strerror}") from None
+        state = state_folder(self.out_dir)
+        if (state / MANIFEST).is_file():
+            raise OutputError(f"{self.out_dir} holds the checkpoint of a run that did not finish: recover its map "
+                              f"with `photomap recover {self.out_dir} --remove-checkpoint` or choose another output folder")
+        if state.is_dir():  # a run that stopped before its first checkpoint: nothing to recover
+            shutil.rmtree(state, ignore_errors=True)
         self.sinks = tuple(sinks)
         self.input_name = input_name
         self.telemetry = telemetry
@@ -205,6 +222,12 @@ class MappingPipeline:
         self._pending: tuple[int, np.ndarray, np.ndarray] | None = None  # last low-confidence frame: index, image, small
         self._dirty: set[int] = set()  # segments whose map must be re-rendered from keyframes
         self._keyframes: dict[int, tuple[tuple[int, np.ndarray], ...]] = {}  # segment -> corrected keyframes
+        self._state: Checkpointer | None = None  # the checkpointed full-resolution map
+        self._state_refused = False
+        self._write_errors: dict[str, str] = {}  # output -> why it could not be written (once each)
+        self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
+        self._segment_start: dict[int, int] = {}  # segment -> position in the rows where it started
+        self._kept: set[int] = set()  # segments known to hold more than one posed frame
 
     @property
     def rows(self) -> tuple[PoseRow, ...]:
@@ -227,6 +250,7 @@ class MappingPipeline:
     def run(self) -> dict:
         """Map the whole source (until its end or :meth:`stop`); returns the run summary."""
         self._started = self._last_checkpoint = time.monotonic()
+        limit_heap_growth()  # flat RSS over long runs (see photomap.mapping.memory)
         failure: list[BaseException] = []
 
         def work() -> None:
@@ -274,7 +298,9 @@ class MappingPipeline:
         self.tracker = Tracker(matcher, f, mapping,
                                telemetry_prior=self.telemetry.prior if self.telemetry else None)
         if mapping.keyframes and mapping.loop_closure:
-            self.loops = LoopCloser(KeyframeStore(self._cache() / "keyframes"), matcher, self.frame_size,
+            keyframes = (state_folder(self.out_dir) / "keyframes" if self._checkpointing and not self.cfg.mosaic.cache_dir
+                         else self._cache() / "keyframes")  # kept with the checkpoint: a restart can re-render
+            self.loops = LoopCloser(KeyframeStore(keyframes), matcher, self.frame_size,
                                     f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None,
                                     settle_on_priors=self.telemetry is not None and self.telemetry.mode == "stills")
 
@@ -317,10 +343,63 @@ class MappingPipeline:
                               dropped_frames=int(self.source.stats.dropped),
                               reconnects=int(self.source.stats.reconnects)))
 
+    def _gaps(self, index: int) -> None:
+        """Rows for the frames before ``index`` that never reached the worker: ``dropped`` by a
+        live source that fell behind, ``corrupt`` (undecodable) in a file, as the source counts them."""
+        status = "dropped" if self.source.live else "corrupt"
+        for missing in range(self._next_index, index):
+            self._rows.append(PoseRow(missing, float("nan"), None, status=status, segment=self._segment))
+            self._source_gaps += 1
+
+    def _close_gaps(self) -> None:
+        """At the end: rows for frames the source lost after the last one processed, so that
+        trajectory.csv and run.json count every status alike."""
+        src = self.source.stats
+        lost = int(src.dropped if self.source.live else src.corrupt)
+        if lost > self._source_gaps and self.frame_size is not None:
+            self._gaps(self._next_index + lost - self._source_gaps)
+            self._next_index = self._rows[-1].frame + 1
+
+    def _retire_segments(self, current: int) -> None:
+        """The tracker started segment ``current``: a segment it left with a single posed frame
+        (nothing registered to its reference) is dropped, its frame counted ``low_confidence``,
+        so featureless or black video cannot pile up maps; the others are spilled to the tile
+        store when one bounds memory (only the current map holds tiles in memory)."""
+        self._segment_start[current] = max(0, len(self._rows) - 1)
+        for seg in list(self.mosaics):
+            if seg == current:
+                continue
+            if seg not in self._kept:
+                glued = [r for r in self._rows[self._segment_start.get(seg, 0):] if r.segment == seg and r.glued]
+                if len(glued) <= 1:
+                    self._drop_segment(seg, glued)
+                    continue
+                self._kept.add(seg)
+            if self.cfg.mosaic.max_tiles_in_memory is not None:
+                self.mosaics[seg].spill()
+
+    def _drop_segment(self, seg: int, glued: list[PoseRow]) -> None:
+        for row in glued:
+            row.M, row.status = None, LOW_CONFIDENCE
+            self.stats.registered -= 1
+            self.stats.low_confidence += 1
+            if math.isfinite(row.confidence):
+                self.stats.confidence_sum -= row.confidence
+        self.mosaics.pop(seg, None)
+        if self.cfg.mosaic.max_tiles_in_memory and self._cache_dir is not None:
+            shutil.rmtree(self._cache_dir / f"segment{seg}", ignore_errors=True)
+        self._keyframes.pop(seg, None)
+        self._dirty.discard(seg)
+        self._segment_start.pop(seg, None)
+        if self.loops is not None:
+            self.loops.forget(seg)
+        self.stats.segments_dropped += 1
+        self._warn_once("segment-dropped", f"map segment {seg} dropped: nothing registered to its first frame "
+                                           f"(featureless or dark ground?); such frames count as low_confidence")
+
     def _process(self, frame: Frame) -> None:
         t0 = time.perf_counter()
-        for missing in range(self._next_index, frame.index):  # gaps: dropped or undecodable
-            self._rows.append(PoseRow(missing, float("nan"), None, status="dropped", segment=self._segment))
+        self._gaps(frame.index)  # frames before this one that never came: dropped or undecodable
         self._next_index = max(self._next_index, frame.index + 1)
         self.stats.frames_in += 1
         image = frame.image
@@ -361,6 +440,8 @@ class MappingPipeline:
             self._skip(frame, "corrupt", t0)
             return
         new_segment = self.tracker.segments > started  # this frame started a map segment
+        if new_segment:
+            self._retire_segments(step.segment)
         self.stats.segments = self.tracker.segments
         messages = list(step.events)
         for event in step.events:
@@ -509,6 +590,13 @@ class MappingPipeline:
         self.stats.dropped = src.dropped
         self.stats.corrupt = max(self.stats.corrupt, src.corrupt)
         out = self.stats.summary(time.monotonic() - self._started)
+        counts: dict[str, int] = {}
+        for r in self._rows:  # run.json counts what trajectory.csv says, status by status
+            counts[r.status] = counts.get(r.status, 0) + 1
+        out.update({"registered": counts.get("reference", 0) + counts.get("registered", 0),
+                    "low_confidence": counts.get("low_confidence", 0), "corrupt": counts.get("corrupt", 0),
+                    "dropped": max(counts.get("dropped", 0), int(src.dropped))})
+        out["skipped"] = out["low_confidence"] + out["corrupt"]
         out.update({"input": self.input_name, "frame_size": list(self.frame_size or ()),
                     "working_size": list(getattr(self, "_small", ())),
                     "reconnects": src.reconnects, "map_scale": self.cfg.mapping.map_scale,
@@ -563,17 +651,73 @@ class MappingPipeline:
                 counts[r.segment] += 1
         return sorted(counts, key=lambda s: -counts[s])
 
+    @property
+    def _checkpointing(self) -> bool:
+        """Checkpoints keep the full-resolution map (``output.checkpoint_map``, with an interval)."""
+        return self.cfg.output.checkpoint_map and self.cfg.output.checkpoint_interval > 0
+
+    def _attempt(self, name: str, write, *args, **kwargs):
+        """``write(*args, **kwargs)``; a disk error is logged once per output (one line) and
+        remembered, never raised: mapping and the other outputs go on. Returns its result or None."""
+        try:
+            return write(*args, **kwargs)
+        except (OSError, PhotomapError) as exc:
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            if name not in self._write_errors:
+                log.error("cannot write %s: %s", name, reason)
+            self._write_errors[name] = reason
+            return None
+
+    def _state_meta(self, summary: dict) -> dict:
+        """What the checkpoint manifest records besides the tiles."""
+        segments = {}
+        order = self._largest_segments()
+        for seg in order:
+            graph = self.loops.graphs.get(seg) if self.loops is not None else None
+            keyframes = [[kf.index, *np.asarray(kf.pose, float).ravel().tolist()] for kf in graph.keyframes] \
+                if graph is not None else []
+            segments[str(seg)] = {"keyframes": keyframes}
+        return {"input": self.input_name, "frame_size": list(self.frame_size or ()),
+                "frames_in": self.stats.frames_in, "rows": len(self._rows), "order": order,
+                "segments": segments, "summary": summary}
+
+    def _save_state(self, summary: dict, *, final: bool = False, extra: dict | None = None) -> bool:
+        """Checkpoint the full-resolution map (in the background unless ``final``: then every
+        changed tile is written before returning). Returns whether it is written (or under way)."""
+        if not self._checkpointing or self._state_refused or not self.mosaics:
+            return False
+        if self._state is None:
+            try:
+                self._state = Checkpointer(state_folder(self.out_dir))
+            except PhotomapError as exc:
+                self._state_refused = True
+                log.error("%s: the full-resolution map is not checkpointed", exc)
+                return False
+        meta = {**self._state_meta(summary), **(extra or {})}
+        if not final:
+            return self._state.save(self.mosaics, meta)
+        for _ in range(10000):  # the snapshot budget may need several rounds
+            self._state.save(self.mosaics, meta, wait=True)
+            if self._state.failing or self._state.state.last_pending == 0:
+                break
+        return self._state.ok()
+
     def checkpoint(self) -> None:
-        """Rewrite trajectory, run.json and a mosaic preview (atomically)."""
+        """Rewrite trajectory, run.json and a mosaic preview (atomically), and checkpoint the
+        full-resolution map; a write that fails is logged once and tried again next time."""
         self._last_checkpoint = time.monotonic()
         self._rerender()
-        self._write_trajectory()
+        self._attempt("trajectory.csv", self._write_trajectory)
         summary = self.summary()
         summary["complete"] = False
         if self.mosaics:
-            write_png(self.out_dir / "preview.png", self.mosaics[self._largest_segments()[0]],
-                      self.cfg.output.preview_px)
-        write_json(self.out_dir / "run.json", summary)
+            self._attempt("preview.png", write_png, self.out_dir / "preview.png",
+                          self.mosaics[self._largest_segments()[0]], self.cfg.output.preview_px)
+        self._save_state(summary)
+        if self._state is not None:
+            summary["checkpoint"] = self._state.summary()
+        self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
+        release_free_memory()
         self._live_track(summary)
 
     def _live_track(self, summary: dict) -> None:
@@ -647,39 +791,82 @@ class MappingPipeline:
         self._write_trajectory()
 
     def finish(self) -> dict:
-        """Write the final outputs; returns the run summary (also in ``run.json``)."""
+        """Write the final outputs; returns the run summary (also in ``run.json``).
+
+        Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
+        ``write_errors``; when the map itself could not be written, the checkpoint keeps it
+        (``photomap recover``), else the checkpoint is removed."""
         if self.loops is not None:
             for correction in self.loops.flush():
                 self._apply(correction)
         self._rerender()
-        self._write_trajectory()
+        self._close_gaps()
+        if self._state is not None:
+            self._state.wait()
+        if self.loops is not None and self.loops.store.folder.parent == state_folder(self.out_dir):
+            shutil.rmtree(self.loops.store.folder, ignore_errors=True)  # re-rendered: room for the outputs
+        self._attempt("trajectory.csv", self._write_trajectory)
         summary = self.summary()
-        maps = []
+        maps, unwritten = [], []
         max_px = self.cfg.output.max_mosaic_px
         for rank, seg in enumerate(self._largest_segments()):
             name = "mosaic.png" if rank == 0 else f"mosaic_segment{seg}.png"
-            info = write_png(self.out_dir / name, self.mosaics[seg], max_px)
+            info = self._attempt(name, write_png, self.out_dir / name, self.mosaics[seg], max_px)
             if info is None:
+                info = png_placement(name, self.mosaics[seg], max_px)
+                if info is not None:
+                    info["segment"] = seg
+                    unwritten.append(info)
                 continue
-            remove_sidecars(self.out_dir, name)  # an earlier run's georeference must not stay
+            self._attempt(name, remove_sidecars, self.out_dir, name)  # an earlier run's georeference must not stay
             info["segment"] = seg
             if info["scale"] < 1.0:
                 tiles = self.out_dir / ("tiles" if rank == 0 else f"tiles_segment{seg}")
-                write_tiles(tiles, self.mosaics[seg])
+                if not self._attempt(f"{tiles.name}/", lambda t=tiles, m=self.mosaics[seg]: write_tiles(t, m) or True):
+                    unwritten.append(info)
                 info["tiles"] = tiles.name
                 info["tile_size"] = self.mosaics[seg].tile_size
             maps.append(info)
         (self.out_dir / "preview.png").unlink(missing_ok=True)
         if self.telemetry is not None:
-            self._georeference(summary, maps)
-            exports = write_geo_outputs(self.out_dir, maps, self.mosaics, self._rows, self.frame_size,
-                                        t0_unix=summary["video_start_unix"], cog=self.cfg.output.geotiff,
-                                        footprints=self.cfg.output.footprints)
+            self._attempt("georeference", self._georeference, summary, maps + [u for u in unwritten if u not in maps])
+            for info in unwritten:
+                if info not in maps:
+                    remove_sidecars(self.out_dir, info["file"])  # no PNG for them
+            exports = self._attempt("geo outputs", write_geo_outputs, self.out_dir, maps, self.mosaics, self._rows,
+                                    self.frame_size, t0_unix=summary["video_start_unix"],
+                                    cog=self.cfg.output.geotiff, footprints=self.cfg.output.footprints)
             if exports:
                 summary["exports"] = exports
         summary["mosaics"] = maps
         summary["complete"] = True
-        write_json(self.out_dir / "run.json", summary)
+        if unwritten:  # the map is not all on disk as outputs: the checkpoint must hold it
+            georefs = {str(i["segment"]): i["georeference"] for i in maps + unwritten
+                       if (i.get("georeference") or {}).get("crs")}
+            kept = self._save_state(summary, final=True, extra={"georeference": georefs, "complete": True})
+            where = state_folder(self.out_dir)
+            names = ", ".join(i["file"] for i in unwritten)
+            if kept:
+                log.error("the map could not be written in full (%s); it is kept in %s: free space and run "
+                          "`photomap recover %s`", names, where, self.out_dir)
+            elif self._state is not None and self._state.state.generation > 0:
+                log.error("the map could not be written (%s); checkpoint %d in %s holds it as it was then: "
+                          "free space and run `photomap recover %s`", names, self._state.state.generation,
+                          where, self.out_dir)
+                kept = True
+            else:
+                log.error("the map could not be written (%s) and no checkpoint holds it", names)
+            summary["map_kept_in"] = where.name if kept else None
+            summary["map_unwritten"] = [i["file"] for i in unwritten]
+        elif self._state is not None:
+            self._state.remove()
+        elif self._checkpointing:  # keyframes kept for a restart: not needed any more
+            shutil.rmtree(state_folder(self.out_dir), ignore_errors=True)
+        if self._state is not None:
+            summary["checkpoint"] = self._state.summary()
+        if self._write_errors:
+            summary["write_errors"] = dict(self._write_errors)
+        self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
         try:
             write_report(self.out_dir)  # report.html: the flight at a glance, offline
         except (OSError, ValueError, PhotomapError) as exc:
@@ -687,4 +874,3 @@ class MappingPipeline:
         if self._own_cache and self._cache_dir is not None:
             shutil.rmtree(self._cache_dir, ignore_errors=True)
         return summary
-

@@ -59,7 +59,7 @@ _SENSOR_DOWN = 25                 # MAV_SENSOR_ROTATION_PITCH_270
 _UINT16_UNKNOWN = 65535
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class TelemetrySample:
     """Telemetry interpolated to time ``t`` (host UNIX seconds). ``None`` means unknown.
 
