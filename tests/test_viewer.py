@@ -329,6 +329,28 @@ def test_spawn_without_display_warns_and_carries_on(tmp_path, monkeypatch, caplo
     assert pipeline.stats.frames_in == N_FRAMES and viewer.stats.frames == 0
 
 
+def test_spawned_viewer_listens_on_loopback_only(tmp_path, monkeypatch):
+    """``--viewer spawn`` opens a local window whose server is not reachable from the network
+    (rerun's own spawn listens on every interface); the run streams into it."""
+    from photomap.live import viewer as viewer_module
+
+    monkeypatch.setenv("DISPLAY", ":0")  # as on a desktop ...
+    monkeypatch.setattr(viewer_module, "_SPAWN_ARGS", ("--headless",))  # ... but no window here
+    monkeypatch.setenv("PATH", f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    port = _free_port()
+    viewer = Viewer("spawn", params=ViewerConfig(port=port))
+    try:
+        assert viewer.enabled and viewer.spawned_pid is not None
+        assert viewer.url == f"rerun+http://127.0.0.1:{port}/proxy"
+        assert _listeners(port) == {"127.0.0.1"}
+        pipeline = _run(viewer, tmp_path)
+        assert pipeline.stats.frames_in == N_FRAMES and viewer.stats.frames == N_FRAMES
+    finally:
+        viewer.close()
+        if viewer.spawned_pid is not None:
+            os.killpg(viewer.spawned_pid, signal.SIGKILL)
+
+
 def test_connect_to_nothing_warns_and_carries_on(caplog):
     port = _free_port()
     with caplog.at_level(logging.WARNING, logger="photomap.live.viewer"):

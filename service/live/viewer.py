@@ -60,7 +60,10 @@ import ipaddress
 import logging
 import math
 import os
+import shutil
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections import deque
@@ -242,6 +245,9 @@ def _downscale(image: np.ndarray, max_px: int) -> np.ndarray:
     return cv2.resize(image, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
 
 
+_SPAWN_ARGS: tuple[str, ...] = ()  # more arguments for the spawned viewer (tests: "--headless")
+
+
 def _has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
@@ -417,7 +423,8 @@ class Viewer:
         port, server_memory_limit = params.port, params.server_memory_limit
         self.mode, self.arg = mode, arg
         self.url: str | None = None
-        self.address: tuple[str, int] | None = None  # serve: where the server listens
+        self.address: tuple[str, int] | None = None  # serve, spawn: where the server listens
+        self.spawned_pid: int | None = None  # spawn: the viewer process started (it outlives the run)
         self.connect_hint: str | None = None  # serve on loopback: the SSH tunnel to open first
         self.stats = ViewerStats()
         self._tile_period, self._camera_period = 1.0 / tile_hz, 1.0 / camera_hz
@@ -504,7 +511,8 @@ class Viewer:
         rec = rr.RecordingStream(app_id)
         blueprint = default_blueprint()
         if mode == "spawn":
-            rec.spawn(port=port, default_blueprint=blueprint)
+            if not self._spawn(rec, port, memory_limit, blueprint):
+                return
         elif mode == "serve":
             self._serve(rr, rec, address, port, memory_limit, blueprint)
         elif mode == "connect":
@@ -520,6 +528,41 @@ class Viewer:
         rec.log("telemetry/heading_deg", rr.SeriesLines(names=["vision", "autopilot"]), static=True)
         self._thread = threading.Thread(target=self._run, name="photomap-viewer", daemon=True)
         self._thread.start()
+
+    def _spawn(self, rec: Any, port: int, memory_limit: str, blueprint: Any) -> bool:
+        """A local viewer window listening on 127.0.0.1:``port`` only, and stream into it.
+
+        ``rr.spawn`` starts the viewer on every interface (rerun 0.41): anyone on the network could
+        watch the camera. A viewer (or an SSH tunnel to one) already listening there is used as it
+        is. The window outlives the run (close it when done). False when none came up.
+        """
+        url = f"rerun+http://127.0.0.1:{port}/proxy"
+        if not _listening(url):
+            exe = shutil.which("rerun") or shutil.which("rerun", path=str(Path(sys.executable).parent))
+            if exe is None:
+                log.warning("viewer: the rerun viewer executable is not on PATH, so no window; the run "
+                            "carries on without one (pip install 'ifmi-photomap[viewer]')")
+                return False
+            try:
+                proc = subprocess.Popen([exe, "--port", str(port), "--bind", "127.0.0.1", "--memory-limit", "75%",
+                                         "--server-memory-limit", memory_limit, "--expect-data-soon", *_SPAWN_ARGS],
+                                        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.DEVNULL, start_new_session=True,
+                                        env={**os.environ, "RERUN_APP_ONLY": "true"})
+            except OSError as exc:
+                log.warning("viewer: cannot start %s (%s); the run carries on without a viewer", exe, exc)
+                return False
+            self.spawned_pid = proc.pid
+            deadline = time.monotonic() + 15.0
+            while not _listening(url, timeout=0.2):
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    log.warning("viewer: the spawned viewer did not come up on 127.0.0.1:%d; the run "
+                                "carries on without one", port)
+                    return False
+                time.sleep(0.1)
+        rec.connect_grpc(url, default_blueprint=blueprint)
+        self.address, self.url = ("127.0.0.1", port), url
+        return True
 
     def _serve(self, rr: Any, rec: Any, address: str, port: int, memory_limit: str, blueprint: Any) -> None:
         """Host the gRPC server in this process on ``address:port``.
