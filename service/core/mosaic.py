@@ -95,12 +95,13 @@ class TiledMosaic:
         self._spilled: set[TileKey] = set()  # not in memory; current data is in the store
         self._clean: set[TileKey] = set()  # in memory and equal to the store's copy
         self._frame_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
-        self._extent: list[int] | None = None  # covered pixels: x0, y0, x1, y1 (exclusive)
-        self._extent_stale = False
+        # covered pixels of each tile: x0, y0, x1, y1 (map pixels, exclusive): bounds() reads no tile
+        self._extent: dict[TileKey, tuple[int, int, int, int]] = {}
         self.lost_tiles = 0  # spilled tiles the store could not give back
 
     # ------------------------------------------------------------------ adding frames
-    def add(self, frame: np.ndarray, M: np.ndarray, mask: np.ndarray | None = None) -> set[TileKey]:
+    def add(self, frame: np.ndarray, M: np.ndarray, mask: np.ndarray | None = None,
+            clip: Iterable[Rect] | None = None) -> set[TileKey]:
         """Glue ``frame`` into the map at pose ``M``.
 
         Parameters
@@ -110,6 +111,10 @@ class TiledMosaic:
             Pose: frame pixel ``(u, v)`` goes to map pixel ``M @ (u, v, 1)``.
         mask : array (h, w) or None
             Non-zero where the frame is valid (e.g. after undistortion); eroded by ``border``.
+        clip : iterable of rectangles ``(x, y, w, h)`` (map pixels) or None
+            Change only the map pixels inside these rectangles (which must not overlap): only
+            they are warped, so painting a thin strip of a large frame costs the strip. None:
+            the whole footprint.
 
         Returns
         -------
@@ -129,34 +134,52 @@ class TiledMosaic:
         if bw * bh > self.max_footprint_px:
             raise InputError(f"frame footprint of {bw}x{bh} map pixels exceeds the limit of "
                              f"{self.max_footprint_px} (pose scale {math.sqrt(abs(np.linalg.det(M[:, :2]))):.3g})")
+        boxes = [(x0, y0, x1, y1)]
+        if clip is not None:
+            boxes = []
+            for cx, cy, cw, ch in clip:
+                bx0, by0 = max(x0, int(cx)), max(y0, int(cy))
+                bx1, by1 = min(x1, int(cx) + int(cw)), min(y1, int(cy) + int(ch))
+                if bx1 > bx0 and by1 > by0:
+                    boxes.append((bx0, by0, bx1, by1))
+        if self.blend == "overwrite":
+            src = img
+        else:
+            C = self.channels
+            src = cv2.merge([*cv2.split(img.astype(np.float32) * (weight if C == 1 else weight[..., None])),
+                             weight])
+        touched: set[TileKey] = set()
+        for box in boxes:
+            touched |= self._paint_box(src, valid, M, box)
+        return touched
 
-        # Warp the footprint's bounding box once and cut it into tiles: for 320x240 frames in
-        # 256 px tiles this measured 1.1-1.9x faster than one warpAffine per touched tile.
+    def _paint_box(self, src: np.ndarray, valid: np.ndarray, M: np.ndarray,
+                   box: tuple[int, int, int, int]) -> set[TileKey]:
+        """Warp ``src`` (the frame; premultiplied with its weight as the last channel for
+        feather) into the map rectangle ``box = (x0, y0, x1, y1)`` and cut it into the tiles.
+
+        The box is warped once: for 320x240 frames in 256 px tiles this measured 1.1-1.9x faster
+        than one warpAffine per touched tile. Overwrite warps the colour and the valid mask
+        separately and copies with ``cv2.copyTo``: 1.7x faster at 1080p than one BGRA warp and
+        numpy masking, with identical pixels.
+        """
+        x0, y0, x1, y1 = box
+        bw, bh = x1 - x0, y1 - y0
         A = M.copy()
         A[:, 2] -= (x0, y0)
         C = self.channels
+        warp = dict(flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if self.blend == "overwrite":
-            if C == 3:  # cvtColor + one channel write: ~10x faster than np.dstack
-                src = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA)
-                src[..., 3] = valid
-            else:
-                src = cv2.merge([img, valid])
-            warped = cv2.warpAffine(src, A, (bw, bh), flags=cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            cover = warped[..., C] == 255
+            warped = cv2.warpAffine(src, A, (bw, bh), **warp).reshape(bh, bw, C)
+            # a map pixel is covered when all four source pixels of its interpolation are valid
+            cover = cv2.threshold(cv2.warpAffine(valid, A, (bw, bh), **warp), 254, 255, cv2.THRESH_BINARY)[1]
         else:
-            src = cv2.merge([*cv2.split(img.astype(np.float32) * (weight if C == 1 else weight[..., None])),
-                             weight])
-            warped = cv2.warpAffine(src, A, (bw, bh), flags=cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            cover = warped[..., C] > 0
-        rows = np.flatnonzero(cover.any(axis=1))
-        if rows.size == 0:
+            warped = cv2.warpAffine(src, A, (bw, bh), **warp)
+            cover = np.where(warped[..., C] > 0, np.uint8(255), np.uint8(0))
+        rx, ry, rw, rh = cv2.boundingRect(cover)
+        if rw == 0:
             return set()
-        cols = np.flatnonzero(cover.any(axis=0))
-        cx0, cx1 = x0 + int(cols[0]), x0 + int(cols[-1]) + 1
-        cy0, cy1 = y0 + int(rows[0]), y0 + int(rows[-1]) + 1
-        self._grow_extent(cx0, cy0, cx1, cy1)
+        cx0, cy0, cx1, cy1 = x0 + rx, y0 + ry, x0 + rx + rw, y0 + ry + rh
 
         ts = self.tile_size
         touched: set[TileKey] = set()
@@ -166,18 +189,22 @@ class TiledMosaic:
                 mx0, mx1 = max(tx * ts, cx0), min((tx + 1) * ts, cx1)
                 src_sl = (slice(my0 - y0, my1 - y0), slice(mx0 - x0, mx1 - x0))
                 sub_cover = cover[src_sl]
-                if not sub_cover.any():
+                sx, sy, sw, sh = cv2.boundingRect(sub_cover)
+                if sw == 0:
                     continue
                 key = (tx, ty)
                 tile = self._load(key)
                 dst_sl = (slice(my0 - ty * ts, my1 - ty * ts), slice(mx0 - tx * ts, mx1 - tx * ts))
                 sub = warped[src_sl]
                 if self.blend == "overwrite":
-                    np.copyto(tile["color"][dst_sl], sub[..., :C], where=sub_cover[..., None])
-                    tile["cover"][dst_sl][sub_cover] = 255
+                    color = tile["color"][dst_sl]
+                    cv2.copyTo(sub if C > 1 else sub[..., 0], sub_cover, color if C > 1 else color[..., 0])
+                    tile_cover = tile["cover"][dst_sl]
+                    cv2.bitwise_or(tile_cover, sub_cover, dst=tile_cover)
                 else:
                     tile["sum"][dst_sl] += sub[..., :C]
                     tile["weight"][dst_sl] += sub[..., C]
+                self._grow_tile_extent(key, mx0 + sx, my0 + sy, mx0 + sx + sw, my0 + sy + sh)
                 self._clean.discard(key)
                 touched.add(key)
         return touched
@@ -349,38 +376,56 @@ class TiledMosaic:
             self._tiles.pop(key, None)
             self._spilled.discard(key)
             self._clean.discard(key)
+            self._extent.pop(key, None)
             if self._store is not None:
                 self._store.discard(key)
-        self._extent_stale = True
 
     def reset(self) -> None:
         """Forget every tile: an empty map."""
         self.clear_tiles(self.tiles())
-        self._extent, self._extent_stale = None, False
+
+    def take_tiles(self) -> dict[TileKey, Tile]:
+        """Every tile's arrays (from memory or the store), leaving this map empty.
+
+        For a map rendered aside (e.g. a re-render after a pose-graph correction) whose tiles go
+        into another map with :meth:`put_tiles`.
+        """
+        out = {key: tile for key in self.tiles() if (tile := self._peek(key)) is not None}
+        self.reset()
+        return out
+
+    def put_tiles(self, tiles: Mapping[TileKey, Tile | None]) -> None:
+        """Replace whole tiles: ``key -> arrays`` (as :meth:`take_tiles` gives, same tile size and
+        blend; the map keeps them, the caller must not change them) or ``key -> None`` (the tile
+        becomes empty). Cheap: no pixel is copied."""
+        ts = self.tile_size
+        self.clear_tiles(tiles)
+        for key, tile in tiles.items():
+            if tile is None:
+                continue
+            key = (int(key[0]), int(key[1]))
+            alpha = tile["cover"] if self.blend == "overwrite" else (tile["weight"] > 0).view(np.uint8)
+            x, y, w, h = cv2.boundingRect(alpha)
+            if w == 0:
+                continue
+            self._make_room(1)
+            self._tiles[key] = tile
+            self._extent[key] = (key[0] * ts + x, key[1] * ts + y, key[0] * ts + x + w, key[1] * ts + y + h)
 
     # ------------------------------------------------------------------ extent and rendering
-    def _grow_extent(self, x0: int, y0: int, x1: int, y1: int) -> None:
-        e = self._extent
-        self._extent = [x0, y0, x1, y1] if e is None else [
-            min(e[0], x0), min(e[1], y0), max(e[2], x1), max(e[3], y1)]
+    def _grow_tile_extent(self, key: TileKey, x0: int, y0: int, x1: int, y1: int) -> None:
+        e = self._extent.get(key)
+        self._extent[key] = (x0, y0, x1, y1) if e is None else (
+            min(e[0], x0), min(e[1], y0), max(e[2], x1), max(e[3], y1))
 
     def bounds(self) -> Rect | None:
         """The map rectangle ``(x, y, w, h)`` holding every covered pixel, or None if empty."""
-        if self._extent_stale:
-            self._extent, self._extent_stale = None, False
-            ts = self.tile_size
-            for key in self.tiles():
-                _, alpha = self._tile_pixels(self._peek(key))
-                rows = np.flatnonzero(alpha.any(axis=1))
-                if rows.size:
-                    cols = np.flatnonzero(alpha.any(axis=0))
-                    ox, oy = key[0] * ts, key[1] * ts
-                    self._grow_extent(ox + int(cols[0]), oy + int(rows[0]),
-                                      ox + int(cols[-1]) + 1, oy + int(rows[-1]) + 1)
-        if self._extent is None:
+        if not self._extent:
             return None
-        x0, y0, x1, y1 = self._extent
-        return x0, y0, x1 - x0, y1 - y0
+        e = np.array(list(self._extent.values()))
+        x0, y0 = e[:, :2].min(axis=0)
+        x1, y1 = e[:, 2:].max(axis=0)
+        return int(x0), int(y0), int(x1 - x0), int(y1 - y0)
 
     def render(self, scale: float = 1.0, bounds: Rect | None = None
                ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
