@@ -209,6 +209,85 @@ class TiledMosaic:
                 touched.add(key)
         return touched
 
+    def uncovered(self, M: np.ndarray, size: tuple[int, int], *, block: int = 32, step: int = 4,
+                  inset: float = 2.0, gap: int = 3) -> list[Rect]:
+        """Where a frame at pose ``M`` would add ground to the map.
+
+        Parameters
+        ----------
+        M : array-like 2x3
+            Pose of the frame (frame pixels -> map pixels).
+        size : (w, h)
+            Frame size, pixels.
+        block : int
+            Granularity, map pixels: the answer is made of ``block`` x ``block`` squares aligned
+            on multiples of ``block`` (a divisor of the tile size keeps them inside tiles).
+        step : int
+            The map's coverage is looked at every ``step`` pixels in x and y (a divisor of
+            ``block``): new ground narrower than that may go unnoticed until it is wider.
+        inset : float
+            Frame pixels beyond ``border`` not looked at along the frame's edge (pixels there
+            cannot be covered by interpolation anyway, so they would always look new).
+        gap : int
+            New squares of a row at most this many squares apart are joined into one rectangle
+            (painting a little old ground costs less than another warp).
+
+        Returns
+        -------
+        list of rectangles ``(x, y, w, h)`` (map pixels) holding a looked-at map pixel inside
+        the frame's footprint that no frame covers yet: ``add(..., clip=...)`` of them paints
+        the frame's new ground only. Empty when the frame adds nothing.
+        """
+        M = _check_pose(M)
+        w, h = size
+        b = self.border + inset
+        if w - 1 - 2 * b <= 0 or h - 1 - 2 * b <= 0:
+            return []
+        quad = np.array([[b, b], [w - 1 - b, b], [w - 1 - b, h - 1 - b], [b, h - 1 - b]]) @ M[:, :2].T + M[:, 2]
+        gx0, gy0 = (int(v) // block * block for v in np.floor(quad.min(axis=0)))
+        gx1, gy1 = (-(-(int(v) + 1) // block) * block for v in np.ceil(quad.max(axis=0)))
+        W, H = gx1 - gx0, gy1 - gy0
+        if W * H > self.max_footprint_px:
+            raise InputError(f"frame footprint of {W}x{H} map pixels exceeds the limit of {self.max_footprint_px}")
+        # looked-at pixels: map (gx0 + step*j + step//2, gy0 + step*i + step//2) is todo[i, j]
+        o = step // 2
+        todo = np.zeros((H // step, W // step), np.uint8)
+        cv2.fillConvexPoly(todo, np.rint((quad - (gx0 + o, gy0 + o)) * (16 / step)).astype(np.int32), 255,
+                           cv2.LINE_8, 4)
+        ts = self.tile_size
+        for ty in range(gy0 // ts, (gy1 - 1) // ts + 1):
+            for tx in range(gx0 // ts, (gx1 - 1) // ts + 1):
+                key = (tx, ty)
+                if key not in self._tiles and key not in self._spilled:
+                    continue
+                tile = self._load(key)
+                cover = tile["cover"] if self.blend == "overwrite" else (tile["weight"] > 0).view(np.uint8)
+                mx0, mx1 = max(tx * ts, gx0), min((tx + 1) * ts, gx1)  # multiples of step
+                my0, my1 = max(ty * ts, gy0), min((ty + 1) * ts, gy1)
+                sub = todo[(my0 - gy0) // step:(my1 - gy0) // step, (mx0 - gx0) // step:(mx1 - gx0) // step]
+                seen = cover[my0 - ty * ts + o:my1 - ty * ts:step, mx0 - tx * ts + o:mx1 - tx * ts:step]
+                cv2.bitwise_and(sub, cv2.compare(seen, 0, cv2.CMP_EQ), dst=sub)
+        n = block // step
+        grid = todo.reshape(H // block, n, W // step).max(axis=1).reshape(H // block, W // block, n).max(axis=2)
+        runs: list[list[int]] = []  # [row, first column, end column, rows] of merged squares
+        for r, row in enumerate(grid != 0):
+            if not row.any():
+                continue
+            edges = np.flatnonzero(np.diff(np.concatenate([[False], row, [False]]).astype(np.int8)))
+            spans = [[int(edges[0]), int(edges[1])]]
+            for c0, c1 in zip(edges[2::2], edges[3::2]):
+                if c0 - spans[-1][1] <= gap:
+                    spans[-1][1] = int(c1)
+                else:
+                    spans.append([int(c0), int(c1)])
+            for c0, c1 in spans:
+                same = [u for u in runs if u[0] + u[3] == r and u[1] == c0 and u[2] == c1]
+                if same:
+                    same[0][3] += 1  # the same span as the row above: one taller rectangle
+                else:
+                    runs.append([r, c0, c1, 1])
+        return [(gx0 + c0 * block, gy0 + r * block, (c1 - c0) * block, rows * block) for r, c0, c1, rows in runs]
+
     def merge(self, other: TiledMosaic, transform: np.ndarray, chunk: int = 1024) -> set[TileKey]:
         """Paint the map ``other`` into this one through ``transform`` (3x3: map px of ``other``
         -> map px of this map), e.g. when two map segments turn out to be one; in chunks of at

@@ -1,8 +1,10 @@
 """Keyframe images on disk, so that memory stays bounded over a long flight.
 
-Each keyframe keeps two files in the store's folder: ``kf{index:07d}.png``, the grey frame at the
-working resolution (what loop closure registers), and ``kf{index:07d}.jpg``, the input frame
-(what re-renders the map after a pose-graph correction).
+Each keyframe keeps up to three files in the store's folder: ``kf{index:07d}.png``, the grey frame
+at the working resolution (what loop closure registers); ``kf{index:07d}.jpg``, the frame as it was
+painted into the map (at the map's resolution: what re-renders the map after a pose-graph
+correction); and ``kf{index:07d}_mask.png`` when only part of that image is valid. Different
+indices may be written from different threads.
 """
 
 from __future__ import annotations
@@ -24,11 +26,23 @@ class KeyframeStore:
     def _path(self, index: int, kind: str) -> Path:
         return self.folder / f"kf{index:07d}.{kind}"
 
-    def put(self, index: int, small: np.ndarray, image: np.ndarray) -> None:
-        """Keep keyframe ``index``: ``small`` (working resolution, grey or BGR) and ``image``."""
+    def put(self, index: int, small: np.ndarray, image: np.ndarray | None = None) -> None:
+        """Keep keyframe ``index``: ``small`` (working resolution, grey or BGR) and, if given,
+        ``image`` (as :meth:`put_image`)."""
         gray = small if small.ndim == 2 else cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
         cv2.imwrite(str(self._path(index, "png")), gray)
+        if image is not None:
+            self.put_image(index, image)
+
+    def put_image(self, index: int, image: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """Keep the image of frame ``index`` that re-renders the map (JPEG), and where it is
+        valid (``mask`` non-zero; None: everywhere)."""
         cv2.imwrite(str(self._path(index, "jpg")), image, self._jpeg)
+        mask_path = self.folder / f"kf{index:07d}_mask.png"
+        if mask is not None:
+            cv2.imwrite(str(mask_path), np.where(np.asarray(mask) != 0, np.uint8(255), np.uint8(0)))
+        else:
+            mask_path.unlink(missing_ok=True)
 
     def small(self, index: int) -> np.ndarray:
         """The grey working-resolution image of keyframe ``index``; FileNotFoundError if lost."""
@@ -38,5 +52,10 @@ class KeyframeStore:
         return img
 
     def image(self, index: int) -> np.ndarray | None:
-        """The input frame of keyframe ``index`` (BGR), or None if it cannot be read."""
+        """The image of frame ``index`` kept by :meth:`put_image` (BGR), or None if it cannot be read."""
         return cv2.imread(str(self._path(index, "jpg")), cv2.IMREAD_COLOR)
+
+    def mask(self, index: int) -> np.ndarray | None:
+        """Where the image of frame ``index`` is valid (uint8, 255 valid), or None: all of it."""
+        path = self.folder / f"kf{index:07d}_mask.png"
+        return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None

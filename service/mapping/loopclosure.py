@@ -1,7 +1,8 @@
 """Loop closure in the running pipeline: keyframe graphs per segment and their corrections.
 
 The pipeline hands every tracked frame to :class:`LoopCloser`. Keyframes are kept on disk
-(:class:`photomap.io.keyframestore.KeyframeStore`), so memory stays bounded over a long flight.
+(:class:`photomap.io.keyframestore.KeyframeStore`: here the working-resolution image; the image
+that re-renders the map is the painter's), so memory stays bounded over a long flight.
 When a new keyframe closes a loop, the segment's pose graph is optimised
 (:mod:`photomap.core.keyframes`) and the loop closer returns a :class:`Correction`: the new pose
 of every frame it can re-pose (a frame keeps its measured pose relative to the keyframe it was
@@ -142,7 +143,7 @@ class LoopCloser:
 
     def _keep(self, index: int, segment: int, small: np.ndarray, image: np.ndarray,
               priors: KeyframePriors | None) -> None:
-        self.store.put(index, small, image)
+        self.store.put(index, small)  # the image that re-renders the map: the painter keeps it
         self._segment_of[index] = segment
         self._signature[index] = place_signature(small)
         if priors is not None and priors.east_north is not None:
