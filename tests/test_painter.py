@@ -232,3 +232,78 @@ def test_stage_times_give_medians_and_maxima():
     assert s["count"] == 101 and s["max"] == pytest.approx(101.0)
     assert s["median"] == pytest.approx(51.0, rel=0.06) and s["p95"] == pytest.approx(96.0, rel=0.06)
     assert s["mean"] == pytest.approx(51.0) and s["total_s"] == pytest.approx(sum(values), abs=1e-3)
+
+
+# ---------------------------------------------------------------- outputs in bounded memory
+def flight_map(n=12, seed=0, tile_size=64):
+    rng = np.random.default_rng(seed)
+    m = TiledMosaic(MosaicConfig(tile_size=tile_size))
+    for _ in range(n):
+        m.add(texture(240, 320, int(rng.integers(1000))), pose(rng.uniform(0, 360), rng.uniform(0, 900),
+                                                               rng.uniform(0, 600))[:2])
+    return m
+
+
+@pytest.mark.parametrize("max_px", [5000, 500, 333])
+def test_write_png_in_bands_is_the_whole_render(tmp_path, max_px):
+    from photomap.mapping.outputs import write_png
+
+    m = flight_map()
+    info = write_png(tmp_path / "m.png", m, max_px, band_bytes=100_000)  # bands of a few rows
+    png = cv2.imread(str(tmp_path / "m.png"), cv2.IMREAD_UNCHANGED)
+    image, alpha, origin = m.render(info["scale"])
+    assert png.shape == (*alpha.shape, 4) and info["size"] == [alpha.shape[1], alpha.shape[0]]
+    assert info["origin_xy"] == list(origin)
+    np.testing.assert_array_equal(png[..., 3], alpha)
+    assert np.abs(png[..., :3].astype(int) - image).max() <= 1  # float sums in another order
+    assert (png[..., :3] != image).mean() < 1e-4
+
+
+def test_png_stream_round_trip_and_no_file_on_failure(tmp_path):
+    from photomap.io.pngstream import PngStream
+
+    rng = np.random.default_rng(5)
+    for channels in (1, 2, 3, 4):
+        img = rng.integers(0, 256, (37, 23, channels), np.uint8)
+        with PngStream(tmp_path / f"c{channels}.png", 23, 37, channels) as png:
+            for v in range(0, 37, 10):
+                png.write(img[v:v + 10])
+        back = cv2.imread(str(tmp_path / f"c{channels}.png"), cv2.IMREAD_UNCHANGED)
+        if channels == 2:  # OpenCV reads grey + alpha as BGRA
+            np.testing.assert_array_equal(back[..., 0], img[..., 0])
+            np.testing.assert_array_equal(back[..., 3], img[..., 1])
+        else:
+            np.testing.assert_array_equal(back.reshape(img.shape), img)
+    with pytest.raises(RuntimeError):
+        with PngStream(tmp_path / "broken.png", 10, 10, 3) as png:
+            png.write(np.zeros((5, 10, 3), np.uint8))
+            raise RuntimeError("the render failed")
+    with pytest.raises(ValueError):
+        with PngStream(tmp_path / "short.png", 10, 10, 3) as png:
+            png.write(np.zeros((5, 10, 3), np.uint8))
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"c{c}.png" for c in (1, 2, 3, 4)]
+
+
+def test_overview_preview_follows_the_map_and_reads_only_changed_tiles():
+    from photomap.mapping.overview import Overview
+
+    m = flight_map(tile_size=64)
+    ov = Overview(64, max_pixels=100_000)  # small: the factor must grow (to 4 here)
+    ov.mark(m.tiles())
+    assert ov.update(m) == len(m.tiles()) and ov.factor > 1
+    preview = ov.render(300)
+    scale = 300 / max(m.bounds()[2:])
+    want, want_alpha, _ = m.render(scale)
+    assert abs(preview.shape[0] - want_alpha.shape[0]) <= 2 and abs(preview.shape[1] - want_alpha.shape[1]) <= 2
+    h, w = min(preview.shape[0], want_alpha.shape[0]), min(preview.shape[1], want_alpha.shape[1])
+    inside = (want_alpha[:h, :w] == 255) & (preview[:h, :w, 3] == 255)
+    inside = cv2.erode(inside.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # placement within a pixel
+    assert inside.mean() > 0.2
+    # the same picture (the thumbnails' grid may shift it by a fraction of a preview pixel)
+    blur = lambda im: cv2.GaussianBlur(im[:h, :w, :3].astype(np.float32), (0, 0), 2)  # noqa: E731
+    assert np.median(np.abs(blur(preview) - blur(want))[inside]) <= 3
+    # a new frame: only its tiles are read again
+    touched = m.add(texture(240, 320, 77), pose(10, 2000, 2000)[:2])
+    ov.mark(touched)
+    assert ov.update(m) == len(touched)
+    assert ov.render(300) is not None

@@ -476,20 +476,30 @@ class TiledMosaic:
     def put_tiles(self, tiles: Mapping[TileKey, Tile | None]) -> None:
         """Replace whole tiles: ``key -> arrays`` (as :meth:`take_tiles` gives, same tile size and
         blend; the map keeps them, the caller must not change them) or ``key -> None`` (the tile
-        becomes empty). Cheap: no pixel is copied."""
+        becomes empty). No pixel is copied; with a tile cap, a tile that is not in memory goes
+        straight to the store (one write, and no other tile is pushed out)."""
         ts = self.tile_size
-        self.clear_tiles(tiles)
+        cap = self.max_tiles_in_memory
         for key, tile in tiles.items():
-            if tile is None:
-                continue
             key = (int(key[0]), int(key[1]))
-            alpha = tile["cover"] if self.blend == "overwrite" else (tile["weight"] > 0).view(np.uint8)
-            x, y, w, h = cv2.boundingRect(alpha)
+            alpha = None if tile is None else (
+                tile["cover"] if self.blend == "overwrite" else (tile["weight"] > 0).view(np.uint8))
+            x, y, w, h = (0, 0, 0, 0) if alpha is None else cv2.boundingRect(alpha)
             if w == 0:
+                self.clear_tiles([key])
                 continue
-            self._make_room(1)
-            self._tiles[key] = tile
             self._extent[key] = (key[0] * ts + x, key[1] * ts + y, key[0] * ts + x + w, key[1] * ts + y + h)
+            self._clean.discard(key)
+            if key in self._tiles:
+                self._tiles[key] = tile
+            elif cap is not None and len(self._tiles) >= cap:
+                self._store.put(key, tile)
+                self._spilled.add(key)
+            else:
+                self._spilled.discard(key)
+                if self._store is not None:
+                    self._store.discard(key)
+                self._tiles[key] = tile
 
     # ------------------------------------------------------------------ extent and rendering
     def _grow_tile_extent(self, key: TileKey, x0: int, y0: int, x1: int, y1: int) -> None:
@@ -506,7 +516,7 @@ class TiledMosaic:
         x1, y1 = e[:, 2:].max(axis=0)
         return int(x0), int(y0), int(x1 - x0), int(y1 - y0)
 
-    def render(self, scale: float = 1.0, bounds: Rect | None = None
+    def render(self, scale: float = 1.0, bounds: Rect | None = None, rows: tuple[int, int] | None = None
                ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
         """The map (or the rectangle ``bounds``) as one image.
 
@@ -519,6 +529,10 @@ class TiledMosaic:
             not darken it (colours are alpha-weighted, alpha is the covered fraction).
         bounds : (x, y, w, h) or None
             Map rectangle to render; default :meth:`bounds`.
+        rows : (first, end) or None
+            Only these output rows (of the ``H`` rows of the whole render; end exclusive), equal
+            to the same rows of the whole render: a large map rendered band by band never needs
+            the memory of the whole image.
 
         Returns
         -------
@@ -540,11 +554,23 @@ class TiledMosaic:
         x, y, w, h = region
         if w <= 0 or h <= 0:
             raise ValueError(f"render bounds need a positive size, got {region}")
+        H = h if scale == 1 else max(1, round(h * scale))
+        v0, v1 = (0, H) if rows is None else (max(0, int(rows[0])), min(H, int(rows[1])))
+        if v1 <= v0:
+            raise ValueError(f"render rows {rows} hold none of the {H} rows")
         if scale == 1:
-            image, alpha = self._render_full(x, y, w, h)
+            image, alpha = self._render_full(x, y + v0, w, v1 - v0)
         else:
-            image, alpha = self._render_area(x, y, w, h, max(1, round(w * scale)), max(1, round(h * scale)))
+            image, alpha = self._render_area(x, y, w, h, max(1, round(w * scale)), H, v0, v1)
         return (image[..., 0] if C == 1 else image), alpha, (x, y)
+
+    def render_size(self, scale: float = 1.0, bounds: Rect | None = None) -> tuple[int, int]:
+        """``(W, H)`` of :meth:`render` at ``scale`` (``(0, 0)`` for an empty map)."""
+        region = self.bounds() if bounds is None else bounds
+        if region is None:
+            return 0, 0
+        w, h = int(region[2]), int(region[3])
+        return (w, h) if scale == 1 else (max(1, round(w * scale)), max(1, round(h * scale)))
 
     def _region_tiles(self, x: int, y: int, w: int, h: int):
         """(key, tile, (x0, y0, x1, y1) of the tile's part inside the region, tile origin)
@@ -569,12 +595,17 @@ class TiledMosaic:
             alpha[dst] = t_alpha[src]
         return image, alpha
 
-    def _render_area(self, x: int, y: int, w: int, h: int, ow: int, oh: int
+    def _render_area(self, x: int, y: int, w: int, h: int, ow: int, oh: int, v0: int = 0, v1: int | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
-        """Area-averaged (``INTER_AREA``) render to (oh, ow), one tile at a time, alpha-weighted."""
+        """Area-averaged (``INTER_AREA``) render to (oh, ow), one tile at a time, alpha-weighted;
+        only the output rows ``v0..v1`` (exclusive)."""
         C = self.channels
-        acc = np.zeros((oh, ow, C + 1), np.float32)  # sum of alpha*colour, sum of alpha
-        for _, tile, (mx0, my0, mx1, my1), (ox, oy) in self._region_tiles(x, y, w, h):
+        v1 = oh if v1 is None else v1
+        acc = np.zeros((v1 - v0, ow, C + 1), np.float32)  # sum of alpha*colour, sum of alpha
+        step = h / oh
+        sy0 = y + int(math.floor(v0 * step))  # the map rows that feed output rows v0..v1
+        sy1 = min(y + h, y + int(math.ceil(v1 * step)))
+        for _, tile, (mx0, my0, mx1, my1), (ox, oy) in self._region_tiles(x, sy0, w, sy1 - sy0):
             t_img, t_alpha = self._tile_pixels(tile)
             src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
             a = t_alpha[src].astype(np.float32) / 255
@@ -582,12 +613,15 @@ class TiledMosaic:
                 continue
             pre = np.dstack([t_img[src] * a[..., None], a])
             u0, wx = _area_weights(mx0 - x, mx1 - x, w / ow, ow)
-            v0, wy = _area_weights(my0 - y, my1 - y, h / oh, oh)
-            block = np.tensordot(wy, pre, axes=(1, 0))  # (oh', cols, C+1)
-            block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)  # (oh', ow', C+1)
-            acc[v0:v0 + wy.shape[0], u0:u0 + wx.shape[0]] += block
+            j0, wy = _area_weights(my0 - y, my1 - y, step, oh)
+            r0, r1 = max(j0, v0), min(j0 + wy.shape[0], v1)  # output rows of this band
+            if r1 <= r0:
+                continue
+            block = np.tensordot(wy[r0 - j0:r1 - j0], pre, axes=(1, 0))  # (rows, cols, C+1)
+            block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)  # (rows, ow', C+1)
+            acc[r0 - v0:r1 - v0, u0:u0 + wx.shape[0]] += block
         cover = acc[..., C]
-        image = np.zeros((oh, ow, C), np.uint8)
+        image = np.zeros((v1 - v0, ow, C), np.uint8)
         covered = cover > 1e-6
         image[covered] = np.clip(np.rint(acc[..., :C][covered] / cover[covered][:, None]), 0, 255)
         alpha = np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)

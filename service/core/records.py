@@ -18,9 +18,9 @@ STATUSES = ("reference", "registered", "low_confidence", "dropped", "corrupt")
 GLUED = frozenset({"reference", "registered"})
 """Statuses whose pose is part of the map (the only ones evaluated and written to TUM)."""
 
-@dataclass
+@dataclass(slots=True)
 class PoseRow:
-    """One input frame of a run.
+    """One input frame of a run (slots: a long flight keeps one per frame).
 
     Parameters
     ----------

@@ -73,6 +73,46 @@ class Join:
 Update = Correction | Join
 
 
+class RelativePoses:
+    """Frame -> (its keyframe, measured 3x3 input px of the frame -> input px of the keyframe),
+    for every tracked frame of a segment, in compact arrays (56 bytes a frame rather than about
+    400 in a dict of tuples of arrays: a long flight's memory stays flat)."""
+
+    def __init__(self) -> None:
+        self._frames = np.zeros(0, np.int64)
+        self._refs = np.zeros(0, np.int64)
+        self._rel = np.zeros((0, 2, 3))
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def add(self, frame: int, ref: int, rel: np.ndarray) -> None:
+        if self._n == len(self._frames):  # grow by half: amortised O(1), at most 1.5x the size
+            cap = max(64, self._n + self._n // 2)
+            self._frames = np.resize(self._frames, cap)
+            self._refs = np.resize(self._refs, cap)
+            self._rel = np.resize(self._rel, (cap, 2, 3))
+        self._frames[self._n], self._refs[self._n] = frame, ref
+        self._rel[self._n] = np.asarray(rel, float)[:2]
+        self._n += 1
+
+    def update(self, other: RelativePoses) -> None:
+        for frame, ref, rel in zip(other._frames[:other._n], other._refs[:other._n], other._rel[:other._n]):
+            self.add(int(frame), int(ref), rel)
+
+    def poses(self, keyframes: dict[int, np.ndarray], skip: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """3x3 poses ``keyframes[ref] @ rel`` of the frames whose keyframe is in ``keyframes``
+        (and that are not in ``skip``)."""
+        out = {}
+        bottom = np.array([0.0, 0.0, 1.0])
+        for frame, ref, rel in zip(self._frames[:self._n].tolist(), self._refs[:self._n].tolist(),
+                                   self._rel[:self._n]):
+            if frame not in skip and ref in keyframes:
+                out[frame] = keyframes[ref] @ np.vstack([rel, bottom])
+        return out
+
+
 class LoopCloser:
     """Keyframe graphs of all segments of a run (used from the worker thread; the optimiser runs
     on snapshots in its own thread).
@@ -107,7 +147,7 @@ class LoopCloser:
         self.use_priors = use_priors
         self.graphs: dict[int, KeyframeGraph] = {}
         # segment -> frame -> (keyframe, 3x3 measured: input px of frame -> of keyframe)
-        self.relative: dict[int, dict[int, tuple[int, np.ndarray]]] = {}
+        self.relative: dict[int, RelativePoses] = {}
         self.corrections = 0
         self.join_candidates = join_candidates
         self.joins: list[Join] = []
@@ -165,7 +205,7 @@ class LoopCloser:
         if step.pose is None:
             return self._polled()
         if step.reference is not None:
-            self.relative.setdefault(step.segment, {})[index] = (step.reference, step.relative)
+            self.relative.setdefault(step.segment, RelativePoses()).add(index, step.reference, step.relative)
         if not step.keyframe:
             return self._polled()
         priors = self._priors(sample)
@@ -220,7 +260,7 @@ class LoopCloser:
             transform = old @ measured @ np.linalg.inv(new)
             self.graphs[into].absorb(self.graphs.pop(segment), transform,
                                      (match, index, measured, reg.confidence))
-            self.relative.setdefault(into, {}).update(self.relative.pop(segment, {}))
+            self.relative.setdefault(into, RelativePoses()).update(self.relative.pop(segment, RelativePoses()))
             for k, s in self._segment_of.items():
                 if s == segment:
                     self._segment_of[k] = into
@@ -269,9 +309,8 @@ class LoopCloser:
         self.corrections += 1
         keyframes = {kf.index: kf.pose for kf in graph.keyframes}
         new = dict(keyframes)
-        for frame, (ref, rel) in self.relative.get(segment, {}).items():
-            if frame not in new and ref in keyframes:
-                new[frame] = keyframes[ref] @ rel
+        if segment in self.relative:
+            new.update(self.relative[segment].poses(keyframes, new))
         latest = graph.keyframes[-1]
         return Correction(segment, new, fixes[latest.index],
                           tuple((kf.index, kf.pose.copy()) for kf in graph.keyframes))

@@ -14,6 +14,7 @@ import numpy as np
 
 from photomap.core.mosaic import TiledMosaic
 from photomap.geo.georef import Georeference, aux_xml_text, compose, png_to_map, prj_text, world_file_text
+from photomap.io.pngstream import PngStream
 from photomap.io.trajectory_files import atomic_write_bytes
 
 
@@ -23,8 +24,12 @@ def _bgra(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return np.dstack([image, alpha])
 
 
-def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
+def write_png(path: Path, mosaic: TiledMosaic, max_px: int, band_bytes: int = 16 << 20) -> dict | None:
     """The map of ``mosaic``, downscaled to at most ``max_px`` on its longer side; its placement.
+
+    Rendered and written in bands of rows (:class:`~photomap.io.pngstream.PngStream`), each
+    taking about ``band_bytes`` of render memory: an 8192 px mosaic needs tens of MB, not the
+    1.4 GB of one render and one encoding.
 
     Returns None for an empty map, else ``file``, ``origin_xy``, ``scale``, ``pixel_scale``,
     ``bounds`` (map rectangle x, y, w, h) and ``size`` (PNG w, h).
@@ -32,17 +37,17 @@ def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
     bounds = mosaic.bounds()
     if bounds is None:
         return None
-    _, _, w, h = bounds
+    x, y, w, h = bounds
     scale = min(1.0, max_px / max(w, h))
-    image, alpha, origin = mosaic.render(scale=scale)
-    ok, buf = cv2.imencode(".png", _bgra(image, alpha))
-    if not ok:
-        raise RuntimeError(f"PNG encoding of {path.name} failed")
-    atomic_write_bytes(path, buf.tobytes())
+    W, H = mosaic.render_size(scale, bounds)
+    band = max(16, min(4096, band_bytes // (20 * W)))  # float32 accumulator + image per output pixel
+    with PngStream(path, W, H, 4) as png:
+        for v0 in range(0, H, band):
+            image, alpha, _ = mosaic.render(scale, bounds, rows=(v0, min(H, v0 + band)))
+            png.write(_bgra(image, alpha))
     # exact per-axis scale of the PNG: output size over the map rectangle's size
-    return {"file": path.name, "origin_xy": list(origin), "scale": scale,
-            "pixel_scale": [image.shape[1] / w, image.shape[0] / h],
-            "bounds": [int(v) for v in bounds], "size": [int(image.shape[1]), int(image.shape[0])]}
+    return {"file": path.name, "origin_xy": [x, y], "scale": scale, "pixel_scale": [W / w, H / h],
+            "bounds": [int(v) for v in bounds], "size": [int(W), int(H)]}
 
 
 def write_tiles(folder: Path, mosaic: TiledMosaic) -> None:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import cv2
@@ -38,6 +39,7 @@ import numpy as np
 
 from photomap.core.mosaic import TiledMosaic, TileKey
 from photomap.geometry import to_h
+from photomap.mapping.overview import Overview
 from photomap.mapping.rerender import KeptFrame, Rerenderer
 
 log = logging.getLogger(__name__)
@@ -101,6 +103,7 @@ class _Segment:
     job: tuple[int, int] | None = None  # (job id, paint number at submission) of the running job
     tail: _Tail | None = None  # the last posed frame
     last_painted: np.ndarray | None = None  # 3x3 pose of the last frame painted or looked at
+    overview: Overview | None = None  # thumbnails for previews
 
 
 class Painter:
@@ -115,8 +118,11 @@ class Painter:
     whole_frames : bool
         Paint every frame whole (no new-ground painting).
     rerenderer : Rerenderer or None
-        Keeps the frames painted whole and re-renders after corrections (None: no loop
-        closure, nothing is kept).
+        The background thread: keeps the frames painted whole, re-renders after corrections,
+        encodes previews (None: all in the caller's thread, nothing kept).
+    keep : bool
+        Keep the frames painted whole for re-rendering (loop closure is on; needs a rerenderer
+        with a store).
     block : int
         New-ground granularity, map pixels (a divisor of the tile size).
     min_move_px : float
@@ -129,19 +135,25 @@ class Painter:
     interval_s : float
         At least this long between two re-render jobs of a segment (a tile painted live during a
         job is re-rendered again; this bounds the background work while the drone is still there).
+    swap_budget_s : float
+        Time the worker spends swapping re-rendered tiles in per call of :meth:`pump` (with a
+        tile cap a swapped tile may be a file write); the rest waits for the next frame.
     """
 
     def __init__(self, frame_size: tuple[int, int], tile_size: int, *, whole_frames: bool = False,
-                 rerenderer: Rerenderer | None = None, block: int = 32, min_move_px: float = 32.0,
-                 move_px: float = 0.5, interval_s: float = 1.0) -> None:
+                 rerenderer: Rerenderer | None = None, keep: bool = True, block: int = 32, min_move_px: float = 32.0,
+                 move_px: float = 0.5, interval_s: float = 1.0, swap_budget_s: float = 0.005) -> None:
         self.frame_size = frame_size
         self.tile_size = tile_size
         self.whole_frames = whole_frames
         self.rerenderer = rerenderer
+        self.keep = keep and rerenderer is not None and rerenderer.store is not None
         self.block = block
         self.min_move_px = min_move_px
         self.move_px = move_px
         self.interval_s = interval_s
+        self.swap_budget_s = swap_budget_s
+        self._swaps: deque = deque()  # (segment, job, tile key, tile arrays) waiting to be swapped in
         self.stats = PaintStats()
         self._segments: dict[int, _Segment] = {}
         self._paints = 0  # paint number
@@ -150,7 +162,10 @@ class Painter:
         self._corners = np.array([[0, w - 1, w - 1, 0], [0, 0, h - 1, h - 1], [1.0, 1.0, 1.0, 1.0]])
 
     def _seg(self, segment: int) -> _Segment:
-        return self._segments.setdefault(segment, _Segment())
+        seg = self._segments.get(segment)
+        if seg is None:
+            seg = self._segments[segment] = _Segment(overview=Overview(self.tile_size))
+        return seg
 
     # ------------------------------------------------------------------ live painting
     def paint(self, mosaic: TiledMosaic, segment: int, index: int, image: np.ndarray, pose: np.ndarray,
@@ -179,13 +194,14 @@ class Painter:
         self._paints += 1
         for tile in touched:
             seg.painted[tile] = self._paints
+        seg.overview.mark(touched)
         if whole:
             self.stats.whole += 1
         else:
             self.stats.new_ground += 1
         if keyframe:
             self._keep(seg, index, pose, img, mask_m, to_kept)
-        seg.tail = _Tail(index, image, pose, mask, keyframe and self.rerenderer is not None)
+        seg.tail = _Tail(index, image, pose, mask, keyframe and self.keep)
         seg.last_painted = pose
         return touched
 
@@ -205,7 +221,7 @@ class Painter:
 
     def _keep(self, seg: _Segment, index: int, pose: np.ndarray, image: np.ndarray, mask: np.ndarray | None,
               to_kept: np.ndarray) -> None:
-        if self.rerenderer is None:
+        if not self.keep:
             return
         seg.kept.append((index, pose.copy(), to_kept, (image.shape[1], image.shape[0])))
         self.rerenderer.save(index, image, mask)
@@ -218,6 +234,9 @@ class Painter:
         if seg is None or seg.tail is None or seg.tail.kept or seg.tail.image is None or mosaic is None:
             return set()
         tail = seg.tail
+        if not self.keep:  # nothing is re-rendered: its new ground is in the map already
+            seg.tail = _Tail(tail.index, None, tail.pose, None, True)
+            return set()
         touched = self.paint(mosaic, segment, tail.index, tail.image, tail.pose, tail.mask, whole=True)
         seg.tail = _Tail(tail.index, None, tail.pose, None, True)  # the image is kept (or not needed)
         return touched
@@ -276,36 +295,40 @@ class Painter:
 
     # ------------------------------------------------------------------ swapping re-renders in
     def pump(self, mosaics: dict[int, TiledMosaic], *, now: float | None = None,
-             force: bool = False) -> dict[int, set[TileKey]]:
-        """Swap finished re-render strips into ``mosaics`` and start the next jobs; never waits.
-        Returns the tiles changed per segment."""
+             force: bool = False, budget_s: float | None = None) -> dict[int, set[TileKey]]:
+        """Swap finished re-render tiles into ``mosaics`` (for at most ``budget_s`` seconds, default
+        ``swap_budget_s``; the rest waits for the next call) and start the next job; never waits
+        for the re-render. ``force``: start a job now, whatever ``interval_s`` says. Returns the
+        tiles changed per segment."""
         changed: dict[int, set[TileKey]] = {}
         if self.rerenderer is None:
             return changed
         t0 = time.perf_counter()
-        for strip in self.rerenderer.collect():
-            self.stats.rerender_s += strip.render_s
-            seg = self._segments.get(strip.segment)
-            mosaic = mosaics.get(strip.segment)
-            if seg is None or mosaic is None or seg.job is None or seg.job[0] != strip.job:
+        budget = self.swap_budget_s if budget_s is None else budget_s
+        if not self._swaps:
+            for strip in self.rerenderer.collect():
+                self.stats.rerender_s += strip.render_s
+                self._swaps.extend((strip.segment, strip.job, key, tile) for key, tile in strip.tiles.items())
+        while self._swaps and time.perf_counter() - t0 < budget:
+            segment, job, key, tile = self._swaps.popleft()
+            seg = self._segments.get(segment)
+            mosaic = mosaics.get(segment)
+            if seg is None or mosaic is None or seg.job is None or seg.job[0] != job:
                 continue  # joined into another map meanwhile: that map re-renders it
-            since = seg.job[1]
-            swap = {}
-            for key, tile in strip.tiles.items():
-                if seg.painted.get(key, 0) > since:
-                    seg.dirty.add(key)  # painted live meanwhile: keep it, re-render it later
-                    self.stats.deferred_tiles += 1
-                else:
-                    swap[key] = tile
-            mosaic.put_tiles(swap)
-            self.stats.rerendered_tiles += len(swap)
-            changed.setdefault(strip.segment, set()).update(swap)
+            if seg.painted.get(key, 0) > seg.job[1]:
+                seg.dirty.add(key)  # painted live meanwhile: keep it, re-render it later
+                self.stats.deferred_tiles += 1
+                continue
+            mosaic.put_tiles({key: tile})
+            seg.overview.mark([key])
+            self.stats.rerendered_tiles += 1
+            changed.setdefault(segment, set()).add(key)
         if changed:
             self.stats.max_swap_ms = max(self.stats.max_swap_ms, 1000.0 * (time.perf_counter() - t0))
         self.stats.lost_frames = self.rerenderer.lost_frames
         self.stats.sync_writes = self.rerenderer.sync_writes
         now = time.monotonic() if now is None else now
-        if self.rerenderer.busy or (not force and now - self._last_job < self.interval_s):
+        if self._swaps or self.rerenderer.busy or (not force and now - self._last_job < self.interval_s):
             return changed
         for segment, seg in sorted(self._segments.items()):
             if seg.dirty and segment in mosaics:
@@ -318,9 +341,16 @@ class Painter:
                 break  # one job at a time: the next one gets the poses of then
         return changed
 
+    def write_preview(self, path, segment: int, mosaic: TiledMosaic, max_px: int) -> bool:
+        """A small PNG of map ``segment`` (at most ``max_px``), from thumbnails refreshed only where
+        the map changed since the last preview (resized and encoded in the background thread);
+        False when the map is empty."""
+        later = self.rerenderer.later if self.rerenderer is not None else None
+        return self._seg(segment).overview.write(path, mosaic, max_px, later)
+
     def pending(self) -> bool:
-        """Tiles waiting for a re-render, or a job running."""
-        return any(s.dirty for s in self._segments.values()) or (
+        """Tiles waiting for a re-render or a swap, or a job running."""
+        return any(s.dirty for s in self._segments.values()) or bool(self._swaps) or (
             self.rerenderer is not None and self.rerenderer.busy)
 
     def finish(self, mosaics: dict[int, TiledMosaic], timeout_s: float = 600.0) -> dict[int, set[TileKey]]:
@@ -332,11 +362,11 @@ class Painter:
         deadline = time.monotonic() + timeout_s
 
         def pump() -> None:
-            for segment, keys in self.pump(mosaics, force=True).items():
+            for segment, keys in self.pump(mosaics, force=True, budget_s=float("inf")).items():
                 changed.setdefault(segment, set()).update(keys)
 
         def idle() -> bool:
-            return not any(s.dirty for s in self._segments.values()) and not self.rerenderer.busy
+            return not self.pending()
 
         while True:
             pump()

@@ -264,13 +264,14 @@ class MappingPipeline:
         registrar = Registrar((self._small[1], self._small[0]), self.cfg.registration)
         self.tracker = Tracker(registrar, f, mapping,
                                telemetry_prior=self.telemetry.prior if self.telemetry else None)
-        rerenderer = None
+        store = None
         if mapping.keyframes and mapping.loop_closure:
             store = KeyframeStore(self._cache() / "keyframes")
             self.loops = LoopCloser(store, registrar, self.frame_size,
                                     f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None)
-            rerenderer = Rerenderer(store, self.cfg.mosaic)
-        self._painter = Painter(self.frame_size, self.cfg.mosaic.tile_size, rerenderer=rerenderer,
+        # the painter's background thread: kept images, re-renders after corrections, previews
+        self._painter = Painter(self.frame_size, self.cfg.mosaic.tile_size,
+                                rerenderer=Rerenderer(store, self.cfg.mosaic), keep=self.loops is not None,
                                 whole_frames=mapping.paint == "every")
 
     def _cache(self) -> Path:
@@ -580,9 +581,10 @@ class MappingPipeline:
         self._write_trajectory()
         summary = self.summary()
         summary["complete"] = False
-        if self.mosaics:
-            write_png(self.out_dir / "preview.png", self.mosaics[self._largest_segments()[0]],
-                      self.cfg.output.preview_px)
+        if self.mosaics:  # from thumbnails kept up to date by the painter: no tile is read twice
+            segment = self._largest_segments()[0]
+            self._painter.write_preview(self.out_dir / "preview.png", segment, self.mosaics[segment],
+                                        self.cfg.output.preview_px)
         write_json(self.out_dir / "run.json", summary)
 
     def _georeference(self, summary: dict, maps: list[dict]) -> None:

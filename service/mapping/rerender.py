@@ -22,7 +22,7 @@ import threading
 import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -91,8 +91,9 @@ class Rerenderer:
 
     Parameters
     ----------
-    store : KeyframeStore
-        Where kept images go (``put_image``) and come back from.
+    store : KeyframeStore or None
+        Where kept images go (``put_image``) and come back from (None: no frame is kept, the
+        thread only runs :meth:`later` tasks).
     params : MosaicConfig
         The map's settings (tile size, channels, blend, border): strips are rendered exactly as
         the live map paints.
@@ -101,19 +102,23 @@ class Rerenderer:
     max_pending_writes : int
         Kept images waiting for the thread; beyond, :meth:`save` writes in the caller's thread
         (memory stays bounded when the thread gets no CPU).
+    max_done : int
+        Finished strips waiting for :meth:`collect`; the thread renders no more until they are
+        taken (memory stays bounded when the worker swaps slowly).
     nice : int
         Added to the thread's nice value (0: same priority as the worker).
     """
 
-    def __init__(self, store: KeyframeStore, params: MosaicConfig, *, strip_tiles: int = 64,
-                 max_pending_writes: int = 8, nice: int = 10) -> None:
+    def __init__(self, store: KeyframeStore | None, params: MosaicConfig, *, strip_tiles: int = 64,
+                 max_pending_writes: int = 8, max_done: int = 2, nice: int = 10) -> None:
         self.store = store
         self.params = replace(params, max_tiles_in_memory=None)  # a scratch map never spills
         self.strip_tiles = max(1, int(strip_tiles))
         self.max_pending_writes = max(1, int(max_pending_writes))
+        self.max_done = max(1, int(max_done))
         self.nice = nice
         self._cond = threading.Condition()
-        self._writes: deque[tuple[int, np.ndarray, np.ndarray | None]] = deque()
+        self._writes: deque[Callable[[], None]] = deque()  # kept images, previews: before any strip
         self._jobs: deque[tuple[int, int, tuple[KeptFrame, ...], list[list[TileKey]]]] = deque()
         self._done: list[Strip] = []
         self._active = 0  # strips being rendered or written right now (0 or 1)
@@ -121,8 +126,8 @@ class Rerenderer:
         self._closing = False
         self._failure: BaseException | None = None
         self._cache: OrderedDict[int, tuple[np.ndarray | None, np.ndarray | None]] = OrderedDict()
-        self.writes = 0
-        self.sync_writes = 0  # written by the caller because the thread was behind
+        self.writes = 0  # kept images
+        self.sync_writes = 0  # tasks run by the caller because the thread was behind
         self.lost_frames = 0  # kept images that could not be read back
         self._thread = threading.Thread(target=self._run, name="photomap-rerender", daemon=True)
         self._thread.start()
@@ -131,12 +136,18 @@ class Rerenderer:
     def save(self, index: int, image: np.ndarray, mask: np.ndarray | None = None) -> None:
         """Keep the image of frame ``index`` (and its valid ``mask``) for re-rendering. The
         arrays must not change afterwards (the caller hands them over)."""
+        self.later(lambda: self.store.put_image(index, image, mask))
+        self.writes += 1
+
+    def later(self, task: Callable[[], None]) -> None:
+        """Run ``task`` in the background thread, before any further re-render strip (in the
+        caller's thread when ``max_pending_writes`` tasks are already waiting)."""
         with self._cond:
             if len(self._writes) < self.max_pending_writes and not self._closing:
-                self._writes.append((index, image, mask))
+                self._writes.append(task)
                 self._cond.notify()
                 return
-        self.store.put_image(index, image, mask)
+        task()
         self.sync_writes += 1
 
     def submit(self, segment: int, frames: Sequence[KeptFrame], tiles: set[TileKey]) -> int:
@@ -157,6 +168,7 @@ class Rerenderer:
         self._raise()
         with self._cond:
             done, self._done = self._done, []
+            self._cond.notify_all()
         return done
 
     @property
@@ -170,7 +182,8 @@ class Rerenderer:
         stay for :meth:`collect`."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while (self._jobs or self._writes or self._active) and self._failure is None:
+            while (self._writes or self._active or (self._jobs and len(self._done) < self.max_done)) \
+                    and self._failure is None:
                 left = None if deadline is None else deadline - time.monotonic()
                 if left is not None and left <= 0:
                     break
@@ -195,11 +208,12 @@ class Rerenderer:
         _lower_priority(self.nice)
         while True:
             with self._cond:
-                while not self._writes and not self._jobs and not self._closing:
+                while not self._writes and not self._closing and (
+                        not self._jobs or len(self._done) >= self.max_done):
                     self._cond.wait()
                 if self._writes:  # kept images first: a job may need them, and they hold memory
                     task = ("write", self._writes.popleft())
-                elif self._jobs:
+                elif self._jobs and len(self._done) < self.max_done:
                     job, segment, frames, strips = self._jobs[0]
                     keys = strips.pop(0)
                     if not strips:
@@ -210,9 +224,7 @@ class Rerenderer:
                 self._active += 1
             try:
                 if task[0] == "write":
-                    index, image, mask = task[1]
-                    self.store.put_image(index, image, mask)
-                    self.writes += 1
+                    task[1]()
                 else:
                     strip = self._render(*task[1])
                     with self._cond:
