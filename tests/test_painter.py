@@ -63,6 +63,30 @@ def test_uncovered_is_the_new_ground_and_painting_it_completes_the_map():
     assert np.median(np.abs(got[0].astype(int) - want[0])[same]) == 0
 
 
+def test_a_strip_of_a_large_frame_is_downscaled_alone():
+    """New ground of a frame finer than the map: only the strip's part of the frame is resized,
+    and the map is the same as with the whole frame resized."""
+    big = cv2.resize(texture(300, 400, 4), (1600, 1200), interpolation=cv2.INTER_CUBIC)
+    first, second = pose(5, 0, 0, 0.25), pose(5, 60.3, 20.7, 0.25)
+    maps = {}
+    for whole_frames in (False, True):
+        m = TiledMosaic(MosaicConfig(tile_size=64))
+        painter = Painter((1600, 1200), 64, whole_frames=whole_frames, min_move_px=0)
+        painter.paint(m, 0, 0, big[:, ::-1].copy(), first, whole=True)
+        painter.paint(m, 0, 1, big, second)
+        maps[whole_frames] = m
+        if not whole_frames:
+            assert painter.stats.new_ground == 1
+    bounds = maps[True].bounds()
+    (got, got_a, _), (want, want_a, _) = maps[False].render(bounds=bounds), maps[True].render(bounds=bounds)
+    only_first = TiledMosaic(MosaicConfig(tile_size=64))
+    Painter((1600, 1200), 64).paint(only_first, 0, 0, big[:, ::-1].copy(), first, whole=True)
+    new = (want_a == 255) & (got_a == 255) & (only_first.render(bounds=bounds)[1] != 255)  # the second's ground
+    assert new.sum() > 1000
+    assert (got_a == 255).sum() > 0.99 * (want_a == 255).sum()
+    assert np.median(np.abs(got.astype(int) - want)[new]) <= 1
+
+
 def test_resize_factors_follow_cv2_resize():
     assert resize_factors((640, 480), pose(30, 5, 5, 0.9)) is None  # not much coarser: warp the frame
     size, to_small = resize_factors((640, 480), pose(30, 5, 5, 0.5))

@@ -13,6 +13,7 @@ as :meth:`photomap.core.mosaic.TiledMosaic.render` downscales.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -52,21 +53,28 @@ class Overview:
         """These tiles changed (painted, swapped in, emptied)."""
         self._stale.update(keys)
 
-    def update(self, mosaic: TiledMosaic) -> int:
-        """Refresh the thumbnails of the changed tiles from ``mosaic``; returns how many."""
+    @property
+    def stale(self) -> int:
+        """Tiles changed since their thumbnail was made."""
+        return len(self._stale)
+
+    def update(self, mosaic: TiledMosaic, budget_s: float | None = None) -> int:
+        """Refresh the thumbnails of the changed tiles from ``mosaic`` (for at most ``budget_s``
+        seconds: the rest stays for the next call); returns how many."""
         t = max(1, self.tile_size // self.factor)
-        present = set(mosaic.tiles())
+        t0 = time.perf_counter()
         n = 0
-        for key in self._stale:
-            if key not in present:
+        while self._stale and (budget_s is None or time.perf_counter() - t0 < budget_s):
+            key = self._stale.pop()
+            try:
+                image, alpha = mosaic.tile_image(key)
+            except KeyError:  # emptied
                 self._thumbs.pop(key, None)
                 continue
-            image, alpha = mosaic.tile_image(key)
             if image.ndim == 2:
                 image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
             self._thumbs[key] = _shrink(np.dstack([image, alpha]), t)
             n += 1
-        self._stale.clear()
         while len(self._thumbs) * t * t > self.max_pixels and t > 1:
             self.factor *= 2
             t = max(1, self.tile_size // self.factor)

@@ -138,11 +138,15 @@ class Painter:
     swap_budget_s : float
         Time the worker spends swapping re-rendered tiles in per call of :meth:`pump` (with a
         tile cap a swapped tile may be a file write); the rest waits for the next frame.
+    thumb_budget_s : float
+        ... and refreshing the preview thumbnails of changed tiles (while they are in memory),
+        so that a checkpoint's preview has little left to do.
     """
 
     def __init__(self, frame_size: tuple[int, int], tile_size: int, *, whole_frames: bool = False,
                  rerenderer: Rerenderer | None = None, keep: bool = True, block: int = 32, min_move_px: float = 32.0,
-                 move_px: float = 0.5, interval_s: float = 1.0, swap_budget_s: float = 0.005) -> None:
+                 move_px: float = 0.5, interval_s: float = 1.0, swap_budget_s: float = 0.005,
+                 thumb_budget_s: float = 0.003) -> None:
         self.frame_size = frame_size
         self.tile_size = tile_size
         self.whole_frames = whole_frames
@@ -153,6 +157,7 @@ class Painter:
         self.move_px = move_px
         self.interval_s = interval_s
         self.swap_budget_s = swap_budget_s
+        self.thumb_budget_s = thumb_budget_s
         self._swaps: deque = deque()  # (segment, job, tile key, tile arrays) waiting to be swapped in
         self.stats = PaintStats()
         self._segments: dict[int, _Segment] = {}
@@ -189,7 +194,7 @@ class Painter:
             if not clip:
                 self.stats.nothing_new += 1
                 return set()
-        img, pose_m, mask_m, to_kept = self._at_map_resolution(image, pose, mask)
+        img, pose_m, mask_m, to_kept = self._at_map_resolution(image, pose, mask, clip)
         touched = mosaic.add(img, pose_m[:2], mask_m, clip=clip)
         self._paints += 1
         for tile in touched:
@@ -205,13 +210,29 @@ class Painter:
         seg.last_painted = pose
         return touched
 
-    def _at_map_resolution(self, image: np.ndarray, pose: np.ndarray, mask: np.ndarray | None
+    def _at_map_resolution(self, image: np.ndarray, pose: np.ndarray, mask: np.ndarray | None,
+                           clip: list | None = None
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
-        """(image, 3x3 pose, mask, 3x3 input px -> image px) at the map's resolution."""
+        """(image, 3x3 pose, mask, 3x3 input px -> image px) at the map's resolution; with
+        ``clip`` (map rectangles) only the part of the frame they need (a strip of a 4K frame
+        costs a strip's resize)."""
         h, w = image.shape[:2]
         found = resize_factors((w, h), pose)
         if found is None:
             return image, pose, mask, np.eye(3)
+        if clip:
+            corners = np.array([[x, y, 1.0] for cx, cy, cw, ch in clip
+                                for x, y in ((cx, cy), (cx + cw, cy), (cx, cy + ch), (cx + cw, cy + ch))])
+            uv = corners @ np.linalg.inv(pose)[:2].T
+            margin = 2.0 / float(np.sqrt(abs(np.linalg.det(pose[:2, :2])))) + 2.0  # a map pixel and then some
+            u0, v0 = (max(0, int(np.floor(c - margin))) for c in uv.min(axis=0))
+            u1, v1 = (int(np.ceil(c + margin)) for c in uv.max(axis=0))
+            u1, v1 = min(w, u1), min(h, v1)
+            if u1 > u0 and v1 > v0 and (u1 - u0) * (v1 - v0) < 0.5 * w * h:
+                crop = np.array([[1.0, 0.0, u0], [0.0, 1.0, v0], [0.0, 0.0, 1.0]])  # crop px -> input px
+                img, pose_c, mask_c, to_c = self._at_map_resolution(
+                    image[v0:v1, u0:u1], pose @ crop, None if mask is None else np.asarray(mask)[v0:v1, u0:u1])
+                return img, pose_c, mask_c, to_c @ np.linalg.inv(crop)
         size, to_small = found
         small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         if mask is not None:  # valid where the whole area of a new pixel was valid
@@ -325,6 +346,10 @@ class Painter:
             changed.setdefault(segment, set()).add(key)
         if changed:
             self.stats.max_swap_ms = max(self.stats.max_swap_ms, 1000.0 * (time.perf_counter() - t0))
+        for segment, seg in self._segments.items():  # thumbnails of the tiles just painted (in memory now)
+            if budget_s is None and seg.overview.stale and segment in mosaics:
+                seg.overview.update(mosaics[segment], budget_s=max(0.0, t0 + budget + self.thumb_budget_s
+                                                                   - time.perf_counter()))
         self.stats.lost_frames = self.rerenderer.lost_frames
         self.stats.sync_writes = self.rerenderer.sync_writes
         now = time.monotonic() if now is None else now

@@ -104,9 +104,10 @@ class RunStats:
 
 
 def _prefetch(source: FrameSource, depth: int, stop: threading.Event,
-              timing: StageTimes | None = None) -> Iterator[Frame]:
-    """Decode ``source`` in a thread, ``depth`` frames ahead (blocking: never drops); the time
-    of each frame's reading and decoding goes to ``timing`` (stage ``decode``)."""
+              timing: StageTimes | None = None, max_bytes: int = 64 << 20) -> Iterator[Frame]:
+    """Decode ``source`` in a thread, ``depth`` frames ahead but at most ``max_bytes`` of frames
+    (at least 2; 4K frames are 25 MB each) (blocking: never drops); the time of each frame's
+    reading and decoding goes to ``timing`` (stage ``decode``)."""
     q: queue.Queue = queue.Queue(maxsize=depth)
     failure: list[BaseException] = []
 
@@ -123,8 +124,13 @@ def _prefetch(source: FrameSource, depth: int, stop: threading.Event,
             yield frame
 
     def reader() -> None:
+        sized = False
         try:
             for frame in timed():
+                if not sized:  # the first frame tells the frame size
+                    with q.mutex:
+                        q.maxsize = max(2, min(depth, max_bytes // max(1, frame.image.nbytes)))
+                    sized = True
                 while not stop.is_set():
                     try:
                         q.put(frame, timeout=0.2)

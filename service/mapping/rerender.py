@@ -109,8 +109,8 @@ class Rerenderer:
         Added to the thread's nice value (0: same priority as the worker).
     """
 
-    def __init__(self, store: KeyframeStore | None, params: MosaicConfig, *, strip_tiles: int = 64,
-                 max_pending_writes: int = 8, max_done: int = 2, nice: int = 10) -> None:
+    def __init__(self, store: KeyframeStore | None, params: MosaicConfig, *, strip_tiles: int = 32,
+                 max_pending_writes: int = 4, max_done: int = 1, nice: int = 10) -> None:
         self.store = store
         self.params = replace(params, max_tiles_in_memory=None)  # a scratch map never spills
         self.strip_tiles = max(1, int(strip_tiles))
@@ -247,7 +247,7 @@ class Rerenderer:
         if found[0] is None:
             self.lost_frames += 1
         self._cache[index] = found
-        while len(self._cache) > 4:
+        while len(self._cache) > 2:
             self._cache.popitem(last=False)
         return found
 
