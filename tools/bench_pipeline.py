@@ -553,8 +553,8 @@ def render_report(args: argparse.Namespace, threads: list[str], conds: list[Cond
                   "a closed loop flown again and again (loop closures, re-renders), mapped in a fresh process "
                   f"with `{' '.join(memory['overrides'])}` (as the onboard config) and "
                   f"`{' '.join(f'{k}={v}' for k, v in SERVICE_ENV.items())}` (as the systemd unit). "
-                  "RSS sampled every 50 ms; *before* includes the benchmark's frame generator (terrain and pyramid); the slope is a "
-                  "straight-line fit of RSS against frames after the first 10 %.", ""]
+                  "RSS sampled every 50 ms; *before* includes the benchmark's frame generator (terrain and "
+                  "pyramid); the slope is a straight-line fit of RSS against frames after the first 10 %.", ""]
         lines += memory_table(memory)
     return "\n".join(lines) + "\n"
 
