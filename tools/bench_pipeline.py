@@ -436,7 +436,7 @@ def memory_run(n_frames: int, overrides: list[str]) -> dict:
             "peak_mb": max(rss for _, rss, _ in sampler.samples), "slope_kb_per_frame": slope,
             "tiles": tiles, "tiles_in_memory": in_memory, "painting": summary.get("painting"),
             "loop_closure": summary.get("loop_closure"),
-            "stall_ms": {k: timing[k]["max"] for k in ("frame", "outputs", "loop_closure", "rerender_swap",
+            "stall_ms": {k: timing[k]["max"] for k in ("frame", "outputs", "loop_closure", "map_upkeep",
                                                         "paint") if k in timing},
             **at}
 

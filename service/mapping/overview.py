@@ -42,30 +42,41 @@ class Overview:
         Thumbnail pixels kept at most (4 bytes each); beyond, the factor doubles.
     """
 
-    def __init__(self, tile_size: int, factor: int = 1, max_pixels: int = 1_500_000) -> None:
+    def __init__(self, tile_size: int, factor: int = 2, max_pixels: int = 1_500_000) -> None:
         self.tile_size = tile_size
         self.factor = factor
         self.max_pixels = max_pixels
         self._thumbs: dict[TileKey, np.ndarray] = {}
-        self._stale: set[TileKey] = set()
+        self._stale: dict[TileKey, int] = {}  # changed tile -> when (mark() calls)
+        self._clock = 0
 
     def mark(self, keys: Iterable[TileKey]) -> None:
         """These tiles changed (painted, swapped in, emptied)."""
-        self._stale.update(keys)
+        self._clock += 1
+        for key in keys:
+            self._stale[key] = self._clock
 
     @property
     def stale(self) -> int:
         """Tiles changed since their thumbnail was made."""
         return len(self._stale)
 
-    def update(self, mosaic: TiledMosaic, budget_s: float | None = None) -> int:
-        """Refresh the thumbnails of the changed tiles from ``mosaic`` (for at most ``budget_s``
-        seconds: the rest stays for the next call); returns how many."""
+    def update(self, mosaic: TiledMosaic, budget_s: float | None = None, settled: int = 0) -> int:
+        """Refresh the thumbnails of the changed tiles from ``mosaic``; returns how many.
+
+        ``budget_s``: for at most that long (the rest stays for the next call). ``settled``: only
+        tiles not changed in the last ``settled`` calls of :meth:`mark` (a tile under the camera
+        changes again and again: its thumbnail waits until the camera has moved on).
+        """
         t = max(1, self.tile_size // self.factor)
         t0 = time.perf_counter()
         n = 0
-        while self._stale and (budget_s is None or time.perf_counter() - t0 < budget_s):
-            key = self._stale.pop()
+        for key, marked in list(self._stale.items()):
+            if budget_s is not None and time.perf_counter() - t0 >= budget_s:
+                break
+            if marked > self._clock - settled:
+                continue
+            del self._stale[key]
             try:
                 image, alpha = mosaic.tile_image(key)
             except KeyError:  # emptied
@@ -73,7 +84,11 @@ class Overview:
                 continue
             if image.ndim == 2:
                 image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-            self._thumbs[key] = _shrink(np.dstack([image, alpha]), t)
+            if cv2.countNonZero(alpha) == alpha.size:  # covered: a plain resize
+                small = cv2.resize(image, (t, t), interpolation=cv2.INTER_AREA)
+                self._thumbs[key] = np.dstack([small, np.full((t, t), 255, np.uint8)])
+            else:
+                self._thumbs[key] = _shrink(np.dstack([image, alpha]), t)
             n += 1
         while len(self._thumbs) * t * t > self.max_pixels and t > 1:
             self.factor *= 2

@@ -139,14 +139,15 @@ class Painter:
         Time the worker spends swapping re-rendered tiles in per call of :meth:`pump` (with a
         tile cap a swapped tile may be a file write); the rest waits for the next frame.
     thumb_budget_s : float
-        ... and refreshing the preview thumbnails of changed tiles (while they are in memory),
-        so that a checkpoint's preview has little left to do.
+        ... and refreshing the preview thumbnails of changed tiles once the camera has left them
+        (30 paints ago, while they are still in memory), so that a checkpoint's preview has
+        little left to do.
     """
 
     def __init__(self, frame_size: tuple[int, int], tile_size: int, *, whole_frames: bool = False,
                  rerenderer: Rerenderer | None = None, keep: bool = True, block: int = 32, min_move_px: float = 32.0,
                  move_px: float = 0.5, interval_s: float = 1.0, swap_budget_s: float = 0.005,
-                 thumb_budget_s: float = 0.003) -> None:
+                 thumb_budget_s: float = 0.002) -> None:
         self.frame_size = frame_size
         self.tile_size = tile_size
         self.whole_frames = whole_frames
@@ -346,10 +347,9 @@ class Painter:
             changed.setdefault(segment, set()).add(key)
         if changed:
             self.stats.max_swap_ms = max(self.stats.max_swap_ms, 1000.0 * (time.perf_counter() - t0))
-        for segment, seg in self._segments.items():  # thumbnails of the tiles just painted (in memory now)
+        for segment, seg in self._segments.items():  # thumbnails of tiles the camera has left (still in memory)
             if budget_s is None and seg.overview.stale and segment in mosaics:
-                seg.overview.update(mosaics[segment], budget_s=max(0.0, t0 + budget + self.thumb_budget_s
-                                                                   - time.perf_counter()))
+                seg.overview.update(mosaics[segment], budget_s=self.thumb_budget_s, settled=30)
         self.stats.lost_frames = self.rerenderer.lost_frames
         self.stats.sync_writes = self.rerenderer.sync_writes
         now = time.monotonic() if now is None else now

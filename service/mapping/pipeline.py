@@ -426,7 +426,7 @@ class MappingPipeline:
             t4 = time.perf_counter()
             timing.add("loop_closure", t4 - t3)
             touched |= self._painter.pump(self.mosaics).get(step.segment, set())  # re-rendered tiles
-            timing.add("rerender_swap", time.perf_counter() - t4)
+            timing.add("map_upkeep", time.perf_counter() - t4)
         self.stats.worker_s += time.perf_counter() - t0
         if self.sinks:
             t5 = time.perf_counter()

@@ -9,9 +9,12 @@ Stages of the pipeline (each time is per frame that went through the stage, in m
 ``decode`` (reading and decoding a frame, in the decode thread of a replay), ``resize`` (telemetry
 rectification and the downscale to the working size), ``register`` (tracking: registration and
 pose), ``paint`` (the map update), ``loop_closure`` (keyframe bookkeeping, loop detection,
-applying corrections and joins), ``rerender_swap`` (swapping re-rendered tiles in), ``sinks``
-(viewer, status), ``outputs`` (checkpoints: trajectory, run.json, preview), ``frame`` (the worker's
-whole time for the frame, checkpoints included: its maximum is the largest stall of the worker).
+applying corrections and joins), ``map_upkeep`` (swapping re-rendered tiles in, refreshing
+preview thumbnails: a few ms at most), ``sinks`` (viewer, status), ``outputs`` (checkpoints:
+trajectory, run.json, preview), ``frame`` (the worker's whole time for the frame, checkpoints
+included: its maximum is the largest stall of the worker); after the last frame
+``final_rerender`` (the last corrections' re-renders, waited for) and ``final_outputs`` (the
+whole end of the run: those re-renders and writing every output).
 """
 
 from __future__ import annotations
