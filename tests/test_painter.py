@@ -331,3 +331,29 @@ def test_overview_preview_follows_the_map_and_reads_only_changed_tiles():
     ov.mark(touched)
     assert ov.update(m) == len(touched)
     assert ov.render(300) is not None
+
+
+def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path):
+    """The camera sees nothing for a while (new segments), then flies over mapped ground: the new
+    segment joins the first; its kept frames are re-rendered into the first map in the
+    background and mosaic.png holds both parts, true to the ground."""
+    from test_drift import LOOPS, closed_flight, map_residual
+
+    terrain = load_terrain("aukerman", zoom=3)
+    seq = closed_flight(terrain, valid_mask(terrain), 0.1 / 3, 1.0, "figure8", 4)
+    blind = list(seq.frames)
+    for k in range(60, 75):
+        blind[k] = np.full_like(blind[k], 128)
+    runs = {}
+    for name, frames in (("whole", seq.frames), ("blind", blind)):
+        out = tmp_path / name
+        summary = MappingPipeline(ListSource(frames), load_config(overrides=LOOPS + ["mapping.max_lost_frames=5"]),
+                                  out).run()
+        png = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+        runs[name] = summary, int((png[..., 3] == 255).sum()), map_residual(out, seq, terrain, lambda x, y: x == x)[0]
+    (_, covered, residual), (blind_run, blind_covered, blind_residual) = runs["whole"], runs["blind"]
+    assert [(j["segment"], j["into"]) for j in blind_run["joins"]] == [(3, 0)]
+    assert blind_run["mosaics"][0]["segment"] == 0
+    assert blind_run["painting"]["rerendered_tiles"] > 0
+    assert blind_covered > 0.9 * covered  # the joined segment's ground is in the main map
+    assert blind_residual <= residual + 1.0
