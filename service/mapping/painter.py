@@ -82,6 +82,20 @@ class PaintStats:
 
 
 @dataclass
+class _Kept:
+    """A frame kept for re-rendering."""
+
+    index: int
+    pose: np.ndarray  # 3x3 input px -> map px (corrected as corrections come)
+    to_kept: np.ndarray  # 3x3 input px -> px of the kept image (at the map's resolution)
+    size: tuple[int, int]  # (w, h) of the kept image
+    gain: np.ndarray | None = None  # the exposure gain it was painted with (None: none)
+
+    def frame(self) -> KeptFrame:
+        return KeptFrame(self.index, self.pose @ np.linalg.inv(self.to_kept), self.size, self.gain)
+
+
+@dataclass
 class _Tail:
     """The last posed frame of a segment (its image is dropped once it is kept)."""
 
@@ -96,8 +110,7 @@ class _Tail:
 class _Segment:
     """The painter's view of one map segment."""
 
-    kept: list[tuple[int, np.ndarray, np.ndarray, tuple[int, int]]] = field(default_factory=list)
-    # ^ (index, 3x3 input pose, 3x3 input px -> kept image px, kept image size)
+    kept: list[_Kept] = field(default_factory=list)  # in painting order
     dirty: set[TileKey] = field(default_factory=set)  # tiles to re-render
     painted: dict[TileKey, int] = field(default_factory=dict)  # tile -> paint number of its last live paint
     job: tuple[int, int] | None = None  # (job id, paint number at submission) of the running job
@@ -205,8 +218,9 @@ class Painter:
             self.stats.whole += 1
         else:
             self.stats.new_ground += 1
-        if keyframe:
-            self._keep(seg, index, pose, img, mask_m, to_kept)
+        if keyframe:  # with the exposure gain it got (maps with mosaic.exposure), for an equal re-render
+            self._keep(seg, _Kept(index, pose.copy(), to_kept, (img.shape[1], img.shape[0]),
+                                  getattr(mosaic, "last_gain", None)), img, mask_m)
         seg.tail = _Tail(index, image, pose, mask, keyframe and self.keep)
         seg.last_painted = pose
         return touched
@@ -241,12 +255,11 @@ class Painter:
                               interpolation=cv2.INTER_AREA) == 255
         return small, pose @ np.linalg.inv(to_small), mask, to_small
 
-    def _keep(self, seg: _Segment, index: int, pose: np.ndarray, image: np.ndarray, mask: np.ndarray | None,
-              to_kept: np.ndarray) -> None:
+    def _keep(self, seg: _Segment, kept: _Kept, image: np.ndarray, mask: np.ndarray | None) -> None:
         if not self.keep:
             return
-        seg.kept.append((index, pose.copy(), to_kept, (image.shape[1], image.shape[0])))
-        self.rerenderer.save(index, image, mask)
+        seg.kept.append(kept)
+        self.rerenderer.save(kept.index, image, mask)
         self.stats.kept += 1
 
     def end_segment(self, mosaic: TiledMosaic | None, segment: int) -> set[TileKey]:
@@ -264,12 +277,8 @@ class Painter:
         return touched
 
     # ------------------------------------------------------------------ corrections
-    def _kept_frame(self, entry) -> KeptFrame:
-        index, pose, to_kept, size = entry
-        return KeptFrame(index, pose @ np.linalg.inv(to_kept), size)
-
     def _dirty(self, seg: _Segment, entry) -> None:
-        x0, y0, x1, y1 = self._kept_frame(entry).bbox()
+        x0, y0, x1, y1 = entry.frame().bbox()
         ts = self.tile_size
         seg.dirty.update((tx, ty) for ty in range(y0 // ts, (y1 - 1) // ts + 1)
                          for tx in range(x0 // ts, (x1 - 1) // ts + 1))
@@ -281,16 +290,16 @@ class Painter:
         if seg is None:
             return 0
         moved = 0
-        for k, entry in enumerate(seg.kept):
-            new = poses.get(entry[0])
+        for entry in seg.kept:
+            new = poses.get(entry.index)
             if new is None:
                 continue
             new = to_h(np.asarray(new, float))
-            if np.abs((new - entry[1]) @ self._corners)[:2].max() <= self.move_px:
+            if np.abs((new - entry.pose) @ self._corners)[:2].max() <= self.move_px:
                 continue
             self._dirty(seg, entry)
-            seg.kept[k] = (entry[0], new, entry[2], entry[3])
-            self._dirty(seg, seg.kept[k])
+            entry.pose = new
+            self._dirty(seg, entry)
             moved += 1
         if seg.tail is not None and seg.tail.index in poses:
             seg.tail.pose = to_h(np.asarray(poses[seg.tail.index], float))
@@ -306,11 +315,11 @@ class Painter:
             return
         seg = self._seg(into)
         t = np.asarray(transform, float)
-        for index, pose, to_kept, size in gone.kept:
-            entry = (index, t @ pose, to_kept, size)
+        for entry in gone.kept:
+            entry.pose = t @ entry.pose
             seg.kept.append(entry)
             self._dirty(seg, entry)
-        seg.kept.sort(key=lambda e: e[0])
+        seg.kept.sort(key=lambda e: e.index)
         if gone.tail is not None and (seg.tail is None or gone.tail.index > seg.tail.index):
             gone.tail.pose = t @ gone.tail.pose
             seg.tail = gone.tail
@@ -357,7 +366,7 @@ class Painter:
             return changed
         for segment, seg in sorted(self._segments.items()):
             if seg.dirty and segment in mosaics:
-                frames = [self._kept_frame(e) for e in seg.kept]
+                frames = [e.frame() for e in seg.kept]
                 job = self.rerenderer.submit(segment, frames, seg.dirty)
                 seg.job = (job, self._paints)
                 seg.dirty = set()

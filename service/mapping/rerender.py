@@ -37,11 +37,13 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class KeptFrame:
     """A frame kept for re-rendering: its index, its pose (3x3, pixels of the kept image -> map
-    pixels) and the kept image's size ``(w, h)``."""
+    pixels), the kept image's size ``(w, h)`` and the exposure gain it was painted with (None:
+    none; with ``mosaic.exposure`` the re-render applies the same gain rather than fitting one)."""
 
     index: int
     pose: np.ndarray
     size: tuple[int, int]
+    gain: np.ndarray | None = None
 
     def bbox(self) -> tuple[int, int, int, int]:
         """Map pixels its interpolation can reach: ``(x0, y0, x1, y1)``, exclusive."""
@@ -272,7 +274,8 @@ class Rerenderer:
             if image is None:
                 continue
             try:
-                scratch.add(image, frame.pose[:2], mask, clip=clip)
+                extra = {} if frame.gain is None else {"gain": frame.gain}
+                scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
                 painted += 1
             except PhotomapError as exc:
                 log.debug("frame %d not re-rendered: %s", frame.index, exc)
