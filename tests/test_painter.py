@@ -357,3 +357,20 @@ def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path):
     assert blind_run["painting"]["rerendered_tiles"] > 0
     assert blind_covered > 0.9 * covered  # the joined segment's ground is in the main map
     assert blind_residual <= residual + 1.0
+
+
+def test_a_masked_frame_looks_for_new_ground_inside_its_valid_part():
+    """A rectified view is valid in a quadrilateral only: blocks outside it are never new (else
+    they would be painted again at every look)."""
+    from photomap.mapping.painter import valid_outline
+
+    mask = np.zeros((240, 320), np.uint8)
+    cv2.fillConvexPoly(mask, np.array([[40, 10], [300, 30], [280, 230], [20, 200]], np.int32), 255)
+    outline = valid_outline(mask)
+    assert all(mask[int(round(y)), int(round(x))] for x, y in outline)  # inside the valid part
+    assert cv2.contourArea(outline.astype(np.float32)) > 0.9 * (mask > 0).sum()  # and most of it
+    m = TiledMosaic(MosaicConfig(tile_size=64))
+    frame = texture(240, 320, 9)
+    m.add(frame, pose(0, 0, 0)[:2], mask=mask)
+    assert m.uncovered(pose(0, 0, 0)[:2], (320, 240), outline=outline) == []  # all of it is mapped
+    assert m.uncovered(pose(0, 0, 0)[:2], (320, 240)) != []  # the rectangle would look new forever

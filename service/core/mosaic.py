@@ -210,7 +210,7 @@ class TiledMosaic:
         return touched
 
     def uncovered(self, M: np.ndarray, size: tuple[int, int], *, block: int = 32, step: int = 4,
-                  inset: float = 2.0, gap: int = 3) -> list[Rect]:
+                  inset: float = 2.0, gap: int = 3, outline: np.ndarray | None = None) -> list[Rect]:
         """Where a frame at pose ``M`` would add ground to the map.
 
         Parameters
@@ -231,6 +231,9 @@ class TiledMosaic:
         gap : int
             New squares of a row at most this many squares apart are joined into one rectangle
             (painting a little old ground costs less than another warp).
+        outline : array (n, 2) or None
+            Frame pixels of a convex polygon inside which the frame is valid (a frame with a
+            mask), already inset; None: the frame's rectangle, inset by ``border + inset``.
 
         Returns
         -------
@@ -241,9 +244,14 @@ class TiledMosaic:
         M = _check_pose(M)
         w, h = size
         b = self.border + inset
-        if w - 1 - 2 * b <= 0 or h - 1 - 2 * b <= 0:
+        if outline is not None:
+            if len(outline) < 3:
+                return []
+            quad = np.asarray(outline, np.float64).reshape(-1, 2) @ M[:, :2].T + M[:, 2]
+        elif w - 1 - 2 * b <= 0 or h - 1 - 2 * b <= 0:
             return []
-        quad = np.array([[b, b], [w - 1 - b, b], [w - 1 - b, h - 1 - b], [b, h - 1 - b]]) @ M[:, :2].T + M[:, 2]
+        else:
+            quad = np.array([[b, b], [w - 1 - b, b], [w - 1 - b, h - 1 - b], [b, h - 1 - b]]) @ M[:, :2].T + M[:, 2]
         gx0, gy0 = (int(v) // block * block for v in np.floor(quad.min(axis=0)))
         gx1, gy1 = (-(-(int(v) + 1) // block) * block for v in np.ceil(quad.max(axis=0)))
         W, H = gx1 - gx0, gy1 - gy0
