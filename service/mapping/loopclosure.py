@@ -104,13 +104,18 @@ class RelativePoses:
     def poses(self, keyframes: dict[int, np.ndarray], skip: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """3x3 poses ``keyframes[ref] @ rel`` of the frames whose keyframe is in ``keyframes``
         (and that are not in ``skip``)."""
-        out = {}
-        bottom = np.array([0.0, 0.0, 1.0])
-        for frame, ref, rel in zip(self._frames[:self._n].tolist(), self._refs[:self._n].tolist(),
-                                   self._rel[:self._n]):
-            if frame not in skip and ref in keyframes:
-                out[frame] = keyframes[ref] @ np.vstack([rel, bottom])
-        return out
+        frames, refs = self._frames[:self._n], self._refs[:self._n]
+        keep = ~np.isin(frames, np.fromiter(skip, np.int64, len(skip))) & \
+            np.isin(refs, np.fromiter(keyframes, np.int64, len(keyframes)))
+        if not keep.any():
+            return {}
+        frames, refs, rel = frames[keep], refs[keep], self._rel[:self._n][keep]
+        known = np.array(sorted({int(r) for r in refs}))
+        stack = np.array([keyframes[int(r)] for r in known])  # (k, 3, 3)
+        full = np.zeros((len(rel), 3, 3))
+        full[:, :2], full[:, 2, 2] = rel, 1.0
+        poses = np.einsum("nij,njk->nik", stack[np.searchsorted(known, refs)], full)  # one product for all
+        return dict(zip(frames.tolist(), poses))
 
 
 class LoopCloser:

@@ -455,13 +455,12 @@ class MappingPipeline:
 
     def _path(self, segment: int) -> tuple[tuple[float, float, float], ...]:
         """The map positions of the frame centres of ``segment`` (x, y, confidence), in order."""
-        centre = (*frame_centre(*self.frame_size), 1.0)
-        out = []
-        for row in self._rows:
-            if row.glued and row.segment == segment:
-                x, y = np.asarray(row.M, float) @ centre
-                out.append((float(x), float(y), float(row.confidence)))
-        return tuple(out)
+        rows = [row for row in self._rows if row.glued and row.segment == segment]
+        if not rows:
+            return ()
+        centre = np.array([*frame_centre(*self.frame_size), 1.0])
+        xy = np.array([np.asarray(row.M, float)[:2] for row in rows]) @ centre  # one product for all
+        return tuple(zip(xy[:, 0].tolist(), xy[:, 1].tolist(), [float(row.confidence) for row in rows]))
 
     def _apply(self, correction: Correction) -> None:
         """Re-pose the frames of a corrected segment; the tracker goes on from the corrected pose."""
