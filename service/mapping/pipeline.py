@@ -423,10 +423,10 @@ class MappingPipeline:
                     corrected_path = self._path(self._segment)
             if self._segment != step.segment:  # joined: this frame now lives in another map
                 step.segment = self._segment
-            t4 = time.perf_counter()
-            timing.add("loop_closure", t4 - t3)
-            touched |= self._painter.pump(self.mosaics).get(step.segment, set())  # re-rendered tiles
-            timing.add("map_upkeep", time.perf_counter() - t4)
+            timing.add("loop_closure", time.perf_counter() - t3)
+        t4 = time.perf_counter()
+        touched |= self._painter.pump(self.mosaics).get(step.segment, set())  # re-rendered tiles
+        timing.add("map_upkeep", time.perf_counter() - t4)
         self.stats.worker_s += time.perf_counter() - t0
         if self.sinks:
             t5 = time.perf_counter()
