@@ -334,3 +334,59 @@ def test_a_masked_frame_looks_for_new_ground_inside_its_valid_part():
     m.add(frame, pose(0, 0, 0)[:2], mask=mask)
     assert m.uncovered(pose(0, 0, 0)[:2], (320, 240), outline=outline) == []  # all of it is mapped
     assert m.uncovered(pose(0, 0, 0)[:2], (320, 240)) != []  # the rectangle would look new forever
+
+
+# ---------------------------------------------------------------- merged with main: failures, stills
+def test_a_preview_that_cannot_be_written_is_reported_not_raised(tmp_path):
+    """The preview is encoded in the background thread; a disk error there goes to on_error (the
+    pipeline's one-line write error) and the re-render thread goes on."""
+    params = MosaicConfig(tile_size=64)
+    painter = Painter((160, 120), 64, rerenderer=Rerenderer(KeyframeStore(tmp_path / "kf"), params))
+    live = TiledMosaic(params)
+    painter.paint(live, 0, 0, texture(120, 160, 1), pose(0, 0, 0), whole=True)
+    errors = []
+    assert painter.write_preview(tmp_path / "missing" / "preview.png", 0, live, 100, on_error=errors.append)
+    painter.rerenderer.wait()
+    assert len(errors) == 1 and isinstance(errors[0], OSError)
+    assert painter.rerenderer.collect() == []  # no failure handed to the worker
+    assert painter.write_preview(tmp_path / "preview.png", 0, live, 100, on_error=errors.append)
+    painter.close()
+    back = cv2.imread(str(tmp_path / "preview.png"), cv2.IMREAD_UNCHANGED)
+    assert back is not None and back.shape[2] == 4 and len(errors) == 1
+
+
+def test_kept_images_with_masks_are_forgotten_with_their_keyframe(tmp_path):
+    store = KeyframeStore(tmp_path / "kf")
+    image = texture(30, 40, 2)
+    mask = np.zeros((30, 40), bool)
+    mask[:, 10:] = True
+    store.put(7, image)
+    store.put_image(7, image, mask)
+    assert np.array_equal(store.mask(7) == 255, mask) and store.image(7).shape == image.shape
+    store.discard(7)
+    assert store.image(7) is None and store.mask(7) is None and list((tmp_path / "kf").iterdir()) == []
+    (tmp_path / "kf").rmdir()  # the disk refuses: counted, never raised
+    store.put_image(8, image, mask)
+    assert store.failures == 1 and store.image(8) is None
+
+
+@pytest.mark.parametrize("stills", [False, True])
+def test_map_px_lowers_the_map_resolution_of_video_only(tmp_path, stills):
+    """A frame wider than mapping.map_px: video is mapped at map_px a frame, survey stills keep
+    their resolution (the map of a survey is its full-resolution orthophoto)."""
+    from photomap.drivers.images import ImageFolderSource
+
+    base = cv2.resize(texture(150, 200, 3), (1400, 1050), interpolation=cv2.INTER_CUBIC)
+    frames = [np.ascontiguousarray(base[0 + 30 * k:900 + 30 * k, 0 + 40 * k:1200 + 40 * k]) for k in range(3)]
+    if stills:
+        for k, f in enumerate(frames):
+            cv2.imwrite(str(tmp_path / f"still{k}.png"), f)
+        source = ImageFolderSource(tmp_path / "still*.png")
+    else:
+        source = ListSource(frames)
+    cfg = load_config(overrides=["mapping.map_px=600"])
+    summary = MappingPipeline(source, cfg, tmp_path / "out").run()
+    want = 1.0 if stills else 0.5
+    assert summary["map_scale"] == pytest.approx(want)
+    x, y, w, h = summary["mosaics"][0]["bounds"]
+    assert w == pytest.approx((1200 + 80) * want, abs=4) and h == pytest.approx((900 + 60) * want, abs=4)

@@ -47,6 +47,7 @@ from photomap.core.mosaic import TiledMosaic
 from photomap.core.records import PoseRow
 from photomap.core.tracking import LOW_CONFIDENCE, REFERENCE, TrackStep, Tracker
 from photomap.drivers.frames import Frame, FrameSource
+from photomap.drivers.images import ImageFolderSource
 from photomap.geometry import frame_centre, pose_angle_deg
 from photomap.errors import OutputError, PhotomapError
 from photomap.io.keyframestore import KeyframeStore
@@ -330,7 +331,8 @@ class MappingPipeline:
         f = self._small[0] / w  # exact factor of cv2.resize in x (and, to rounding, in y)
         self._working_scale = f
         mapping = self.cfg.mapping
-        if mapping.map_px and max(w, h) > mapping.map_px:  # the map's resolution: at most map_px a frame
+        # the map's resolution: at most map_px a video frame (survey stills keep theirs)
+        if mapping.map_px and max(w, h) > mapping.map_px and not isinstance(self.source, ImageFolderSource):
             mapping = dataclasses.replace(mapping, map_scale=mapping.map_scale * mapping.map_px / max(w, h))
         self._map_scale = mapping.map_scale
         registrar = Registrar((self._small[1], self._small[0]), self.cfg.registration)
@@ -538,7 +540,7 @@ class MappingPipeline:
                 self.loops.on_anchor(step, pending[2], pending[1])
             for update in self.loops.on_step(frame.index, step, small, image, sample):
                 if isinstance(update, Join):
-                    touched = self._join(update)
+                    touched |= self._join(update)  # (none: the joined map is re-rendered in the background)
                     message = (f"map segment {update.segment} joined segment {update.into} at frame "
                                f"{frame.index} (confidence {update.confidence:.2f})")
                     log.info(message)
