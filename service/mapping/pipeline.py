@@ -540,7 +540,7 @@ class MappingPipeline:
                 self.loops.on_anchor(step, pending[2], pending[1])
             for update in self.loops.on_step(frame.index, step, small, image, sample):
                 if isinstance(update, Join):
-                    touched |= self._join(update)  # (none: the joined map is re-rendered in the background)
+                    touched = self._join(update)  # the frame's tiles were in the joined map's frame: none here
                     message = (f"map segment {update.segment} joined segment {update.into} at frame "
                                f"{frame.index} (confidence {update.confidence:.2f})")
                     log.info(message)
