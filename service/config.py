@@ -162,6 +162,9 @@ class MappingConfig(_Section):
     prior_angle_tol_deg: float = _num(20.0, 0.0, 180.0, lo_open=True)
     prior_scale_tol: float = _num(0.15, 0.0, 10.0, lo_open=True)
     map_scale: float = _num(1.0, 0.0, 16.0, lo_open=True)
+    map_px: int = _num(2048, 0, 1 << 16)
+    paint: str = _choice("new_ground", "new_ground", "every")
+    opencv_threads: int = _num(2, 0, 256)
     map_relative: bool = False
     loop_closure: bool = True
     loop_min_gap: int = _num(8, 1, 100000)

@@ -507,3 +507,35 @@ def test_track_files_grow_during_a_live_run(flight, tmp_path):
     c = truth.H[0] @ np.array([319.5, 239.5, 1.0])
     tlat, tlon = pixel_to_latlon(c[0] / c[2], c[1] / c[2], meta["gsd"], meta["origin"]["lat"], meta["origin"]["lon"])
     assert math.hypot((lat - tlat) * 111_320.0, (lon - tlon) * 111_320.0 * math.cos(math.radians(lat))) < 1.0
+
+
+def test_report_thumbnail_is_the_alpha_weighted_downscale(tmp_path, monkeypatch):
+    """The report's map thumbnail (built a band of rows at a time) equals the alpha-weighted
+    INTER_AREA downscale of the whole PNG: transparent where the map is, no dark fringe."""
+    import base64
+
+    from photomap.io.report import _thumbnail
+
+    rng = np.random.default_rng(4)
+    h, w = 2100, 3333
+    image = cv2.resize(rng.integers(0, 256, (43, 67, 3), dtype=np.uint8), (w, h), interpolation=cv2.INTER_CUBIC)
+    alpha = np.zeros((h, w), np.uint8)
+    cv2.circle(alpha, (w // 2, h // 2), 1000, 255, -1)
+    image[alpha == 0] = 0
+    cv2.imwrite(str(tmp_path / "m.png"), np.dstack([image, alpha]))
+    encode = cv2.imencode
+    monkeypatch.setattr(cv2, "imencode", lambda ext, *a: (False, None) if ext == ".webp" else encode(ext, *a))
+    uri, scale, size = _thumbnail(tmp_path / "m.png", max_px=500)
+    monkeypatch.undo()
+    got = cv2.imdecode(np.frombuffer(base64.b64decode(uri.split(",", 1)[1]), np.uint8), cv2.IMREAD_UNCHANGED)
+    a = alpha[..., None].astype(np.float32) / 255
+    want = cv2.resize(np.dstack([image * a, a]), size, interpolation=cv2.INTER_AREA)
+    cover = want[..., 3:]
+    colour = np.where(cover > 1e-6, want[..., :3] / np.maximum(cover, 1e-6), 0)
+    want = np.dstack([np.clip(np.rint(colour), 0, 255), np.clip(np.rint(cover * 255), 0, 255)]).astype(np.uint8)
+    inside = cover[..., 0] > 0.99
+    assert got.shape == (size[1], size[0], 4) and size == (500, 315) and scale == pytest.approx(500 / w)
+    assert uri.startswith("data:image/png")  # lossless here: the pixels can be compared
+    diff = np.abs(got.astype(int) - want)
+    assert np.median(diff[..., :3][inside]) <= 1 and diff[..., :3][inside].max() <= 3
+    assert diff[..., 3].max() <= 3

@@ -298,6 +298,54 @@ def test_clear_tiles_then_re_render(tmp_path):
     assert image.size == 0 and alpha.size == 0
 
 
+# ---------------------------------------------------------------- clipped painting, tile swaps
+@pytest.mark.parametrize("blend", ["overwrite", "feather"])
+def test_clipped_add_changes_only_the_rectangles_and_matches_the_full_add(blend):
+    base, frame = smooth_texture(80, 100, seed=8), noise(90, 130, seed=9)
+    a = math.radians(27)
+    M = np.array([[0.9 * math.cos(a), -0.9 * math.sin(a), 80.3], [0.9 * math.sin(a), 0.9 * math.cos(a), 20.6]])
+    clip = [(60, 30, 40, 25), (100, 90, 70, 33), (-50, -50, 20, 20)]  # the last one misses the frame
+    full, part = (TiledMosaic(MosaicConfig(tile_size=32, blend=blend)) for _ in range(2))
+    for m in (full, part):
+        m.add(base, shift(30, 10))
+    before = part.render(bounds=(0, 0, 260, 200))
+    full.add(frame, M)
+    touched = part.add(frame, M, clip=clip)
+    after, want = part.render(bounds=(0, 0, 260, 200)), full.render(bounds=(0, 0, 260, 200))
+    inside = np.zeros((200, 260), bool)
+    for x, y, w, h in clip:
+        inside[max(y, 0):max(y + h, 0), max(x, 0):max(x + w, 0)] = True
+    for got, ref, old in zip(after[:2], want[:2], before[:2]):
+        assert np.abs(got[inside].astype(int) - ref[inside]).max() <= 1  # warp rounding
+        np.testing.assert_array_equal(got[~inside], old[~inside])
+    assert (after[1][inside] != before[1][inside]).any()  # the frame did add ground there
+    assert touched <= set(full.tiles()) and touched == {(x // 32, y // 32) for y, x in zip(*np.nonzero(
+        inside & ((after[0] != before[0]).any(axis=2) | (after[1] != before[1]))))}
+
+
+def test_put_tiles_swaps_in_a_map_rendered_aside(tmp_path):
+    frame, other = noise(70, 90, seed=10), noise(70, 90, seed=11)
+    live = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=2), store=DiskTileStore(tmp_path))
+    live.add(frame, shift(0, 0))
+    live.add(frame, shift(150, 5))
+    aside = TiledMosaic(MosaicConfig(tile_size=32))
+    aside.add(other, shift(3.5, 2.25))
+    right = [k for k in live.tiles() if k[0] >= 4]
+    keys_left = [k for k in live.tiles() if k[0] < 4]
+    tiles = aside.take_tiles()
+    assert aside.tiles() == [] and aside.bounds() is None
+    assert set(tiles) == {k for k in tiles if k[0] < 4}
+    live.put_tiles({**tiles, **{k: None for k in keys_left if k not in tiles}})
+    assert live.tiles_in_memory <= 2
+    want = TiledMosaic(MosaicConfig(tile_size=32))  # what the swap must give
+    want.add(other, shift(3.5, 2.25))
+    want.add(frame, shift(150, 5))
+    assert live.tiles() == want.tiles() and set(right) <= set(live.tiles())
+    assert live.bounds() == want.bounds()
+    for got, ref in zip(live.render(), want.render()):
+        np.testing.assert_array_equal(got, ref)
+
+
 # ---------------------------------------------------------------- downscaled render
 @pytest.mark.parametrize("scale", [0.5, 0.3])
 def test_downscaled_render_matches_inter_area(scale):

@@ -73,3 +73,8 @@ def test_stream_writer_leaves_nothing_on_error(tmp_path):
         with PngStreamWriter(tmp_path / "a.png", 4, 10, 3) as png:
             png.write(np.zeros((5, 4, 3), np.uint8))
     assert list(tmp_path.iterdir()) == []
+    with pytest.raises(RuntimeError):  # the render failed half way: no file, no temporary
+        with PngStreamWriter(tmp_path / "b.png", 4, 10, 3) as png:
+            png.write(np.zeros((5, 4, 3), np.uint8))
+            raise RuntimeError("the render failed")
+    assert list(tmp_path.iterdir()) == []

@@ -20,7 +20,7 @@ GLUED = frozenset({"reference", "registered"})
 
 @dataclass(slots=True)
 class PoseRow:
-    """One input frame of a run.
+    """One input frame of a run (slots: a long flight keeps one per frame).
 
     Parameters
     ----------

@@ -1,8 +1,10 @@
 """Keyframe images on disk, so that memory stays bounded over a long flight.
 
-Each keyframe keeps two files in the store's folder: ``kf{index:07d}.png``, the grey frame at the
-working resolution (what loop closure registers), and ``kf{index:07d}.jpg``, the input frame
-(what re-renders the map after a pose-graph correction).
+Each keyframe keeps up to three files in the store's folder: ``kf{index:07d}.png``, the grey frame
+at the working resolution (what loop closure registers); ``kf{index:07d}.jpg``, the frame as it was
+painted into the map (at the map's resolution: what re-renders the map after a pose-graph
+correction); and ``kf{index:07d}_mask.png`` when only part of that image is valid. Different
+indices may be written from different threads.
 """
 
 from __future__ import annotations
@@ -26,16 +28,32 @@ class KeyframeStore:
     def _path(self, index: int, kind: str) -> Path:
         return self.folder / f"kf{index:07d}.{kind}"
 
-    def put(self, index: int, small: np.ndarray, image: np.ndarray) -> None:
-        """Keep keyframe ``index``: ``small`` (working resolution, grey or BGR) and ``image``."""
+    def put(self, index: int, small: np.ndarray, image: np.ndarray | None = None) -> None:
+        """Keep keyframe ``index``: ``small`` (working resolution, grey or BGR) and, if given,
+        ``image`` (as :meth:`put_image`)."""
         gray = small if small.ndim == 2 else cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
         if not self._write(self._path(index, "png"), ".png", gray):
             # e.g. disk full: loop closure still needs it (a small grey image), keep it here
             self._unsaved[index] = gray.copy()
             self.failures += 1
             return
+        if image is not None:
+            self.put_image(index, image)
+
+    def put_image(self, index: int, image: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """Keep the image of frame ``index`` that re-renders the map (JPEG), and where it is
+        valid (``mask`` non-zero; None: everywhere). A write that fails (disk full) counts in
+        ``failures``: no re-render from this frame (:meth:`image` gives None)."""
         if not self._write(self._path(index, "jpg"), ".jpg", image, self._jpeg):
-            self.failures += 1  # no re-render from this keyframe: image() gives None
+            self.failures += 1
+            return
+        mask_path = self.folder / f"kf{index:07d}_mask.png"
+        if mask is not None:
+            if not self._write(mask_path, ".png", np.where(np.asarray(mask) != 0, np.uint8(255), np.uint8(0))):
+                self._path(index, "jpg").unlink(missing_ok=True)  # no image rather than one without its mask
+                self.failures += 1
+        else:
+            mask_path.unlink(missing_ok=True)
 
     @staticmethod
     def _write(path: Path, ext: str, image: np.ndarray, params: list[int] | None = None) -> bool:
@@ -64,11 +82,17 @@ class KeyframeStore:
         return img
 
     def image(self, index: int) -> np.ndarray | None:
-        """The input frame of keyframe ``index`` (BGR), or None if it cannot be read."""
+        """The image of frame ``index`` kept by :meth:`put_image` (BGR), or None if it cannot be read."""
         return cv2.imread(str(self._path(index, "jpg")), cv2.IMREAD_COLOR)
+
+    def mask(self, index: int) -> np.ndarray | None:
+        """Where the image of frame ``index`` is valid (uint8, 255 valid), or None: all of it."""
+        path = self.folder / f"kf{index:07d}_mask.png"
+        return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
 
     def discard(self, index: int) -> None:
         """Forget keyframe ``index`` (its files too)."""
         self._unsaved.pop(index, None)
         for kind in ("png", "jpg"):
             self._path(index, kind).unlink(missing_ok=True)
+        (self.folder / f"kf{index:07d}_mask.png").unlink(missing_ok=True)

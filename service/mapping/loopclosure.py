@@ -1,7 +1,8 @@
 """Loop closure in the running pipeline: keyframe graphs per segment and their corrections.
 
 The pipeline hands every tracked frame to :class:`LoopCloser`. Keyframes are kept on disk
-(:class:`photomap.io.keyframestore.KeyframeStore`), so memory stays bounded over a long flight.
+(:class:`photomap.io.keyframestore.KeyframeStore`: here the working-resolution image; the image
+that re-renders the map is the painter's), so memory stays bounded over a long flight.
 When a new keyframe closes a loop, the segment's pose graph is optimised
 (:mod:`photomap.core.keyframes`) and the loop closer returns a :class:`Correction`: the new pose
 of every frame it can re-pose (a frame keeps its measured pose relative to the keyframe it was
@@ -21,10 +22,10 @@ and tracker.
 from __future__ import annotations
 
 import logging
-from array import array
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from photomap.config import MappingConfig, PosegraphConfig
@@ -74,34 +75,48 @@ Update = Correction | Join
 
 
 class RelativePoses:
-    """Frame -> (keyframe, measured 3x3 affine: input px of the frame -> of the keyframe), kept
-    compact (64 bytes a frame in flat arrays instead of ~350 in a dict of tuples of arrays): one
-    entry per registered frame of a long flight."""
+    """Frame -> (its keyframe, measured 3x3 input px of the frame -> input px of the keyframe),
+    for every tracked frame of a segment, in compact arrays (56 bytes a frame rather than about
+    400 in a dict of tuples of arrays: a long flight's memory stays flat)."""
 
     def __init__(self) -> None:
-        self._frames = array("q")
-        self._refs = array("q")
-        self._values = array("d")  # the affine's first two rows, 6 values a frame
-
-    def __setitem__(self, frame: int, item: tuple[int, np.ndarray]) -> None:
-        ref, rel = item
-        self._frames.append(int(frame))
-        self._refs.append(int(ref))
-        self._values.extend(np.asarray(rel, float)[:2].ravel().tolist())
-
-    def update(self, other: RelativePoses) -> None:
-        self._frames.extend(other._frames)
-        self._refs.extend(other._refs)
-        self._values.extend(other._values)
+        self._frames = np.zeros(0, np.int64)
+        self._refs = np.zeros(0, np.int64)
+        self._rel = np.zeros((0, 2, 3))
+        self._n = 0
 
     def __len__(self) -> int:
-        return len(self._frames)
+        return self._n
 
-    def items(self):
-        """``(frame, (keyframe, 3x3))`` in the order they were added."""
-        values = np.array(self._values, float).reshape(-1, 2, 3)  # a copy: the arrays may grow meanwhile
-        for frame, ref, rel in zip(self._frames, self._refs, values):
-            yield frame, (ref, np.vstack([rel, [0.0, 0.0, 1.0]]))
+    def add(self, frame: int, ref: int, rel: np.ndarray) -> None:
+        if self._n == len(self._frames):  # grow by half: amortised O(1), at most 1.5x the size
+            cap = max(64, self._n + self._n // 2)
+            self._frames = np.resize(self._frames, cap)
+            self._refs = np.resize(self._refs, cap)
+            self._rel = np.resize(self._rel, (cap, 2, 3))
+        self._frames[self._n], self._refs[self._n] = frame, ref
+        self._rel[self._n] = np.asarray(rel, float)[:2]
+        self._n += 1
+
+    def update(self, other: RelativePoses) -> None:
+        for frame, ref, rel in zip(other._frames[:other._n], other._refs[:other._n], other._rel[:other._n]):
+            self.add(int(frame), int(ref), rel)
+
+    def poses(self, keyframes: dict[int, np.ndarray], skip: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """3x3 poses ``keyframes[ref] @ rel`` of the frames whose keyframe is in ``keyframes``
+        (and that are not in ``skip``)."""
+        frames, refs = self._frames[:self._n], self._refs[:self._n]
+        keep = ~np.isin(frames, np.fromiter(skip, np.int64, len(skip))) & \
+            np.isin(refs, np.fromiter(keyframes, np.int64, len(keyframes)))
+        if not keep.any():
+            return {}
+        frames, refs, rel = frames[keep], refs[keep], self._rel[:self._n][keep]
+        known = np.array(sorted({int(r) for r in refs}))
+        stack = np.array([keyframes[int(r)] for r in known])  # (k, 3, 3)
+        full = np.zeros((len(rel), 3, 3))
+        full[:, :2], full[:, 2, 2] = rel, 1.0
+        poses = np.einsum("nij,njk->nik", stack[np.searchsorted(known, refs)], full)  # one product for all
+        return dict(zip(frames.tolist(), poses))
 
 
 class LoopCloser:
@@ -180,7 +195,7 @@ class LoopCloser:
 
     def _keep(self, index: int, segment: int, small: np.ndarray, image: np.ndarray,
               priors: KeyframePriors | None) -> None:
-        self.store.put(index, small, image)
+        self.store.put(index, small)  # the image that re-renders the map: the painter keeps it
         self._segment_of[index] = segment
         self._signature[index] = place_signature(small)
         if priors is not None and priors.east_north is not None:
@@ -202,7 +217,7 @@ class LoopCloser:
         if step.pose is None:
             return self._polled()
         if step.reference is not None:
-            self.relative.setdefault(step.segment, RelativePoses())[index] = (step.reference, step.relative)
+            self.relative.setdefault(step.segment, RelativePoses()).add(index, step.reference, step.relative)
         if not step.keyframe:
             return self._polled()
         priors = self._priors(sample)
@@ -248,7 +263,10 @@ class LoopCloser:
             return None
         view = self.matcher.view(small, image)
         for match in candidates:
-            old = self.store.image(match)
+            old = self.store.image(match)  # as the painter kept it: maybe at the map's (lower) resolution
+            if old is not None and old.shape[:2] != image.shape[:2]:
+                # the features' placement assumes both images at one scale: the input frame's
+                old = cv2.resize(old, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_LINEAR)
             placed = self.matcher.match(self.matcher.view(self.store.small(match), old), view, always_check=True)
             if not placed.accepted:
                 continue
@@ -310,9 +328,8 @@ class LoopCloser:
         self.corrections += 1
         keyframes = {kf.index: kf.pose for kf in graph.keyframes}
         new = dict(keyframes)
-        for frame, (ref, rel) in self.relative.get(segment, RelativePoses()).items():
-            if frame not in new and ref in keyframes:
-                new[frame] = keyframes[ref] @ rel
+        if segment in self.relative:
+            new.update(self.relative[segment].poses(keyframes, new))
         latest = graph.keyframes[-1]
         return Correction(segment, new, fixes[latest.index],
                           tuple((kf.index, kf.pose.copy()) for kf in graph.keyframes))

@@ -5,7 +5,12 @@ bounded queue (replay never drops); a live source already drops its oldest frame
 falls behind. One worker thread runs prepare -> register -> pose -> map update for each frame,
 hands a :class:`~photomap.mapping.events.FrameEvent` to its sinks and checkpoints the outputs
 periodically; :meth:`MappingPipeline.stop` (SIGINT/SIGTERM) ends capture, lets the worker finish,
-and the outputs are written.
+and the outputs are written. The map is painted by a :class:`~photomap.mapping.painter.Painter`
+(keyframes whole, other frames only their new ground); after a loop-closure correction a
+:class:`~photomap.mapping.rerender.Rerenderer` thread re-renders the moved tiles and the worker
+swaps them in, never waiting. The thread budget (BLAS pinned to one thread, OpenCV's threads
+``mapping.opencv_threads``) holds for the whole run; the pipeline records its per-stage times
+(:mod:`photomap.mapping.timing`, ``run.json`` ``timing_ms``).
 
 State has one owner: the pipeline owns the trajectory rows, the maps (one per segment) and the
 tracker; the loop closer returns corrections that the pipeline applies; sinks only read events.
@@ -17,6 +22,7 @@ the map is empty; the largest segment; other segments as ``mosaic_segment{N}.png
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections import deque
@@ -39,8 +45,9 @@ from photomap.core.matching import PairMatcher
 from photomap.core.maprelative import map_correction
 from photomap.core.mosaic import TiledMosaic
 from photomap.core.records import PoseRow
-from photomap.core.tracking import LOW_CONFIDENCE, TrackStep, Tracker
+from photomap.core.tracking import LOW_CONFIDENCE, REFERENCE, TrackStep, Tracker
 from photomap.drivers.frames import Frame, FrameSource
+from photomap.drivers.images import ImageFolderSource
 from photomap.geometry import frame_centre, pose_angle_deg
 from photomap.errors import OutputError, PhotomapError
 from photomap.io.keyframestore import KeyframeStore
@@ -54,7 +61,10 @@ from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.memory import limit_heap_growth, release_free_memory
 from photomap.mapping.outputs import png_placement, remove_sidecars, write_png, write_sidecars, write_tiles
+from photomap.mapping.painter import Painter
+from photomap.mapping.rerender import Rerenderer
 from photomap.mapping.telemetry_join import TelemetryJoin
+from photomap.mapping.timing import StageTimes
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +88,7 @@ class RunStats:
     worker_s: float = 0.0
     register_s: float = 0.0
     events: deque = field(default_factory=lambda: deque(maxlen=100))  # the latest (bounded memory)
+    timing: StageTimes = field(default_factory=StageTimes)
 
     def summary(self, wall_s: float) -> dict:
         posed = self.registered
@@ -97,13 +108,17 @@ class RunStats:
             "ms_register_per_frame": 1000.0 * self.register_s / self.frames_in if self.frames_in else None,
             "wall_time_s": wall_s,
             "fps": self.frames_in / wall_s if wall_s > 0 else None,
+            "timing_ms": self.timing.summary(),
             "events": list(self.events),
         }
 
 
 def _prefetch(source: FrameSource, depth: int, stop: threading.Event, *,
-              poll: float = 0.2, join_timeout: float = 5.0) -> Iterator[Frame]:
-    """Decode ``source`` in a thread, ``depth`` frames ahead (blocking: never drops).
+              poll: float = 0.2, join_timeout: float = 5.0,
+              timing: StageTimes | None = None, max_bytes: int = 64 << 20) -> Iterator[Frame]:
+    """Decode ``source`` in a thread, ``depth`` frames ahead but at most ``max_bytes`` of frames
+    (at least 2; 4K frames are 25 MB each) (blocking: never drops); the time of each frame's
+    reading and decoding goes to ``timing`` (stage ``decode``).
 
     The decode thread is the only one that iterates ``source``; when it stops (end, ``stop``
     set, or this generator closed) it closes its own iterator, so a video source releases its
@@ -124,10 +139,26 @@ def _prefetch(source: FrameSource, depth: int, stop: threading.Event, *,
                 continue
         return False
 
+    def timed(frames: Iterator[Frame]) -> Iterator[Frame]:
+        while True:
+            t = time.perf_counter()
+            try:
+                frame = next(frames)
+            except StopIteration:
+                return
+            if timing is not None:
+                timing.add("decode", time.perf_counter() - t)
+            yield frame
+
     def reader() -> None:
         frames = iter(source)
+        sized = False
         try:
-            for frame in frames:
+            for frame in timed(frames):
+                if not sized:  # the first frame tells the frame size
+                    with q.mutex:
+                        q.maxsize = max(2, min(depth, max_bytes // max(1, frame.image.nbytes)))
+                    sized = True
                 if stop.is_set() or not put(frame) or stop.is_set():
                     break
         except BaseException as exc:  # handed to the consumer
@@ -220,14 +251,14 @@ class MappingPipeline:
         self._own_cache = False
         self._warned: set[str] = set()
         self._pending: tuple[int, np.ndarray, np.ndarray] | None = None  # last low-confidence frame: index, image, small
-        self._dirty: set[int] = set()  # segments whose map must be re-rendered from keyframes
-        self._keyframes: dict[int, tuple[tuple[int, np.ndarray], ...]] = {}  # segment -> corrected keyframes
         self._state: Checkpointer | None = None  # the checkpointed full-resolution map
         self._state_refused = False
         self._write_errors: dict[str, str] = {}  # output -> why it could not be written (once each)
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
         self._segment_start: dict[int, int] = {}  # segment -> position in the rows where it started
         self._kept: set[int] = set()  # segments known to hold more than one posed frame
+        self._painter: Painter | None = None  # paints the maps (made with the tracker)
+        self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
 
     @property
     def rows(self) -> tuple[PoseRow, ...]:
@@ -254,29 +285,38 @@ class MappingPipeline:
         failure: list[BaseException] = []
 
         def work() -> None:
-            # BLAS pools pinned to one thread while mapping: the refinement's small products spin
-            # against every other busy thread otherwise (10x slower on a busy 2-core computer)
-            frames = self.source if self.source.live else _prefetch(self.source, 8, self._stop)
+            frames = self.source if self.source.live else _prefetch(self.source, 8, self._stop,
+                                                                    timing=self.stats.timing)
             try:
-                with threadpool_limits(limits=1, user_api="blas"):
-                    for frame in frames:  # after stop(), the frames already queued are drained
-                        self._process(frame)
+                for frame in frames:  # after stop(), the frames already queued are drained
+                    self._process(frame)
             except BaseException as exc:  # reported by run(), after the outputs are written
                 failure.append(exc)
             finally:
                 if frames is not self.source:
                     frames.close()  # stops the decode thread (bounded wait), also after an error
 
-        worker = threading.Thread(target=work, name="photomap-worker", daemon=True)
-        worker.start()
-        closed = False
-        while worker.is_alive():
-            worker.join(timeout=0.2)
-            if self._stop.is_set() and not closed:  # stop() only flags: close here, not in a handler
-                closed = True
-                self.source.close()
-        self.source.close()  # bounded: never releases a decoder under a running read
-        summary = self.finish()
+        # The thread budget, for the whole run (the worker, the loop closer's optimiser, the
+        # re-render thread, the viewer and the final outputs): BLAS pools pinned to one thread
+        # (the refinement's small products spin against every other busy thread otherwise: 10x
+        # slower on a busy 2-core computer); OpenCV's pool as configured (docs/onboard.md).
+        opencv_threads = cv2.getNumThreads()
+        if self.cfg.mapping.opencv_threads > 0:
+            cv2.setNumThreads(self.cfg.mapping.opencv_threads)
+        try:
+            with threadpool_limits(limits=1, user_api="blas"):
+                worker = threading.Thread(target=work, name="photomap-worker", daemon=True)
+                worker.start()
+                closed = False
+                while worker.is_alive():
+                    worker.join(timeout=0.2)
+                    if self._stop.is_set() and not closed:  # stop() only flags: close here, not in a handler
+                        closed = True
+                        self.source.close()
+                self.source.close()  # bounded: never releases a decoder under a running read
+                summary = self.finish()
+        finally:
+            cv2.setNumThreads(opencv_threads)
         if failure:
             raise failure[0]
         return summary
@@ -291,18 +331,28 @@ class MappingPipeline:
         f = self._small[0] / w  # exact factor of cv2.resize in x (and, to rounding, in y)
         self._working_scale = f
         mapping = self.cfg.mapping
+        # the map's resolution: at most map_px a video frame (survey stills keep theirs)
+        if mapping.map_px and max(w, h) > mapping.map_px and not isinstance(self.source, ImageFolderSource):
+            mapping = dataclasses.replace(mapping, map_scale=mapping.map_scale * mapping.map_px / max(w, h))
+        self._map_scale = mapping.map_scale
         registrar = Registrar((self._small[1], self._small[0]), self.cfg.registration)
         matcher = PairMatcher(registrar, min_confidence=mapping.min_confidence,
                               trust_confidence=mapping.trust_confidence, verify=mapping.verify_placements,
                               second_opinion=mapping.second_opinion, second_opinion_px=mapping.second_opinion_px)
         self.tracker = Tracker(matcher, f, mapping,
                                telemetry_prior=self.telemetry.prior if self.telemetry else None)
+        store = None
         if mapping.keyframes and mapping.loop_closure:
             keyframes = (state_folder(self.out_dir) / "keyframes" if self._checkpointing and not self.cfg.mosaic.cache_dir
                          else self._cache() / "keyframes")  # kept with the checkpoint: a restart can re-render
-            self.loops = LoopCloser(KeyframeStore(keyframes), matcher, self.frame_size,
+            store = KeyframeStore(keyframes)
+            self.loops = LoopCloser(store, matcher, self.frame_size,
                                     f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None,
                                     settle_on_priors=self.telemetry is not None and self.telemetry.mode == "stills")
+        # the painter's background thread: kept images, re-renders after corrections, previews
+        self._painter = Painter(self.frame_size, self.cfg.mosaic.tile_size,
+                                rerenderer=Rerenderer(store, self.cfg.mosaic), keep=self.loops is not None,
+                                whole_frames=mapping.paint == "every")
 
     def _cache(self) -> Path:
         """The run's cache folder (configured, or a temporary one removed at the end)."""
@@ -388,8 +438,7 @@ class MappingPipeline:
         self.mosaics.pop(seg, None)
         if self.cfg.mosaic.max_tiles_in_memory and self._cache_dir is not None:
             shutil.rmtree(self._cache_dir / f"segment{seg}", ignore_errors=True)
-        self._keyframes.pop(seg, None)
-        self._dirty.discard(seg)
+        self._painter.forget(seg)
         self._segment_start.pop(seg, None)
         if self.loops is not None:
             self.loops.forget(seg)
@@ -399,6 +448,14 @@ class MappingPipeline:
 
     def _process(self, frame: Frame) -> None:
         t0 = time.perf_counter()
+        try:
+            self._process_frame(frame)
+        finally:  # the worker's whole time for the frame: the largest is its longest stall
+            self.stats.timing.add("frame", time.perf_counter() - t0)
+
+    def _process_frame(self, frame: Frame) -> None:
+        t0 = time.perf_counter()
+        timing = self.stats.timing
         self._gaps(frame.index)  # frames before this one that never came: dropped or undecodable
         self._next_index = max(self._next_index, frame.index + 1)
         self.stats.frames_in += 1
@@ -419,17 +476,27 @@ class MappingPipeline:
                 image, mask = view.image, view.mask
             small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
             t1 = time.perf_counter()
+            timing.add("resize", t1 - t0)
             started = self.tracker.segments
             step = self.tracker.step(small, frame.index, sample, image)
             register_s = time.perf_counter() - t1
             self.stats.register_s += register_s
             if step.keyframe and step.reference is not None and self.cfg.mapping.map_relative:
                 self._map_relative(step, small)
+            t2 = time.perf_counter()
+            timing.add("register", t2 - t1)
+            if self.tracker.segments > started:  # earlier segments got their last frame
+                for segment in list(self.mosaics):
+                    if segment != step.segment:
+                        self._painter.end_segment(self.mosaics.get(segment), segment)
             touched: set = set()
             if step.anchor is not None:
                 touched |= self._anchor(step)
             if step.pose is not None:
-                touched |= self._mosaic(step.segment).add(image, step.pose, mask)
+                whole = step.keyframe and (self.cfg.mapping.keyframes or step.status == REFERENCE)
+                touched |= self._painter.paint(self._mosaic(step.segment), step.segment, frame.index, image,
+                                               step.pose, mask, whole=whole)
+            timing.add("paint", time.perf_counter() - t2)
             pending = self._pending
             self._pending = (frame.index, image, small) if step.status == LOW_CONFIDENCE else None
         except Exception as exc:  # never lose the map for one bad frame
@@ -467,12 +534,13 @@ class MappingPipeline:
                 self.telemetry.keep(frame.index, sample)
         self._rows.append(row)
         corrected_path = None
+        t3 = time.perf_counter()
         if self.loops is not None:
             if step.anchor is not None and pending is not None and pending[0] == step.anchor:
                 self.loops.on_anchor(step, pending[2], pending[1])
             for update in self.loops.on_step(frame.index, step, small, image, sample):
                 if isinstance(update, Join):
-                    touched = self._join(update)
+                    touched = self._join(update)  # the frame's tiles were in the joined map's frame: none here
                     message = (f"map segment {update.segment} joined segment {update.into} at frame "
                                f"{frame.index} (confidence {update.confidence:.2f})")
                     log.info(message)
@@ -485,8 +553,13 @@ class MappingPipeline:
                     corrected_path = self._path(self._segment)
             if self._segment != step.segment:  # joined: this frame now lives in another map
                 step.segment = self._segment
+            timing.add("loop_closure", time.perf_counter() - t3)
+        t4 = time.perf_counter()
+        touched |= self._painter.pump(self.mosaics).get(step.segment, set())  # re-rendered tiles
+        timing.add("map_upkeep", time.perf_counter() - t4)
         self.stats.worker_s += time.perf_counter() - t0
         if self.sinks:
+            t5 = time.perf_counter()
             link = self.telemetry.link_summary() if self.telemetry is not None else {}
             anchor = (step.anchor, step.anchor_pose.copy()) if step.anchor is not None else None
             self._emit(FrameEvent(
@@ -500,9 +573,12 @@ class MappingPipeline:
                 telemetry=sample, focal_px=self.telemetry.focal(self.frame_size[0]) if self.telemetry else None,
                 link_lost=int(link.get("link_lost", 0)),
                 link_regained=int(link.get("link_regained", 0)), corrected_path=corrected_path))
+            timing.add("sinks", time.perf_counter() - t5)
         interval = self.cfg.output.checkpoint_interval
         if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
+            t6 = time.perf_counter()
             self.checkpoint()
+            timing.add("outputs", time.perf_counter() - t6)
 
     def _emit(self, event: FrameEvent) -> None:
         for sink in self.sinks:
@@ -510,13 +586,12 @@ class MappingPipeline:
 
     def _path(self, segment: int) -> tuple[tuple[float, float, float], ...]:
         """The map positions of the frame centres of ``segment`` (x, y, confidence), in order."""
-        centre = (*frame_centre(*self.frame_size), 1.0)
-        out = []
-        for row in self._rows:
-            if row.glued and row.segment == segment:
-                x, y = np.asarray(row.M, float) @ centre
-                out.append((float(x), float(y), float(row.confidence)))
-        return tuple(out)
+        rows = [row for row in self._rows if row.glued and row.segment == segment]
+        if not rows:
+            return ()
+        centre = np.array([*frame_centre(*self.frame_size), 1.0])
+        xy = np.array([np.asarray(row.M, float)[:2] for row in rows]) @ centre  # one product for all
+        return tuple(zip(xy[:, 0].tolist(), xy[:, 1].tolist(), [float(row.confidence) for row in rows]))
 
     def _apply(self, correction: Correction) -> None:
         """Re-pose the frames of a corrected segment; the tracker goes on from the corrected pose."""
@@ -525,30 +600,25 @@ class MappingPipeline:
                 row.M = correction.poses[row.frame][:2].copy()
         if correction.segment == self.tracker.segment:
             self.tracker.correct(correction.latest)
-        self._keyframes[correction.segment] = correction.keyframes
-        self._dirty.add(correction.segment)
+        self._painter.on_correction(correction.segment, correction.poses)  # re-rendered in the background
 
     def _join(self, join: Join) -> set:
         """Segment ``join.segment`` is part of ``join.into``: one map frame from now on.
 
-        Returns the tiles of the joined map (all changed, as far as a viewer knows)."""
+        The joined map's frames are re-rendered into ``join.into`` in the background (the tiles
+        come to the sinks as they are swapped in); returns no tiles."""
         t = join.transform
         for row in self._rows:
             if row.segment == join.segment:
                 if row.M is not None:
                     row.M = (t @ np.vstack([row.M, [0.0, 0.0, 1.0]]))[:2]
                 row.segment = join.into
-        into = self._mosaic(join.into)
-        source = self.mosaics.pop(join.segment, None)
-        if source is not None:
-            into.merge(source, t)
+        self._mosaic(join.into)
+        self.mosaics.pop(join.segment, None)  # its kept frames are re-rendered into join.into
+        self._painter.on_join(join.segment, join.into, t)
         if self.tracker.segment == join.segment:
             self.tracker.rejoin(join.into, t)
-        self._keyframes.pop(join.segment, None)
-        if join.segment in self._dirty:
-            self._dirty.discard(join.segment)
-            self._dirty.add(join.into)
-        return set(into.tiles())
+        return set()
 
     def _map_relative(self, step: TrackStep, small: np.ndarray) -> None:
         """Snap a new keyframe to the map rendered at its predicted pose (less drift)."""
@@ -577,7 +647,8 @@ class MappingPipeline:
                 self.stats.confidence_sum += 1.0
                 break
         if self._pending is not None and self._pending[0] == step.anchor:
-            return self._mosaic(step.segment).add(self._pending[1], step.anchor_pose, self._view_mask(step.anchor))
+            return self._painter.paint(self._mosaic(step.segment), step.segment, step.anchor, self._pending[1],
+                                       step.anchor_pose, self._view_mask(step.anchor), whole=True)
         return set()
 
     def _view_mask(self, index: int) -> np.ndarray | None:
@@ -599,8 +670,10 @@ class MappingPipeline:
         out["skipped"] = out["low_confidence"] + out["corrupt"]
         out.update({"input": self.input_name, "frame_size": list(self.frame_size or ()),
                     "working_size": list(getattr(self, "_small", ())),
-                    "reconnects": src.reconnects, "map_scale": self.cfg.mapping.map_scale,
+                    "reconnects": src.reconnects, "map_scale": self._map_scale,
                     "video_start_unix": self._video_start_unix()})
+        if self._painter is not None:
+            out["painting"] = self._painter.stats.summary()
         if self.loops is not None:
             out["loop_closure"] = self.loops.summary()
             out["joins"] = [{"segment": j.segment, "into": j.into, "frame": j.frame, "match": j.match,
@@ -627,21 +700,14 @@ class MappingPipeline:
             write_tum(self.out_dir / "trajectory.tum", self._rows, self.frame_size)
 
     def _rerender(self) -> None:
-        """Re-render the maps that a loop closure corrected, from their keyframes."""
+        """Apply a finished loop-closure correction and swap re-rendered tiles in (never waits:
+        the re-rendering runs in the painter's background thread)."""
         if self.loops is not None:
             correction = self.loops.poll()
             if correction is not None:
                 self._apply(correction)
-        for segment in sorted(self._dirty):
-            mosaic = self.mosaics.get(segment)
-            if mosaic is None:
-                continue
-            mosaic.reset()
-            for index, pose in self._keyframes.get(segment, ()):
-                image = self.loops.store.image(index)
-                if image is not None:
-                    mosaic.add(image, pose[:2], self._view_mask(index))
-        self._dirty.clear()
+        if self.tracker is not None:
+            self._painter.pump(self.mosaics)
 
     def _largest_segments(self) -> list[int]:
         """Segments with a map, the one with the most posed frames first."""
@@ -662,11 +728,15 @@ class MappingPipeline:
         try:
             return write(*args, **kwargs)
         except (OSError, PhotomapError) as exc:
-            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-            if name not in self._write_errors:
-                log.error("cannot write %s: %s", name, reason)
-            self._write_errors[name] = reason
+            self._write_failed(name, exc)
             return None
+
+    def _write_failed(self, name: str, exc: BaseException) -> None:
+        """Log a failed write of ``name`` once and remember why (also from the painter's thread)."""
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        if name not in self._write_errors:
+            log.error("cannot write %s: %s", name, reason)
+        self._write_errors[name] = reason
 
     def _state_meta(self, summary: dict) -> dict:
         """What the checkpoint manifest records besides the tiles."""
@@ -710,9 +780,11 @@ class MappingPipeline:
         self._attempt("trajectory.csv", self._write_trajectory)
         summary = self.summary()
         summary["complete"] = False
-        if self.mosaics:
-            self._attempt("preview.png", write_png, self.out_dir / "preview.png",
-                          self.mosaics[self._largest_segments()[0]], self.cfg.output.preview_px)
+        if self.mosaics and self._painter is not None:  # from thumbnails the painter keeps up to date
+            segment = self._largest_segments()[0]
+            self._attempt("preview.png", self._painter.write_preview, self.out_dir / "preview.png", segment,
+                          self.mosaics[segment], self.cfg.output.preview_px,
+                          on_error=lambda exc: self._write_failed("preview.png", exc))
         self._save_state(summary)
         if self._state is not None:
             summary["checkpoint"] = self._state.summary()
@@ -796,10 +868,20 @@ class MappingPipeline:
         Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
         ``write_errors``; when the map itself could not be written, the checkpoint keeps it
         (``photomap recover``), else the checkpoint is removed."""
+        t0 = time.perf_counter()
         if self.loops is not None:
             for correction in self.loops.flush():
                 self._apply(correction)
-        self._rerender()
+        if self._painter is not None:
+            try:
+                for segment in list(self.mosaics):  # every segment got its last frame
+                    self._painter.end_segment(self.mosaics.get(segment), segment)
+                self._painter.finish(self.mosaics)  # the re-renders the corrections need, in strips
+            except PhotomapError as exc:  # the map stays as painted live: still written
+                log.error("%s; the map keeps the poses it was painted with", exc)
+            finally:
+                self._painter.close()
+        self.stats.timing.add("final_rerender", time.perf_counter() - t0)
         self._close_gaps()
         if self._state is not None:
             self._state.wait()
@@ -866,6 +948,8 @@ class MappingPipeline:
             summary["checkpoint"] = self._state.summary()
         if self._write_errors:
             summary["write_errors"] = dict(self._write_errors)
+        self.stats.timing.add("final_outputs", time.perf_counter() - t0)
+        summary["timing_ms"] = self.stats.timing.summary()
         self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
         try:
             write_report(self.out_dir)  # report.html: the flight at a glance, offline

@@ -1,0 +1,283 @@
+"""Re-rendering map tiles after a pose-graph correction, off the worker thread.
+
+When loop closure moves frames, the map tiles under them must be rendered again from the frames
+kept for that (the images the painter stored at the map's resolution, in a
+:class:`~photomap.io.keyframestore.KeyframeStore`). :class:`Rerenderer` does it in one background
+thread at low priority (nice +10 on Linux: it gets the CPU the worker and the camera leave), in
+strips of at most ``strip_tiles`` tiles, each rendered into a scratch map of its own: memory stays
+bounded and the live map is never touched by this thread. The worker swaps finished strips in
+(:meth:`photomap.core.mosaic.TiledMosaic.put_tiles`, no pixel copied) when it polls, so it never
+waits for a re-render. The same thread writes the images kept for re-rendering (JPEG encoding off
+the worker).
+
+Conventions: poses are 3x3, pixels of the kept image -> map pixels; tile keys and rectangles as
+in :mod:`photomap.core.mosaic`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections import OrderedDict, deque
+from dataclasses import dataclass, replace
+from typing import Callable, Sequence
+
+import numpy as np
+
+from photomap.config import MosaicConfig
+from photomap.core.mosaic import Tile, TiledMosaic, TileKey
+from photomap.errors import PhotomapError
+from photomap.io.keyframestore import KeyframeStore
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class KeptFrame:
+    """A frame kept for re-rendering: its index, its pose (3x3, pixels of the kept image -> map
+    pixels), the kept image's size ``(w, h)`` and the exposure gain it was painted with (None:
+    none; with ``mosaic.exposure`` the re-render applies the same gain rather than fitting one)."""
+
+    index: int
+    pose: np.ndarray
+    size: tuple[int, int]
+    gain: np.ndarray | None = None
+
+    def bbox(self) -> tuple[int, int, int, int]:
+        """Map pixels its interpolation can reach: ``(x0, y0, x1, y1)``, exclusive."""
+        w, h = self.size
+        corners = np.array([[-1.0, -1.0, 1.0], [w, -1.0, 1.0], [-1.0, h, 1.0], [w, h, 1.0]]) @ self.pose[:2].T
+        x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+        x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 1
+        return int(x0), int(y0), int(x1), int(y1)
+
+
+@dataclass(frozen=True)
+class Strip:
+    """A finished part of a re-render job: the new arrays of ``tiles`` (None: the tile is empty
+    now) of map ``segment``."""
+
+    job: int
+    segment: int
+    tiles: dict[TileKey, Tile | None]
+    frames: int  # frames painted into it
+    render_s: float
+
+
+def tile_rects(keys: Sequence[TileKey], tile_size: int) -> list[tuple[int, int, int, int]]:
+    """The tiles ``keys`` as map rectangles ``(x, y, w, h)``, neighbours in a row merged."""
+    rects = []
+    for key in sorted(set(keys), key=lambda k: (k[1], k[0])):
+        x, y = key[0] * tile_size, key[1] * tile_size
+        if rects and rects[-1][1] == y and rects[-1][0] + rects[-1][2] == x:
+            rx, ry, rw, rh = rects[-1]
+            rects[-1] = (rx, ry, rw + tile_size, rh)
+        else:
+            rects.append((x, y, tile_size, tile_size))
+    return rects
+
+
+def _lower_priority(nice: int) -> None:
+    """Raise the calling thread's nice value (Linux: per thread); no error elsewhere."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+    except (AttributeError, OSError):
+        pass
+
+
+class Rerenderer:
+    """One background thread that keeps frame images and re-renders map tiles from them.
+
+    Parameters
+    ----------
+    store : KeyframeStore or None
+        Where kept images go (``put_image``) and come back from (None: no frame is kept, the
+        thread only runs :meth:`later` tasks).
+    params : MosaicConfig
+        The map's settings (tile size, channels, blend, border): strips are rendered exactly as
+        the live map paints.
+    strip_tiles : int
+        Most tiles rendered at once (memory: ``strip_tiles`` tiles of the scratch map).
+    max_pending_writes : int
+        Kept images waiting for the thread; beyond, :meth:`save` writes in the caller's thread
+        (memory stays bounded when the thread gets no CPU).
+    max_done : int
+        Finished strips waiting for :meth:`collect`; the thread renders no more until they are
+        taken (memory stays bounded when the worker swaps slowly).
+    nice : int
+        Added to the thread's nice value (0: same priority as the worker).
+    """
+
+    def __init__(self, store: KeyframeStore | None, params: MosaicConfig, *, strip_tiles: int = 32,
+                 max_pending_writes: int = 4, max_done: int = 1, nice: int = 10) -> None:
+        self.store = store
+        self.params = replace(params, max_tiles_in_memory=None)  # a scratch map never spills
+        self.strip_tiles = max(1, int(strip_tiles))
+        self.max_pending_writes = max(1, int(max_pending_writes))
+        self.max_done = max(1, int(max_done))
+        self.nice = nice
+        self._cond = threading.Condition()
+        self._writes: deque[Callable[[], None]] = deque()  # kept images, previews: before any strip
+        self._jobs: deque[tuple[int, int, tuple[KeptFrame, ...], list[list[TileKey]]]] = deque()
+        self._done: list[Strip] = []
+        self._active = 0  # strips being rendered or written right now (0 or 1)
+        self._next_job = 0
+        self._closing = False
+        self._failure: BaseException | None = None
+        self._cache: OrderedDict[int, tuple[np.ndarray | None, np.ndarray | None]] = OrderedDict()
+        self.writes = 0  # kept images
+        self.sync_writes = 0  # tasks run by the caller because the thread was behind
+        self.lost_frames = 0  # kept images that could not be read back
+        self._thread = threading.Thread(target=self._run, name="photomap-rerender", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ caller side
+    def save(self, index: int, image: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """Keep the image of frame ``index`` (and its valid ``mask``) for re-rendering. The
+        arrays must not change afterwards (the caller hands them over)."""
+        self.later(lambda: self.store.put_image(index, image, mask))
+        self.writes += 1
+
+    def later(self, task: Callable[[], None]) -> None:
+        """Run ``task`` in the background thread, before any further re-render strip (in the
+        caller's thread when ``max_pending_writes`` tasks are already waiting)."""
+        with self._cond:
+            if len(self._writes) < self.max_pending_writes and not self._closing:
+                self._writes.append(task)
+                self._cond.notify()
+                return
+        task()
+        self.sync_writes += 1
+
+    def submit(self, segment: int, frames: Sequence[KeptFrame], tiles: set[TileKey]) -> int:
+        """Re-render ``tiles`` of map ``segment`` from ``frames`` (painted in this order, the
+        newest on top); returns the job id that its :class:`Strip` results carry."""
+        keys = sorted(tiles, key=lambda k: (k[1], k[0]))
+        strips = [keys[i:i + self.strip_tiles] for i in range(0, len(keys), self.strip_tiles)]
+        with self._cond:
+            job = self._next_job
+            self._next_job += 1
+            if strips:
+                self._jobs.append((job, segment, tuple(frames), strips))
+                self._cond.notify()
+        return job
+
+    def collect(self) -> list[Strip]:
+        """The strips finished since the last call (never blocks)."""
+        self._raise()
+        with self._cond:
+            done, self._done = self._done, []
+            self._cond.notify_all()
+        return done
+
+    @property
+    def busy(self) -> bool:
+        """Jobs queued or being rendered."""
+        with self._cond:
+            return bool(self._jobs) or self._active > 0
+
+    def wait(self, timeout: float | None = None) -> None:
+        """Block until every queued write and job is done (or ``timeout`` seconds); the strips
+        stay for :meth:`collect`."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while (self._writes or self._active or (self._jobs and len(self._done) < self.max_done)) \
+                    and self._failure is None:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    break
+                self._cond.wait(left)
+        self._raise()
+
+    def close(self) -> None:
+        """Finish the queued writes, drop queued jobs, end the thread."""
+        with self._cond:
+            self._closing = True
+            self._jobs.clear()
+            self._cond.notify_all()
+        self._thread.join(timeout=30.0)
+
+    def _raise(self) -> None:
+        if self._failure is not None:
+            failure, self._failure = self._failure, None
+            raise PhotomapError(f"map re-render failed: {type(failure).__name__}: {failure}") from failure
+
+    # ------------------------------------------------------------------ the thread
+    def _run(self) -> None:
+        _lower_priority(self.nice)
+        while True:
+            with self._cond:
+                while not self._writes and not self._closing and (
+                        not self._jobs or len(self._done) >= self.max_done):
+                    self._cond.wait()
+                if self._writes:  # kept images first: a job may need them, and they hold memory
+                    task = ("write", self._writes.popleft())
+                elif self._jobs and len(self._done) < self.max_done:
+                    job, segment, frames, strips = self._jobs[0]
+                    keys = strips.pop(0)
+                    if not strips:
+                        self._jobs.popleft()
+                    task = ("strip", (job, segment, frames, keys))
+                else:
+                    return  # closing, nothing left to write
+                self._active += 1
+            try:
+                if task[0] == "write":
+                    task[1]()
+                else:
+                    strip = self._render(*task[1])
+                    with self._cond:
+                        self._done.append(strip)
+            except BaseException as exc:  # handed to the worker by collect()
+                log.debug("re-render thread failed", exc_info=True)
+                with self._cond:
+                    self._failure = exc
+            finally:
+                with self._cond:
+                    self._active -= 1
+                    self._cond.notify_all()
+
+    def _image(self, index: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """A kept image and its mask, through a small cache (neighbouring strips share frames)."""
+        if index in self._cache:
+            self._cache.move_to_end(index)
+            return self._cache[index]
+        found = (self.store.image(index), self.store.mask(index))
+        if found[0] is None:
+            self.lost_frames += 1
+        self._cache[index] = found
+        while len(self._cache) > 2:
+            self._cache.popitem(last=False)
+        return found
+
+    def _render(self, job: int, segment: int, frames: tuple[KeptFrame, ...], keys: list[TileKey]) -> Strip:
+        t = time.perf_counter()
+        ts = self.params.tile_size
+        rects = tile_rects(keys, ts)
+        sx0 = min(k[0] for k in keys) * ts
+        sy0 = min(k[1] for k in keys) * ts
+        sx1 = (max(k[0] for k in keys) + 1) * ts
+        sy1 = (max(k[1] for k in keys) + 1) * ts
+        scratch = TiledMosaic(self.params)
+        painted = 0
+        for frame in frames:
+            x0, y0, x1, y1 = frame.bbox()
+            if x1 <= sx0 or x0 >= sx1 or y1 <= sy0 or y0 >= sy1:
+                continue
+            clip = [r for r in rects if x0 < r[0] + r[2] and r[0] < x1 and y0 < r[1] + r[3] and r[1] < y1]
+            if not clip:
+                continue
+            image, mask = self._image(frame.index)
+            if image is None:
+                continue
+            try:
+                extra = {} if frame.gain is None else {"gain": frame.gain}
+                scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
+                painted += 1
+            except PhotomapError as exc:
+                log.debug("frame %d not re-rendered: %s", frame.index, exc)
+        tiles = scratch.take_tiles()
+        return Strip(job, segment, {key: tiles.get(key) for key in keys}, painted, time.perf_counter() - t)

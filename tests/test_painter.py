@@ -1,0 +1,392 @@
+"""Painting only what changes the map, at the map's resolution, and re-rendering in the background.
+
+Truth: the simulator's terrain seen through the true pose of the first frame (as in
+tests/test_pipeline.py), maps painted every frame whole (the behaviour before), and maps painted
+from scratch with the corrected poses."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from photomap.config import MosaicConfig, load_config
+from photomap.core.mosaic import TiledMosaic
+from photomap.io.keyframestore import KeyframeStore
+from photomap.mapping.painter import Painter, resize_factors
+from photomap.mapping.pipeline import MappingPipeline
+from photomap.mapping.rerender import KeptFrame, Rerenderer, tile_rects
+from photomap.mapping.timing import StageTimes
+from photomap.sim.flight import simulate_sequence
+from photomap.sim.terrain import load_terrain, valid_mask
+from test_pipeline import ListSource
+
+
+def texture(h: int, w: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = cv2.GaussianBlur(rng.normal(0, 1, (h, w, 3)).astype(np.float32), (0, 0), 2)
+    t = (t - t.min()) / (t.max() - t.min())
+    return np.rint(20 + 215 * t).astype(np.uint8)
+
+
+def pose(angle_deg: float, x: float, y: float, s: float = 1.0) -> np.ndarray:
+    a = math.radians(angle_deg)
+    return np.array([[s * math.cos(a), -s * math.sin(a), x], [s * math.sin(a), s * math.cos(a), y], [0, 0, 1.0]])
+
+
+# ---------------------------------------------------------------- new ground
+def test_uncovered_is_the_new_ground_and_painting_it_completes_the_map():
+    a, b = texture(120, 160, 1), texture(120, 160, 2)
+    m = TiledMosaic(MosaicConfig(tile_size=64))
+    m.add(a, pose(0, 0, 0)[:2])
+    assert m.uncovered(pose(0, 0, 0)[:2], (160, 120)) == []  # over mapped ground: nothing new
+    assert m.uncovered(pose(0, 1.5, -0.5)[:2], (160, 120)) == []  # nothing a pixel wide either
+    Mb = pose(8, 70.5, 30.25)[:2]
+    rects = m.uncovered(Mb, (160, 120), block=16, step=2)
+    assert rects and all(x % 16 == 0 and y % 16 == 0 and w % 16 == 0 and h % 16 == 0 for x, y, w, h in rects)
+    # no rectangle lies entirely inside frame a's footprint (x, y in 1..158, 1..118)
+    assert not any(x >= 1 and y >= 1 and x + w <= 159 and y + h <= 119 for x, y, w, h in rects)
+    whole = TiledMosaic(MosaicConfig(tile_size=64))
+    whole.add(a, pose(0, 0, 0)[:2])
+    whole.add(b, Mb)
+    m.add(b, Mb, clip=rects)
+    got, want = m.render(bounds=whole.bounds()), whole.render()
+    # the same coverage but for the frame's edge band that is not looked at (inset + border)
+    lost = (want[1] == 255) & (got[1] != 255)
+    assert lost.sum() < 0.01 * (want[1] == 255).sum()
+    assert not ((got[1] == 255) & (want[1] != 255)).any()
+    # where b was painted it is b (newest on top); elsewhere a as before
+    same = (got[1] == 255) & (want[1] == 255)
+    assert np.median(np.abs(got[0].astype(int) - want[0])[same]) == 0
+
+
+def test_a_strip_of_a_large_frame_is_downscaled_alone():
+    """New ground of a frame finer than the map: only the strip's part of the frame is resized,
+    and the map is the same as with the whole frame resized."""
+    big = cv2.resize(texture(300, 400, 4), (1600, 1200), interpolation=cv2.INTER_CUBIC)
+    first, second = pose(5, 0, 0, 0.25), pose(5, 60.3, 20.7, 0.25)
+    maps = {}
+    for whole_frames in (False, True):
+        m = TiledMosaic(MosaicConfig(tile_size=64))
+        painter = Painter((1600, 1200), 64, whole_frames=whole_frames, min_move_px=0)
+        painter.paint(m, 0, 0, big[:, ::-1].copy(), first, whole=True)
+        painter.paint(m, 0, 1, big, second)
+        maps[whole_frames] = m
+        if not whole_frames:
+            assert painter.stats.new_ground == 1
+    bounds = maps[True].bounds()
+    (got, got_a, _), (want, want_a, _) = maps[False].render(bounds=bounds), maps[True].render(bounds=bounds)
+    only_first = TiledMosaic(MosaicConfig(tile_size=64))
+    Painter((1600, 1200), 64).paint(only_first, 0, 0, big[:, ::-1].copy(), first, whole=True)
+    new = (want_a == 255) & (got_a == 255) & (only_first.render(bounds=bounds)[1] != 255)  # the second's ground
+    assert new.sum() > 1000
+    assert (got_a == 255).sum() > 0.99 * (want_a == 255).sum()
+    assert np.median(np.abs(got.astype(int) - want)[new]) <= 1
+
+
+def test_resize_factors_follow_cv2_resize():
+    assert resize_factors((640, 480), pose(30, 5, 5, 0.9)) is None  # not much coarser: warp the frame
+    size, to_small = resize_factors((640, 480), pose(30, 5, 5, 0.5))
+    assert size == (320, 240)
+    frame = texture(480, 640, 3)
+    small = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
+    # input pixel (u, v) is small pixel to_small @ (u, v): a 2x2 block's centre
+    u, v = 101.5, 57.5
+    su, sv = (to_small @ [u, v, 1.0])[:2]
+    assert (su, sv) == (50.5, 28.5)
+    assert np.allclose(small[28:30, 50:52].mean(), frame[56:60, 100:104].mean(), atol=1)
+
+
+# ---------------------------------------------------------------- the pipeline's map
+@pytest.fixture(scope="module")
+def flight():
+    terrain = load_terrain("aukerman", zoom=3)
+    seq = simulate_sequence(terrain, 90, (480, 640), seed=11, valid=valid_mask(terrain), gsd=0.1 / 3,
+                            altitude=(20.0, 25.0), speed=5.0, fps=15.0)
+    return terrain, seq
+
+
+def map_vs_terrain(out, seq, terrain):
+    """Median |map - terrain| (grey) over covered pixels, and the covered pixel count."""
+    run = json.loads((out / "run.json").read_text())
+    info = run["mosaics"][0]
+    png = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+    x0, y0 = info["origin_xy"]
+    s = run["map_scale"]
+    # map pixel (x, y) = frame-0 pixel scaled by s (OpenCV centres); terrain = H0 @ frame-0 pixel
+    map_to_frame0 = np.linalg.inv(np.array([[s, 0, s / 2 - 0.5], [0, s, s / 2 - 0.5], [0, 0, 1.0]]))
+    png_to_map = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
+    ref = cv2.warpPerspective(terrain, np.asarray(seq.truth.H[0]) @ map_to_frame0 @ png_to_map,
+                              png.shape[1::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    covered = cv2.erode((png[..., 3] == 255).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    diff = np.abs(cv2.cvtColor(png[..., :3], cv2.COLOR_BGR2GRAY).astype(float)
+                  - cv2.cvtColor(ref, cv2.COLOR_BGR2GRAY).astype(float))
+    return float(np.median(diff[covered])), int((png[..., 3] == 255).sum()), run
+
+
+def test_new_ground_map_equals_the_every_frame_map(flight, tmp_path):
+    terrain, seq = flight
+    results = {}
+    for paint in ("every", "new_ground"):
+        out = tmp_path / paint
+        MappingPipeline(ListSource(seq.frames), load_config(overrides=[f"mapping.paint={paint}"]), out).run()
+        results[paint] = map_vs_terrain(out, seq, terrain)
+    (every, n_every, _), (new, n_new, run) = results["every"], results["new_ground"]
+    assert new < 6.0 and new <= every + 0.5  # as true to the ground
+    assert 0.99 * n_every <= n_new <= n_every  # the same ground, but for slivers at the outer edge
+    painting = run["painting"]
+    assert painting["whole"] < 20 and painting["small_move"] > 30  # most frames warp nothing
+    timing = run["timing_ms"]
+    for stage in ("decode", "resize", "register", "paint", "frame"):
+        assert timing[stage]["count"] >= 90 and 0 < timing[stage]["median"] <= timing[stage]["max"]
+
+
+def test_map_px_maps_a_large_frame_at_the_map_resolution(flight, tmp_path):
+    terrain, seq = flight
+    out = tmp_path / "half"
+    MappingPipeline(ListSource(seq.frames[:40]), load_config(overrides=["mapping.map_px=320"]), out).run()
+    residual, covered, run = map_vs_terrain(out, seq, terrain)
+    assert run["map_scale"] == pytest.approx(0.5)
+    assert residual < 6.0
+    full = tmp_path / "full"
+    MappingPipeline(ListSource(seq.frames[:40]), load_config(overrides=["mapping.map_px=0"]), full).run()
+    assert covered == pytest.approx(map_vs_terrain(full, seq, terrain)[1] / 4, rel=0.03)
+
+
+# ---------------------------------------------------------------- re-rendering
+def render_from_store(store, frames, params):
+    m = TiledMosaic(params)
+    for f in frames:
+        m.add(store.image(f.index), f.pose[:2], store.mask(f.index))
+    return m
+
+
+def assert_same_tiles(got: TiledMosaic, want: TiledMosaic, keys) -> None:
+    """Equal but for the warp's fixed-point rounding (a clipped warp starts elsewhere)."""
+    for key in keys:
+        assert (key in got.tiles()) == (key in want.tiles()), key
+        if key not in want.tiles():
+            continue  # empty in both
+        (gi, ga), (wi, wa) = got.tile_image(key), want.tile_image(key)
+        assert (ga != wa).mean() < 0.001
+        both = (ga == 255) & (wa == 255)
+        assert np.abs(gi.astype(int) - wi)[both].max(initial=0) <= 1
+
+
+def test_a_correction_rerenders_the_moved_tiles_in_the_background(tmp_path):
+    params = MosaicConfig(tile_size=64)
+    store = KeyframeStore(tmp_path / "kf")
+    painter = Painter((160, 120), 64, rerenderer=Rerenderer(store, params, strip_tiles=5), interval_s=0.0)
+    live = TiledMosaic(params)
+    poses = {i: pose(4 * i, 60.0 * i, 10.0 * i) for i in range(6)}
+    mask = np.ones((120, 160), bool)
+    mask[:, :20] = False  # a frame valid only in part
+    for i, p in poses.items():
+        painter.paint(live, 0, i, texture(120, 160, 10 + i), p, mask if i == 2 else None, whole=True)
+    painter.rerenderer.wait()
+    before = {key: live.tile_image(key) for key in live.tiles()}
+    # the pose graph moves frames 3..5 (a drift correction growing along the path)
+    corrected = dict(poses)
+    for i in (3, 4, 5):
+        corrected[i] = pose(4 * i, 60.0 * i - 2.0 * (i - 2), 10.0 * i + 3.5 * (i - 2))
+    assert painter.on_correction(0, corrected) == 3
+    changed = painter.finish({0: live})
+    assert changed[0] and (0, 0) not in changed[0]
+    # the re-rendered tiles are the corrected map (from the kept images), the others untouched
+    kept = [KeptFrame(i, corrected[i], (160, 120)) for i in poses]
+    assert_same_tiles(live, render_from_store(store, kept, params), changed[0])
+    for key in set(before) - changed[0]:
+        np.testing.assert_array_equal(live.tile_image(key)[0], before[key][0])
+    assert set(live.tiles()) >= set(before) - changed[0]
+    assert painter.stats.rerender_jobs == 1 and painter.stats.rerendered_tiles == len(changed[0])
+    painter.close()
+
+
+def test_tiles_painted_during_a_rerender_keep_their_pixels_until_redone(tmp_path):
+    params = MosaicConfig(tile_size=64)
+    store = KeyframeStore(tmp_path / "kf")
+    rerenderer = Rerenderer(store, params)
+    painter = Painter((160, 120), 64, rerenderer=rerenderer, interval_s=0.0)
+    live = TiledMosaic(params)
+    first = pose(0, 0, 0)
+    painter.paint(live, 0, 0, texture(120, 160, 1), first, whole=True)
+    rerenderer.wait()
+    painter.on_correction(0, {0: pose(0, 3, 2)})
+    gate = __import__("threading").Event()
+    original = rerenderer._render
+
+    def slow(*args):  # the job runs while the worker paints
+        gate.wait(10)
+        return original(*args)
+
+    rerenderer._render = slow
+    painter.pump({0: live}, force=True)  # job submitted
+    newer = texture(120, 160, 2)
+    painter.paint(live, 0, 1, newer, pose(0, 30.5, 20.5), whole=True)  # painted live meanwhile
+    gate.set()
+    rerenderer.wait()
+    painter.pump({0: live}, force=True)  # swaps what was not painted meanwhile, re-queues the rest
+    assert painter.stats.deferred_tiles > 0
+    rerenderer._render = original
+    deferred = painter.stats.deferred_tiles
+    painter.on_correction(0, {0: pose(0, 3, 2)})  # nothing moved further: only the deferred tiles
+    changed = painter.finish({0: live})
+    kept = [KeptFrame(0, pose(0, 3, 2), (160, 120)), KeptFrame(1, pose(0, 30.5, 20.5), (160, 120))]
+    want = render_from_store(store, kept, params)
+    assert len(changed[0]) >= deferred
+    assert_same_tiles(live, want, changed[0])
+    assert set(live.tiles()) == set(want.tiles())
+    painter.close()
+
+
+def test_tile_rects_merge_row_neighbours():
+    assert tile_rects([(0, 0), (1, 0), (3, 0), (1, 1)], 10) == [(0, 0, 20, 10), (30, 0, 10, 10), (10, 10, 10, 10)]
+
+
+# ---------------------------------------------------------------- stage times
+def test_stage_times_give_medians_and_maxima():
+    t = StageTimes()
+    values = [0.001 * k for k in range(1, 102)]  # 1..101 ms
+    for v in values:
+        t.add("paint", v)
+    s = t.summary()["paint"]
+    assert s["count"] == 101 and s["max"] == pytest.approx(101.0)
+    assert s["median"] == pytest.approx(51.0, rel=0.06) and s["p95"] == pytest.approx(96.0, rel=0.06)
+    assert s["mean"] == pytest.approx(51.0) and s["total_s"] == pytest.approx(sum(values), abs=1e-3)
+
+
+# ---------------------------------------------------------------- outputs in bounded memory
+def flight_map(n=12, seed=0, tile_size=64):
+    rng = np.random.default_rng(seed)
+    m = TiledMosaic(MosaicConfig(tile_size=tile_size))
+    for _ in range(n):
+        m.add(texture(240, 320, int(rng.integers(1000))), pose(rng.uniform(0, 360), rng.uniform(0, 900),
+                                                               rng.uniform(0, 600))[:2])
+    return m
+
+
+def test_overview_preview_follows_the_map_and_reads_only_changed_tiles():
+    from photomap.mapping.overview import Overview
+
+    m = flight_map(tile_size=64)
+    ov = Overview(64, max_pixels=100_000)  # small: the factor must grow (to 4 here)
+    ov.mark(m.tiles())
+    assert ov.update(m) == len(m.tiles()) and ov.factor > 1
+    preview = ov.render(300)
+    scale = 300 / max(m.bounds()[2:])
+    want, want_alpha, _ = m.render(scale)
+    assert abs(preview.shape[0] - want_alpha.shape[0]) <= 2 and abs(preview.shape[1] - want_alpha.shape[1]) <= 2
+    h, w = min(preview.shape[0], want_alpha.shape[0]), min(preview.shape[1], want_alpha.shape[1])
+    inside = (want_alpha[:h, :w] == 255) & (preview[:h, :w, 3] == 255)
+    inside = cv2.erode(inside.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # placement within a pixel
+    assert inside.mean() > 0.2
+    # the same picture (the thumbnails' grid may shift it by a fraction of a preview pixel)
+    blur = lambda im: cv2.GaussianBlur(im[:h, :w, :3].astype(np.float32), (0, 0), 2)  # noqa: E731
+    assert np.median(np.abs(blur(preview) - blur(want))[inside]) <= 3
+    # a new frame: only its tiles are read again
+    touched = m.add(texture(240, 320, 77), pose(10, 2000, 2000)[:2])
+    ov.mark(touched)
+    assert ov.update(m) == len(touched)
+    assert ov.render(300) is not None
+
+
+def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path):
+    """The camera sees nothing for a while (new segments), then flies over mapped ground: the new
+    segment joins the first; its kept frames are re-rendered into the first map in the
+    background and mosaic.png holds both parts, true to the ground."""
+    from test_drift import LOOPS, closed_flight, map_residual
+
+    terrain = load_terrain("aukerman", zoom=3)
+    seq = closed_flight(terrain, valid_mask(terrain), 0.1 / 3, 1.0, "figure8", 4)
+    blind = list(seq.frames)
+    for k in range(60, 75):
+        blind[k] = np.full_like(blind[k], 128)
+    runs = {}
+    for name, frames in (("whole", seq.frames), ("blind", blind)):
+        out = tmp_path / name
+        summary = MappingPipeline(ListSource(frames), load_config(overrides=LOOPS + ["mapping.max_lost_frames=5"]),
+                                  out).run()
+        png = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+        runs[name] = summary, int((png[..., 3] == 255).sum()), map_residual(out, seq, terrain, lambda x, y: x == x)[0]
+    (_, covered, residual), (blind_run, blind_covered, blind_residual) = runs["whole"], runs["blind"]
+    assert [(j["segment"], j["into"]) for j in blind_run["joins"]] == [(3, 0)]
+    assert blind_run["mosaics"][0]["segment"] == 0
+    assert blind_run["painting"]["rerendered_tiles"] > 0
+    assert blind_covered > 0.9 * covered  # the joined segment's ground is in the main map
+    assert blind_residual <= residual + 1.0
+
+
+def test_a_masked_frame_looks_for_new_ground_inside_its_valid_part():
+    """A rectified view is valid in a quadrilateral only: blocks outside it are never new (else
+    they would be painted again at every look)."""
+    from photomap.mapping.painter import valid_outline
+
+    mask = np.zeros((240, 320), np.uint8)
+    cv2.fillConvexPoly(mask, np.array([[40, 10], [300, 30], [280, 230], [20, 200]], np.int32), 255)
+    outline = valid_outline(mask)
+    assert all(mask[int(round(y)), int(round(x))] for x, y in outline)  # inside the valid part
+    assert cv2.contourArea(outline.astype(np.float32)) > 0.9 * (mask > 0).sum()  # and most of it
+    m = TiledMosaic(MosaicConfig(tile_size=64))
+    frame = texture(240, 320, 9)
+    m.add(frame, pose(0, 0, 0)[:2], mask=mask)
+    assert m.uncovered(pose(0, 0, 0)[:2], (320, 240), outline=outline) == []  # all of it is mapped
+    assert m.uncovered(pose(0, 0, 0)[:2], (320, 240)) != []  # the rectangle would look new forever
+
+
+# ---------------------------------------------------------------- merged with main: failures, stills
+def test_a_preview_that_cannot_be_written_is_reported_not_raised(tmp_path):
+    """The preview is encoded in the background thread; a disk error there goes to on_error (the
+    pipeline's one-line write error) and the re-render thread goes on."""
+    params = MosaicConfig(tile_size=64)
+    painter = Painter((160, 120), 64, rerenderer=Rerenderer(KeyframeStore(tmp_path / "kf"), params))
+    live = TiledMosaic(params)
+    painter.paint(live, 0, 0, texture(120, 160, 1), pose(0, 0, 0), whole=True)
+    errors = []
+    assert painter.write_preview(tmp_path / "missing" / "preview.png", 0, live, 100, on_error=errors.append)
+    painter.rerenderer.wait()
+    assert len(errors) == 1 and isinstance(errors[0], OSError)
+    assert painter.rerenderer.collect() == []  # no failure handed to the worker
+    assert painter.write_preview(tmp_path / "preview.png", 0, live, 100, on_error=errors.append)
+    painter.close()
+    back = cv2.imread(str(tmp_path / "preview.png"), cv2.IMREAD_UNCHANGED)
+    assert back is not None and back.shape[2] == 4 and len(errors) == 1
+
+
+def test_kept_images_with_masks_are_forgotten_with_their_keyframe(tmp_path):
+    store = KeyframeStore(tmp_path / "kf")
+    image = texture(30, 40, 2)
+    mask = np.zeros((30, 40), bool)
+    mask[:, 10:] = True
+    store.put(7, image)
+    store.put_image(7, image, mask)
+    assert np.array_equal(store.mask(7) == 255, mask) and store.image(7).shape == image.shape
+    store.discard(7)
+    assert store.image(7) is None and store.mask(7) is None and list((tmp_path / "kf").iterdir()) == []
+    (tmp_path / "kf").rmdir()  # the disk refuses: counted, never raised
+    store.put_image(8, image, mask)
+    assert store.failures == 1 and store.image(8) is None
+
+
+@pytest.mark.parametrize("stills", [False, True])
+def test_map_px_lowers_the_map_resolution_of_video_only(tmp_path, stills):
+    """A frame wider than mapping.map_px: video is mapped at map_px a frame, survey stills keep
+    their resolution (the map of a survey is its full-resolution orthophoto)."""
+    from photomap.drivers.images import ImageFolderSource
+
+    base = cv2.resize(texture(150, 200, 3), (1400, 1050), interpolation=cv2.INTER_CUBIC)
+    frames = [np.ascontiguousarray(base[0 + 30 * k:900 + 30 * k, 0 + 40 * k:1200 + 40 * k]) for k in range(3)]
+    if stills:
+        for k, f in enumerate(frames):
+            cv2.imwrite(str(tmp_path / f"still{k}.png"), f)
+        source = ImageFolderSource(tmp_path / "still*.png")
+    else:
+        source = ListSource(frames)
+    cfg = load_config(overrides=["mapping.map_px=600"])
+    summary = MappingPipeline(source, cfg, tmp_path / "out").run()
+    want = 1.0 if stills else 0.5
+    assert summary["map_scale"] == pytest.approx(want)
+    x, y, w, h = summary["mosaics"][0]["bounds"]
+    assert w == pytest.approx((1200 + 80) * want, abs=4) and h == pytest.approx((900 + 60) * want, abs=4)
