@@ -390,3 +390,47 @@ def test_map_px_lowers_the_map_resolution_of_video_only(tmp_path, stills):
     assert summary["map_scale"] == pytest.approx(want)
     x, y, w, h = summary["mosaics"][0]["bounds"]
     assert w == pytest.approx((1200 + 80) * want, abs=4) and h == pytest.approx((900 + 60) * want, abs=4)
+
+
+def test_a_replay_makes_the_same_map_however_slow_the_background_threads(tmp_path, monkeypatch):
+    """Replay runs the pose-graph solves and the re-renders in lockstep with the frames: with
+    both background threads slowed down a lot, the trajectory and mosaic.png are identical
+    (batch and replay of the same flight agree; a rerun reproduces a map)."""
+    import time
+
+    from test_drift import LOOPS, closed_flight
+
+    from photomap.mapping import loopclosure, rerender
+
+    terrain = procedural_terrain_sand()
+    seq = closed_flight(terrain, None, 0.05, 2.0, "figure8", 1, n=300)
+
+    def run(name):
+        out = tmp_path / name
+        summary = MappingPipeline(ListSource(seq.frames), load_config(overrides=LOOPS), out).run()
+        return summary, (out / "trajectory.csv").read_text(), cv2.imread(str(out / "mosaic.png"),
+                                                                          cv2.IMREAD_UNCHANGED)
+
+    quick, quick_rows, quick_map = run("quick")
+    solve, render = loopclosure.KeyframeGraph.solve, rerender.Rerenderer._render
+
+    def slow_solve(*args, **kwargs):
+        time.sleep(0.3)
+        return solve(*args, **kwargs)
+
+    def slow_render(self, *args, **kwargs):
+        time.sleep(0.2)
+        return render(self, *args, **kwargs)
+
+    monkeypatch.setattr(loopclosure.KeyframeGraph, "solve", staticmethod(slow_solve))
+    monkeypatch.setattr(rerender.Rerenderer, "_render", slow_render)
+    slow, slow_rows, slow_map = run("slow")
+    assert quick["loop_closure"]["corrections"] >= 1 and quick["painting"]["rerendered_tiles"] > 0
+    assert slow_rows == quick_rows
+    assert np.array_equal(slow_map, quick_map)
+
+
+def procedural_terrain_sand():
+    from photomap.sim.terrain import procedural_terrain
+
+    return procedural_terrain("sand", (2048, 2048), seed=5)

@@ -147,7 +147,8 @@ class LoopCloser:
 
     def __init__(self, store: KeyframeStore, matcher: PairMatcher, frame_size: tuple[int, int],
                  working_scale: float, params: MappingConfig, graph_params: PosegraphConfig,
-                 use_priors: bool = False, join_candidates: int = 4, settle_on_priors: bool = False) -> None:
+                 use_priors: bool = False, join_candidates: int = 4, settle_on_priors: bool = False,
+                 lockstep_frames: int | None = None) -> None:
         self.store = store
         self.matcher = matcher
         self.registrar = matcher.registrar
@@ -174,6 +175,11 @@ class LoopCloser:
         self._executor = (ThreadPoolExecutor(1, "photomap-posegraph")
                           if params.optimize_in_background else None)
         self._running: tuple[int, Future] | None = None  # (segment, solve of its snapshot)
+        # replay: a background solve is applied exactly lockstep_frames frames after it started
+        # (waiting for it if needed), so that the map does not depend on the machine's speed
+        self.lockstep_frames = lockstep_frames
+        self._frame = 0  # the latest frame index seen by on_step
+        self._started_frame = 0  # ... when the running solve started
         self._wanted: set[int] = set()  # segments with loop edges not optimised yet
 
     def _graph(self, segment: int) -> KeyframeGraph:
@@ -214,6 +220,7 @@ class LoopCloser:
         A finished background optimisation is returned after the frame is recorded, so that the
         frame itself is re-posed too.
         """
+        self._frame = index
         if step.pose is None:
             return self._polled()
         if step.reference is not None:
@@ -234,12 +241,12 @@ class LoopCloser:
             segment = join.into if join is not None else step.segment
             log.info("loop closed at frame %d (segment %d): %d loop edges", index, segment, graph.loops)
             self._wanted.add(segment)
-        done = self.poll()
+        done = self.poll(frame=index)
         started = self._start()
         return updates + [c for c in (done, started) if c is not None]
 
     def _polled(self) -> list[Update]:
-        done = self.poll()
+        done = self.poll(frame=self._frame)
         return [done] if done is not None else []
 
     def _join_candidates(self, index: int, segment: int) -> list[int]:
@@ -302,11 +309,21 @@ class LoopCloser:
             return self._finish(segment, *KeyframeGraph.solve(graph.snapshot(), self.graph_params))
         self._running = (segment, self._executor.submit(KeyframeGraph.solve, graph.snapshot(),
                                                         self.graph_params))
+        self._started_frame = self._frame
         return None
 
-    def poll(self, wait: bool = False) -> Correction | None:
-        """The correction of a finished background optimisation, if any (``wait``: block for it)."""
-        if self._running is None or not (wait or self._running[1].done()):
+    def poll(self, wait: bool = False, frame: int | None = None) -> Correction | None:
+        """The correction of a finished background optimisation, if any (``wait``: block for it).
+
+        In lockstep (replay) only a call for ``frame`` ``lockstep_frames`` after the solve
+        started returns it (waiting if needed); other calls return None."""
+        if self._running is None:
+            return None
+        if self.lockstep_frames is not None and not wait:
+            if frame is None or frame - self._started_frame < self.lockstep_frames:
+                return None
+            wait = True
+        if not (wait or self._running[1].done()):
             return None
         segment, future = self._running
         self._running = None

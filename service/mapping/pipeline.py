@@ -69,6 +69,10 @@ from photomap.mapping.timing import StageTimes
 log = logging.getLogger(__name__)
 
 _END = object()
+# A replay (not live) re-renders and optimises in lockstep with the frames: a re-render job at
+# most every this many frames, swapped in (a pose-graph solve applied) this many frames after it
+# started, so that the same input makes the same map on any machine.
+_LOCKSTEP_FRAMES = 30
 
 
 @dataclass
@@ -348,11 +352,13 @@ class MappingPipeline:
             store = KeyframeStore(keyframes)
             self.loops = LoopCloser(store, matcher, self.frame_size,
                                     f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None,
-                                    settle_on_priors=self.telemetry is not None and self.telemetry.mode == "stills")
+                                    settle_on_priors=self.telemetry is not None and self.telemetry.mode == "stills",
+                                    lockstep_frames=None if self.source.live else _LOCKSTEP_FRAMES)
         # the painter's background thread: kept images, re-renders after corrections, previews
         self._painter = Painter(self.frame_size, self.cfg.mosaic.tile_size,
                                 rerenderer=Rerenderer(store, self.cfg.mosaic), keep=self.loops is not None,
-                                whole_frames=mapping.paint == "every")
+                                whole_frames=mapping.paint == "every",
+                                lockstep_calls=None if self.source.live else _LOCKSTEP_FRAMES)
 
     def _cache(self) -> Path:
         """The run's cache folder (configured, or a temporary one removed at the end)."""
@@ -555,7 +561,7 @@ class MappingPipeline:
                 step.segment = self._segment
             timing.add("loop_closure", time.perf_counter() - t3)
         t4 = time.perf_counter()
-        touched |= self._painter.pump(self.mosaics).get(step.segment, set())  # re-rendered tiles
+        touched |= self._painter.pump(self.mosaics, frame=frame.index).get(step.segment, set())  # re-rendered
         timing.add("map_upkeep", time.perf_counter() - t4)
         self.stats.worker_s += time.perf_counter() - t0
         if self.sinks:
