@@ -329,12 +329,14 @@ def live_run(video: Path, out: Path, fps: float, busy: bool) -> dict:
 # --------------------------------------------------------------------------- (4) long flight
 
 class SimulatedSource(SourceBase):
-    """Frames of a planned flight, rendered one at a time as they are consumed (replay: never drops).
+    """Frames of a planned flight, rendered one at a time as they are consumed (never drops).
 
-    ``Frame.t`` is the flight time ``truth.t`` (seconds from frame 0).
+    ``Frame.t`` is the flight time ``truth.t`` (seconds from frame 0). ``live`` as on the drone:
+    the worker never waits for its background threads (a replay of a file runs them in lockstep
+    with the frames instead, for identical maps; its waits are not the drone's stalls).
     """
 
-    live = False
+    live = True
 
     def __init__(self, terrain: np.ndarray, truth: Truth, camera: Camera, effects: Effects | None = None,
                  seed: int = 0) -> None:

@@ -46,6 +46,8 @@ from photomap.mapping.rerender import KeptFrame, Rerenderer
 
 log = logging.getLogger(__name__)
 
+_LOCKSTEP_SWAPS = 8  # tiles swapped in per frame in lockstep (a count, not a time: deterministic)
+
 
 def resize_factors(size: tuple[int, int], pose: np.ndarray, *, below: float = 0.75
                    ) -> tuple[tuple[int, int], np.ndarray] | None:
@@ -171,9 +173,9 @@ class Painter:
     lockstep_calls : int or None
         Replay of a file (None: live): the same input gives the same map, whatever the machine's
         load. Time is counted in frames (``pump(frame=)``) instead of seconds: a job starts at
-        most every ``lockstep_calls`` frames, and its tiles are swapped in, all at once,
-        ``lockstep_calls`` frames after it started (waiting for it if the thread is behind);
-        a call without a frame swaps nothing.
+        most every ``lockstep_calls`` frames, and its tiles are swapped in from
+        ``lockstep_calls`` frames after it started (waiting for it if the thread is behind),
+        a fixed number per frame; a call without a frame swaps nothing.
     """
 
     def __init__(self, frame_size: tuple[int, int], tile_size: int, *, whole_frames: bool = False,
@@ -369,7 +371,6 @@ class Painter:
             if frame is None:  # e.g. a checkpoint, at a time that depends on the machine
                 return changed
             now = float(frame)
-            budget = float("inf")
             due = frame - self._last_job >= self.lockstep_calls
             if self.rerenderer.busy and due:
                 self.rerenderer.wait()  # a replay waits for the thread: the map does not depend on its speed
@@ -377,7 +378,9 @@ class Painter:
             for strip in self.rerenderer.collect():
                 self.stats.rerender_s += strip.render_s
                 self._swaps.extend((strip.segment, strip.job, key, tile) for key, tile in strip.tiles.items())
-        while self._swaps and time.perf_counter() - t0 < budget:
+        swapped = 0
+        while self._swaps and (swapped < _LOCKSTEP_SWAPS if lockstep else time.perf_counter() - t0 < budget):
+            swapped += 1
             segment, job, key, tile = self._swaps.popleft()
             seg = self._segments.get(segment)
             mosaic = mosaics.get(segment)
