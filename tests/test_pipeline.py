@@ -166,3 +166,33 @@ def test_checkpoints_during_the_run(aukerman, tmp_path):
     assert seen["preview"] is not None and seen["preview"].shape[2] == 4
     assert json.loads((tmp_path / "run.json").read_text())["complete"] is True
     assert not (tmp_path / "preview.png").exists()
+
+
+def test_a_slow_checkpoint_trajectory_never_lands_after_the_final_one(aukerman, tmp_path, monkeypatch):
+    """Checkpoint copies of trajectory.csv are written by a background thread from a copy of the
+    rows; the final file (written by finish) always has every frame, however slow that thread."""
+    import time as _time
+
+    from photomap.mapping import pipeline as pipeline_module
+
+    seq = fly(*aukerman, 30, 9)
+    real = pipeline_module.write_trajectory_csv
+    slow_calls = []
+
+    def slow(path, rows, frame_size=None):
+        rows = list(rows)
+        if len(rows) < len(seq.frames):  # a checkpoint's copy: make it land late
+            slow_calls.append(len(rows))
+            _time.sleep(0.3)
+        real(path, rows, frame_size)
+
+    monkeypatch.setattr(pipeline_module, "write_trajectory_csv", slow)
+    cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
+    MappingPipeline(ListSource(seq.frames), cfg, tmp_path).run()
+    import threading
+
+    for thread in threading.enumerate():  # a late copy would land now
+        if thread.name.startswith("photomap-writer"):
+            thread.join(5.0)
+    assert slow_calls  # checkpoints wrote (some) copies in the background
+    assert len(read_trajectory_csv(tmp_path / "trajectory.csv")) == len(seq.frames)

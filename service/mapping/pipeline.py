@@ -22,6 +22,7 @@ the map is empty; the largest segment; other segments as ``mosaic_segment{N}.png
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import math
@@ -31,6 +32,7 @@ import shutil
 import tempfile
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -258,6 +260,10 @@ class MappingPipeline:
         self._state: Checkpointer | None = None  # the checkpointed full-resolution map
         self._state_refused = False
         self._write_errors: dict[str, str] = {}  # output -> why it could not be written (once each)
+        # checkpoint copies of trajectory.csv are formatted and written by this thread (10,000 rows
+        # take ~0.25 s: a stall in the worker); the worker hands it a copy of the rows
+        self._writer: ThreadPoolExecutor | None = None
+        self._trajectory_write: Future | None = None
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
         self._segment_start: dict[int, int] = {}  # segment -> position in the rows where it started
         self._kept: set[int] = set()  # segments known to hold more than one posed frame
@@ -698,12 +704,24 @@ class MappingPipeline:
             return 0.0  # stills timed by their EXIF capture time
         return getattr(self.source, "creation_time", None)
 
-    def _write_trajectory(self) -> None:
+    def _write_trajectory(self, rows: list[PoseRow] | None = None) -> None:
+        """``trajectory.csv`` and ``trajectory.tum`` of ``rows`` (default: the rows now)."""
         if self.frame_size is None:
             return
-        write_trajectory_csv(self.out_dir / "trajectory.csv", self._rows, self.frame_size)
-        if any(r.glued for r in self._rows):
-            write_tum(self.out_dir / "trajectory.tum", self._rows, self.frame_size)
+        rows = self._rows if rows is None else rows
+        write_trajectory_csv(self.out_dir / "trajectory.csv", rows, self.frame_size)
+        if any(r.glued for r in rows):
+            write_tum(self.out_dir / "trajectory.tum", rows, self.frame_size)
+
+    def _write_trajectory_later(self) -> None:
+        """A checkpoint's trajectory files, written by the writer thread from a copy of the rows
+        (the worker goes on; a write still running skips this checkpoint's)."""
+        if self.frame_size is None or (self._trajectory_write is not None and not self._trajectory_write.done()):
+            return
+        if self._writer is None:
+            self._writer = ThreadPoolExecutor(1, "photomap-writer")
+        rows = [copy.copy(r) for r in self._rows]  # poses are replaced, never changed in place
+        self._trajectory_write = self._writer.submit(self._attempt, "trajectory.csv", self._write_trajectory, rows)
 
     def _rerender(self) -> None:
         """Apply a finished loop-closure correction and swap re-rendered tiles in (never waits:
@@ -783,7 +801,7 @@ class MappingPipeline:
         full-resolution map; a write that fails is logged once and tried again next time."""
         self._last_checkpoint = time.monotonic()
         self._rerender()
-        self._attempt("trajectory.csv", self._write_trajectory)
+        self._write_trajectory_later()
         summary = self.summary()
         summary["complete"] = False
         if self.mosaics and self._painter is not None:  # from thumbnails the painter keeps up to date
@@ -891,6 +909,8 @@ class MappingPipeline:
         self._close_gaps()
         if self._state is not None:
             self._state.wait()
+        if self._writer is not None:  # a checkpoint's trajectory.csv must not land after the final one
+            self._writer.shutdown(wait=True)
         if self.loops is not None and self.loops.store.folder.parent == state_folder(self.out_dir):
             shutil.rmtree(self.loops.store.folder, ignore_errors=True)  # re-rendered: room for the outputs
         self._attempt("trajectory.csv", self._write_trajectory)
