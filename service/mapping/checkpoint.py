@@ -57,7 +57,7 @@ class Checkpointer:
         Tile pixels copied per checkpoint at most (the rest go into the next ones).
     """
 
-    def __init__(self, folder: str | Path, *, background: bool = True, max_snapshot_bytes: int = 64 << 20) -> None:
+    def __init__(self, folder: str | Path, *, background: bool = True, max_snapshot_bytes: int = 16 << 20) -> None:
         self.state = MapState(folder, max_snapshot_bytes=max_snapshot_bytes)
         self.background = background
         self._thread: threading.Thread | None = None
