@@ -170,18 +170,18 @@ class Painter:
         ... and refreshing the preview thumbnails of changed tiles once the camera has left them
         (30 paints ago, while they are still in memory), so that a checkpoint's preview has
         little left to do.
-    lockstep_calls : int or None
+    lockstep_frames : int or None
         Replay of a file (None: live): the same input gives the same map, whatever the machine's
         load. Time is counted in frames (``pump(frame=)``) instead of seconds: a job starts at
-        most every ``lockstep_calls`` frames, and its tiles are swapped in from
-        ``lockstep_calls`` frames after it started (waiting for it if the thread is behind),
+        most every ``lockstep_frames`` frames, and its tiles are swapped in from
+        ``lockstep_frames`` frames after it started (waiting for it if the thread is behind),
         a fixed number per frame; a call without a frame swaps nothing.
     """
 
     def __init__(self, frame_size: tuple[int, int], tile_size: int, *, whole_frames: bool = False,
                  rerenderer: Rerenderer | None = None, keep: bool = True, block: int = 32, min_move_px: float = 32.0,
                  move_px: float = 0.5, interval_s: float = 1.0, swap_budget_s: float = 0.005,
-                 thumb_budget_s: float = 0.002, lockstep_calls: int | None = None) -> None:
+                 thumb_budget_s: float = 0.002, lockstep_frames: int | None = None) -> None:
         self.frame_size = frame_size
         self.tile_size = tile_size
         self.whole_frames = whole_frames
@@ -198,7 +198,7 @@ class Painter:
         self._segments: dict[int, _Segment] = {}
         self._paints = 0  # paint number
         self._last_job = -float("inf")
-        self.lockstep_calls = lockstep_calls
+        self.lockstep_frames = lockstep_frames
         w, h = frame_size
         self._corners = np.array([[0, w - 1, w - 1, 0], [0, 0, h - 1, h - 1], [1.0, 1.0, 1.0, 1.0]])
 
@@ -358,20 +358,21 @@ class Painter:
              force: bool = False, budget_s: float | None = None, frame: int | None = None
              ) -> dict[int, set[TileKey]]:
         """Swap finished re-render tiles into ``mosaics`` (for at most ``budget_s`` seconds, default
-        ``swap_budget_s``; the rest waits for the next call) and start the next job; never waits
-        for the re-render. ``force``: start a job now, whatever ``interval_s`` says. Returns the
-        tiles changed per segment."""
+        ``swap_budget_s``; the rest waits for the next call) and start the next job; live, never
+        waits for the re-render (in lockstep, see ``lockstep_frames``: ``frame`` drives it, a
+        fixed number of tiles a frame, and a job due is waited for). ``force``: start a job now,
+        whatever ``interval_s`` says. Returns the tiles changed per segment."""
         changed: dict[int, set[TileKey]] = {}
         if self.rerenderer is None:
             return changed
         t0 = time.perf_counter()
         budget = self.swap_budget_s if budget_s is None else budget_s
-        lockstep = self.lockstep_calls is not None and budget_s is None
+        lockstep = self.lockstep_frames is not None and budget_s is None
         if lockstep:
             if frame is None:  # e.g. a checkpoint, at a time that depends on the machine
                 return changed
             now = float(frame)
-            due = frame - self._last_job >= self.lockstep_calls
+            due = frame - self._last_job >= self.lockstep_frames
             if self.rerenderer.busy and due:
                 self.rerenderer.wait()  # a replay waits for the thread: the map does not depend on its speed
         if not self._swaps and (not lockstep or due):
@@ -402,7 +403,7 @@ class Painter:
         self.stats.lost_frames = self.rerenderer.lost_frames
         self.stats.sync_writes = self.rerenderer.sync_writes
         now = time.monotonic() if now is None else now
-        interval = self.lockstep_calls if lockstep else self.interval_s
+        interval = self.lockstep_frames if lockstep else self.interval_s
         if self._swaps or self.rerenderer.busy or (not force and now - self._last_job < interval):
             return changed
         for segment, seg in sorted(self._segments.items()):

@@ -364,7 +364,7 @@ class MappingPipeline:
         self._painter = Painter(self.frame_size, self.cfg.mosaic.tile_size,
                                 rerenderer=Rerenderer(store, self.cfg.mosaic), keep=self.loops is not None,
                                 whole_frames=mapping.paint == "every",
-                                lockstep_calls=None if self.source.live else _LOCKSTEP_FRAMES)
+                                lockstep_frames=None if self.source.live else _LOCKSTEP_FRAMES)
 
     def _cache(self) -> Path:
         """The run's cache folder (configured, or a temporary one removed at the end)."""
