@@ -40,7 +40,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from photomap.core.ifmi import Prior, Registration
+from photomap.core.ifmi import Prior, Registration, to_gray
 from photomap.geometry import pose_angle_deg, pose_scale, scaling
 
 __all__ = ["KINDS", "FeatureFrame", "FeatureRegistration", "FeatureMatcher", "register_features",
@@ -77,16 +77,7 @@ def _params(m: np.ndarray) -> tuple[float, float]:
 
 
 def _gray(frame: np.ndarray) -> np.ndarray:
-    img = np.asarray(frame)
-    if img.ndim == 3:
-        if img.shape[2] == 4:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
-        elif img.shape[2] == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-        elif img.shape[2] == 1:
-            img = img[:, :, 0]
-        else:
-            raise ValueError(f"unsupported frame with {img.shape[2]} channels")
+    img = to_gray(frame)
     if img.ndim != 2 or min(img.shape) < 16:
         raise ValueError(f"need a grey or BGR frame of at least 16x16 px, got shape {np.shape(frame)}")
     return img

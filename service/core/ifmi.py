@@ -54,7 +54,7 @@ import scipy.fft
 from photomap.config import RegistrationConfig
 from photomap.geometry import similarity_matrix
 
-__all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar"]
+__all__ = ["Prior", "Candidate", "Registration", "PreparedFrame", "Registrar", "to_gray"]
 
 _EPS = 1e-12
 _REFINE_SAMPLES = 16384  # the refinement samples about this many pixels on a regular grid
@@ -70,6 +70,22 @@ _REFINE_MARGIN = 2.0  # samples used must map this far inside b (level pixels); 
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 _EXPECTED_PEAK = 0.35  # a peak at the expected shift wins over higher ones at this fraction of the best
 _CLEAR_PEAK = 0.15  # ... and at least this high (well above noise, which scores ~0)
+
+
+def to_gray(frame: np.ndarray) -> np.ndarray:
+    """A grey view of ``frame``: grey (h, w) as is, (h, w, 1) squeezed, BGR or BGRA converted
+    (OpenCV channel order). ValueError for another channel count."""
+    img = np.asarray(frame)
+    if img.ndim == 3:
+        if img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+        elif img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        elif img.shape[2] == 1:
+            img = img[:, :, 0]
+        else:
+            raise ValueError(f"unsupported frame with {img.shape[2]} channels")
+    return img
 
 
 def _matrix_params(m: np.ndarray) -> tuple[float, float, tuple[float, float]]:
@@ -399,16 +415,7 @@ class Registrar:
 
     # ------------------------------------------------------------------ preparation
     def _gray(self, frame: np.ndarray) -> np.ndarray:
-        img = np.asarray(frame)
-        if img.ndim == 3:
-            if img.shape[2] == 4:
-                img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
-            elif img.shape[2] == 3:
-                img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-            elif img.shape[2] == 1:
-                img = img[:, :, 0]
-            else:
-                raise ValueError(f"unsupported frame with {img.shape[2]} channels")
+        img = to_gray(frame)
         if img.shape != self.shape:
             raise ValueError(f"frame shape {img.shape} does not match the registrar's {self.shape}")
         return img.astype(np.float32, copy=False)
