@@ -114,6 +114,15 @@ class Prior:
     shift: tuple[float, float] | None = None
     shift_tol: float = 20.0
 
+    def admits(self, matrix: np.ndarray) -> bool:
+        """Whether ``matrix`` (2x3 or 3x3) has the rotation and scale expected, within the
+        tolerances (the shift is not checked)."""
+        angle, scale, _ = _matrix_params(np.asarray(matrix, float))
+        if self.angle_deg is not None and abs(_wrap180(angle - self.angle_deg)) > self.angle_tol_deg:
+            return False
+        return self.scale is None or \
+            abs(math.log(max(scale, 1e-9) / max(self.scale, 1e-9))) <= math.log1p(self.scale_tol)
+
 
 @dataclass(frozen=True)
 class Candidate:

@@ -14,7 +14,6 @@ are converted back to input pixels here (OpenCV pixel centres: ``x_small = f * (
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -65,18 +64,6 @@ class _Reference:
     index: int
     sample: Any = None  # its telemetry sample, if any
     best: float = 0.0  # the best iFMI confidence of a frame registered against it
-
-
-def _within(prior: Prior, matrix: np.ndarray) -> bool:
-    """Whether ``matrix`` (2x3) has the rotation and scale ``prior`` expects, within its tolerances."""
-    m = to_h(matrix)
-    if prior.angle_deg is not None and \
-            abs((pose_angle_deg(m) - prior.angle_deg + 180.0) % 360.0 - 180.0) > prior.angle_tol_deg:
-        return False
-    if prior.scale is not None and \
-            abs(math.log(max(pose_scale(m), 1e-9) / max(prior.scale, 1e-9))) > math.log1p(prior.scale_tol):
-        return False
-    return True
 
 
 class Tracker:
@@ -205,7 +192,7 @@ class Tracker:
                 return told, None
             free = self.matcher.match(ref.view, view, motion, expected)
             if free.accepted and (not told.accepted or free.confidence > told.confidence + 0.05):
-                if _within(tprior, free.matrix):  # a better peak, not a disagreement
+                if tprior.admits(free.matrix):  # a better peak, not a disagreement
                     return free, None
                 return free, (f"frame {index}: telemetry disagrees with the images (expected "
                               f"{tprior.angle_deg if tprior.angle_deg is not None else float('nan'):.1f} deg, "
