@@ -277,6 +277,34 @@ def test_disk_tile_store_round_trip(tmp_path):
     assert not folder.exists()
 
 
+@pytest.mark.parametrize("store_kind", ["disk", "memory"])
+def test_tile_image_later_copies_tiles_in_memory_now_and_reads_spilled_ones_later(tmp_path, store_kind):
+    """What a checkpoint or a preview takes from the worker: a tile in memory as it is now; a
+    spilled tile as the store has it when read (another thread, later); None once it is gone."""
+    store = DiskTileStore(tmp_path) if store_kind == "disk" else MemoryTileStore()
+    m = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=2), store=store)
+    m.add(noise(40, 40, seed=1), shift(0, 0))
+    m.add(noise(40, 40, seed=2), shift(100, 0))
+    in_memory = next(k for k in m.tiles() if k in m._tiles)
+    spilled = next(k for k in m.tiles() if k not in m._tiles)
+    now = {k: m.tile_image(k) for k in (in_memory, spilled)}
+    later = {k: m.tile_image_later(k) for k in (in_memory, spilled)}
+    with pytest.raises(KeyError):
+        m.tile_image_later((50, 50))
+    for k in (in_memory, spilled):  # unchanged map: the same pixels
+        for got, want in zip(later[k](), now[k]):
+            np.testing.assert_array_equal(got, want)
+    m.add(noise(200, 200, seed=3), shift(-20, -20))  # paints over both (and spills again)
+    for got, want in zip(later[in_memory](), now[in_memory]):
+        np.testing.assert_array_equal(got, want)  # copied when asked
+    assert spilled not in m._tiles
+    for got, want in zip(later[spilled](), m.tile_image(spilled)):
+        np.testing.assert_array_equal(got, want)  # read when called: the newer pixels
+    assert not np.array_equal(m.tile_image(spilled)[0], now[spilled][0])
+    m.clear_tiles([spilled])
+    assert later[spilled]() is None
+
+
 def test_clear_tiles_then_re_render(tmp_path):
     frame = noise(40, 40, seed=6)
     m = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=1), store=DiskTileStore(tmp_path))

@@ -293,6 +293,35 @@ def test_overview_preview_follows_the_map_and_reads_only_changed_tiles():
     assert ov.render(300) is not None
 
 
+def test_a_preview_leaves_the_thumbnails_to_the_background_thread(tmp_path):
+    """The worker only copies the changed tiles; the thumbnails, made later in the background,
+    show the map as it was copied, come back to the worker, and never replace newer ones."""
+    from photomap.mapping.overview import Overview
+
+    def fresh_render(mosaic):
+        ov = Overview(64)
+        ov.mark(mosaic.tiles())
+        ov.update(mosaic)
+        return ov.render(300)
+
+    m, before = flight_map(tile_size=64), fresh_render(flight_map(tile_size=64))
+    ov, tasks, path = Overview(64), [], tmp_path / "preview.png"
+    ov.mark(m.tiles())
+    assert ov.write(path, m, 300, later=tasks.append) and len(tasks) == 1
+    assert ov.stale == 0 and not path.exists()  # nothing made in the worker
+    touched = m.add(texture(240, 320, 77), pose(30, 300, 250)[:2])  # the map changes meanwhile
+    ov.mark(touched)
+    assert ov.update(m) == len(touched)
+    covered = lambda image: int((image[..., 3] > 0).sum())  # noqa: E731
+    partial = covered(ov.render(10_000))  # so far only the thumbnails of `touched`
+    tasks.pop()()  # the background thread: thumbnails of the copies, then the PNG
+    png = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert png.shape == before.shape and np.array_equal(png, before)  # the map as copied
+    after = ov.render(300)  # the copies' thumbnails came back; the newer ones of `touched` stayed
+    assert np.array_equal(after, fresh_render(m)) and not np.array_equal(after, before)
+    assert partial < 0.8 * covered(ov.render(10_000))
+
+
 def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path):
     """The camera sees nothing for a while (new segments), then flies over mapped ground: the new
     segment joins the first; its kept frames are re-rendered into the first map in the

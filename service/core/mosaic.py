@@ -45,14 +45,14 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from typing import Iterable, Mapping, Protocol
+from typing import Callable, Iterable, Mapping, Protocol
 
 import cv2
 import numpy as np
 
 from photomap.config import MosaicConfig
 from photomap.core.exposure import SequentialGain
-from photomap.errors import InputError
+from photomap.errors import InputError, PhotomapError
 
 # Overlap samples per frame for the exposure gain: the footprint is sampled on a grid of map
 # pixels (multiples of a stride in x and y) with about this many points.
@@ -72,7 +72,9 @@ class TileStore(Protocol):
         """Keep ``arrays`` under ``key``, replacing what was there."""
 
     def get(self, key: TileKey) -> Tile | None:
-        """The arrays last put under ``key`` (a copy the caller may modify), or None."""
+        """The arrays last put under ``key`` (a copy the caller may modify), or None. May be
+        called from another thread while the owner puts and discards: it returns what was
+        there before or after (never a mix of both)."""
 
     def keys(self) -> list[TileKey]:
         """Every key held."""
@@ -569,6 +571,33 @@ class TiledMosaic:
             raise KeyError(f"no map tile {key}")
         image, alpha = self._tile_pixels(tile)
         return (image[..., 0] if self.channels == 1 else image).copy(), alpha.copy()
+
+    def tile_image_later(self, key: TileKey) -> Callable[[], tuple[np.ndarray, np.ndarray] | None]:
+        """:meth:`tile_image` of ``key`` as a function to call later, maybe in another thread.
+
+        A tile in memory is copied now (a memcpy); a tile the map spilled is read from the tile
+        store when the function is called (the store never serves a partly written tile, so its
+        pixels are those of now or of a later change), or None if it left the store or cannot
+        be read. Raises KeyError if no such tile.
+        """
+        if key in self._tiles:
+            pixels = self.tile_image(key)
+            return lambda: pixels
+        if key not in self._spilled:
+            raise KeyError(f"no map tile {key}")
+        store, channels, pixels_of = self._store, self.channels, self._tile_pixels
+
+        def read() -> tuple[np.ndarray, np.ndarray] | None:
+            try:
+                tile = store.get(key)
+            except PhotomapError:
+                return None
+            if tile is None:
+                return None
+            image, alpha = pixels_of(tile)
+            return (image[..., 0] if channels == 1 else image), alpha
+
+        return read
 
     def set_tile(self, key: TileKey, image: np.ndarray, alpha: np.ndarray) -> None:
         """Replace tile ``key`` by the pixels ``image`` (uint8 (ts, ts, C) or (ts, ts)) where

@@ -33,7 +33,7 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping
+from typing import Callable, Mapping
 
 import cv2
 import numpy as np
@@ -66,18 +66,27 @@ class Snapshot:
     """What one checkpoint writes, taken in the worker thread (copies: the maps go on changing).
 
     ``stamps``: segment -> {tile: stamp} of every tile of the segment's map now; ``tiles``:
-    (segment, tile, stamp, BGRA pixels) of the tiles that changed since the last checkpoint
+    (segment, tile, stamp, :meth:`TiledMosaic.tile_image_later` of it) of the tiles that changed since the last checkpoint
     (at most the snapshot's byte budget; the rest wait for the next checkpoint); ``meta``:
     what the manifest records besides the tiles (frame size, segments' keyframes, counts...).
     """
 
     stamps: dict[int, dict[TileKey, int]]
-    tiles: list[tuple[int, TileKey, int, np.ndarray]]
+    tiles: list[tuple[int, TileKey, int, Callable[[], tuple[np.ndarray, np.ndarray] | None] | None]]
     meta: dict
     tile_size: int
     channels: int
     pending: int = 0  # changed tiles left for the next checkpoint (byte budget)
     taken_s: float = 0.0
+
+
+def _with_alpha(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """A tile's pixels as one PNG image: BGRA, or grey + alpha for a grey map."""
+    if image.ndim == 2:
+        return cv2.merge([image, alpha])
+    bgra = cv2.cvtColor(image, cv2.COLOR_BGR2BGRA)
+    bgra[..., 3] = alpha
+    return bgra
 
 
 @dataclass
@@ -102,8 +111,8 @@ class MapState:
     max_snapshot_bytes : int
         Budget of tile pixels copied per checkpoint (BGRA bytes); changed tiles beyond it are
         written by the next checkpoints (until then the manifest names their previous version).
-        The copy runs in the worker: 16 MB (64 tiles of 256 px) is ~45 ms on a loaded 2-core
-        computer with the tile cap (64 MB stalled it up to 180 ms on a 1080p flight).
+        The worker copies the tiles in memory (a memcpy each); the writer reads those the map
+        spilled from its tile store, and encodes.
     """
 
     def __init__(self, folder: str | Path, *, max_snapshot_bytes: int = 16 << 20) -> None:
@@ -143,10 +152,7 @@ class MapState:
         for seg, key, st in changed:
             if budget < per_tile and tiles:
                 break
-            image, alpha = mosaics[seg].tile_image(key)
-            if image.ndim == 2:
-                image = image[..., None]
-            tiles.append((seg, key, st, np.dstack([image, alpha])))
+            tiles.append((seg, key, st, mosaics[seg].tile_image_later(key)))  # read by the writer
             budget -= per_tile
         for seg, mosaic in mosaics.items():
             self._mosaic_ids[seg] = id(mosaic)
@@ -169,10 +175,14 @@ class MapState:
         nbytes = 0
         fresh = {(seg, key): st for seg, key, st, _ in snap.tiles}
         try:
-            for i, (seg, key, st, bgra) in enumerate(snap.tiles):
+            for i, (seg, key, st, pixels) in enumerate(snap.tiles):
                 snap.tiles[i] = (seg, key, st, None)  # the copy goes as soon as it is encoded
-                ok, buf = cv2.imencode(".png", bgra, _PNG_FAST)
-                del bgra
+                tile = pixels()
+                if tile is None:  # left the map's tile store meanwhile: the next checkpoint decides
+                    del fresh[(seg, key)]
+                    continue
+                ok, buf = cv2.imencode(".png", _with_alpha(*tile), _PNG_FAST)
+                del tile, pixels
                 if not ok:
                     raise OSError(f"PNG encoding of tile {key} failed")
                 path = self._tile_path(seg, key, gen)

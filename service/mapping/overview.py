@@ -4,7 +4,8 @@ Rendering a preview from the map itself reads every tile (from disk when the map
 7 s for a 750-tile 1080p map on a busy 2-core computer, in the worker. :class:`Overview` keeps one
 thumbnail per map tile, ``factor`` times smaller, refreshed only for the tiles that changed since
 the last preview; when the thumbnails outgrow ``max_pixels`` the factor doubles (each thumbnail
-halves). A preview then costs the changed tiles plus a resize of at most ``max_pixels``.
+halves). A preview then costs the changed tiles plus a resize of at most ``max_pixels``; the
+worker only copies the changed tiles' pixels, the thumbnails are made in a background thread.
 
 A thumbnail pixel is the area average (``INTER_AREA``) of its map pixels: alpha is the covered
 fraction, colour the average of the covered pixels (empty pixels do not darken the map's edge),
@@ -13,6 +14,7 @@ as :meth:`photomap.core.mosaic.TiledMosaic.render` downscales.
 
 from __future__ import annotations
 
+import queue
 import time
 from pathlib import Path
 from typing import Callable, Iterable
@@ -32,6 +34,9 @@ def _shrink(bgra: np.ndarray, size: int) -> np.ndarray:
 class Overview:
     """Thumbnails of one map's tiles (see the module docstring).
 
+    Used from the worker thread; :meth:`write` hands the thumbnails it needs made to ``later``
+    (a background thread), which returns them through a queue drained by the worker's next call.
+
     Parameters
     ----------
     tile_size : int
@@ -40,14 +45,21 @@ class Overview:
         Initial downscale factor (map pixels per thumbnail pixel, each axis).
     max_pixels : int
         Thumbnail pixels kept at most (4 bytes each); beyond, the factor doubles.
+    max_copy_bytes : int
+        Tile pixels :meth:`write` copies for the background thread at most (tiles beyond keep
+        their previous thumbnail in this preview and are copied by the next ones).
     """
 
-    def __init__(self, tile_size: int, factor: int = 2, max_pixels: int = 1_500_000) -> None:
+    def __init__(self, tile_size: int, factor: int = 2, max_pixels: int = 1_500_000,
+                 max_copy_bytes: int = 16 << 20) -> None:
         self.tile_size = tile_size
         self.factor = factor
         self.max_pixels = max_pixels
+        self.max_copy_bytes = max_copy_bytes
         self._thumbs: dict[TileKey, np.ndarray] = {}
+        self._made: dict[TileKey, int] = {}  # tile -> clock of the pixels its thumbnail shows
         self._stale: dict[TileKey, int] = {}  # changed tile -> when (mark() calls)
+        self._done: queue.SimpleQueue = queue.SimpleQueue()  # (tile, clock, thumbnail or None) from write()
         self._clock = 0
 
     def mark(self, keys: Iterable[TileKey]) -> None:
@@ -61,6 +73,10 @@ class Overview:
         """Tiles changed since their thumbnail was made."""
         return len(self._stale)
 
+    @property
+    def _size(self) -> int:
+        return max(1, self.tile_size // self.factor)
+
     def update(self, mosaic: TiledMosaic, budget_s: float | None = None, settled: int = 0) -> int:
         """Refresh the thumbnails of the changed tiles from ``mosaic``; returns how many.
 
@@ -68,7 +84,7 @@ class Overview:
         tiles not changed in the last ``settled`` calls of :meth:`mark` (a tile under the camera
         changes again and again: its thumbnail waits until the camera has moved on).
         """
-        t = max(1, self.tile_size // self.factor)
+        self._drain()
         t0 = time.perf_counter()
         n = 0
         for key, marked in list(self._stale.items()):
@@ -78,26 +94,47 @@ class Overview:
                 continue
             del self._stale[key]
             try:
-                image, alpha = mosaic.tile_image(key)
+                pixels = mosaic.tile_image(key)
             except KeyError:  # emptied
-                self._thumbs.pop(key, None)
-                continue
-            if image.ndim == 2:
-                image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-            if cv2.countNonZero(alpha) == alpha.size:  # covered: a plain resize
-                small = cv2.resize(image, (t, t), interpolation=cv2.INTER_AREA)
-                self._thumbs[key] = np.dstack([small, np.full((t, t), 255, np.uint8)])
-            else:
-                self._thumbs[key] = _shrink(np.dstack([image, alpha]), t)
+                pixels = None
+            self._install(key, self._clock, _thumbnail(pixels, self._size))
             n += 1
+        self._fit()
+        return n
+
+    def _install(self, key: TileKey, clock: int, thumb: np.ndarray | None) -> None:
+        """Keep ``thumb`` (None: the tile is empty) unless a thumbnail of newer pixels is in."""
+        if self._made.get(key, -1) > clock:
+            return
+        self._made[key] = clock
+        if thumb is None:
+            self._thumbs.pop(key, None)
+        elif thumb.shape[0] != self._size:  # made before the factor doubled
+            self._thumbs[key] = _shrink(thumb, self._size)
+        else:
+            self._thumbs[key] = thumb
+
+    def _drain(self) -> None:
+        """Keep the thumbnails the background thread made."""
+        while True:
+            try:
+                key, clock, thumb = self._done.get_nowait()
+            except queue.Empty:
+                break
+            self._install(key, clock, thumb)
+        self._fit()
+
+    def _fit(self) -> None:
+        """Double the factor while the thumbnails outgrow ``max_pixels``."""
+        t = self._size
         while len(self._thumbs) * t * t > self.max_pixels and t > 1:
             self.factor *= 2
-            t = max(1, self.tile_size // self.factor)
+            t = self._size
             self._thumbs = {k: _shrink(v, t) for k, v in self._thumbs.items()}
-        return n
 
     def render(self, max_px: int) -> np.ndarray | None:
         """The map as one BGRA image of at most ``max_px`` on its longer side (None if empty)."""
+        self._drain()
         return self._render(self._thumbs, max_px) if self._thumbs else None
 
     @staticmethod
@@ -118,20 +155,61 @@ class Overview:
 
     def write(self, path: str | Path, mosaic: TiledMosaic, max_px: int,
               later: Callable[[Callable[[], None]], None] | None = None) -> bool:
-        """Refresh the thumbnails and write the preview PNG (atomically); False when the map is
-        empty. ``later``: runs the resize and the encoding elsewhere (a background thread)."""
-        self.update(mosaic)
-        if not self._thumbs:
+        """Write the preview PNG (atomically) with the thumbnails of the changed tiles refreshed;
+        False when the map is empty. The worker only copies the changed tiles' pixels (at most
+        ``max_copy_bytes``; tiles the map spilled are read later); ``later`` runs the thumbnails, the resize and the encoding
+        elsewhere (a background thread; None: here)."""
+        self._drain()
+        copies = []
+        budget = self.max_copy_bytes
+        for key in list(self._stale):
+            if budget <= 0:
+                break
+            del self._stale[key]
+            try:
+                pixels = mosaic.tile_image_later(key)
+            except KeyError:  # emptied
+                pixels = _empty
+            copies.append((key, pixels))
+            budget -= self.tile_size * self.tile_size * 4
+        if not self._thumbs and all(pixels is _empty for _, pixels in copies):
             return False
         thumbs = dict(self._thumbs)  # the thumbnails are replaced, never changed in place
+        clock, size, done = self._clock, self._size, self._done
 
         def encode() -> None:
-            image = self._render(thumbs, max_px)
-            with PngStreamWriter(path, image.shape[1], image.shape[0], 4) as png:
-                png.write(image)
+            for key, pixels in copies:
+                thumb = _thumbnail(pixels(), size)
+                done.put((key, clock, thumb))
+                if thumb is None:
+                    thumbs.pop(key, None)
+                else:
+                    thumbs[key] = thumb
+            if thumbs:
+                image = self._render(thumbs, max_px)
+                with PngStreamWriter(path, image.shape[1], image.shape[0], 4) as png:
+                    png.write(image)
 
         (later or (lambda task: task()))(encode)
         return True
+
+
+def _empty() -> None:
+    """The pixels of an emptied tile."""
+    return None
+
+
+def _thumbnail(pixels: tuple[np.ndarray, np.ndarray] | None, size: int) -> np.ndarray | None:
+    """The BGRA ``size`` x ``size`` thumbnail of a tile's ``(image, alpha)`` (None: emptied)."""
+    if pixels is None:
+        return None
+    image, alpha = pixels
+    if image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    if cv2.countNonZero(alpha) == alpha.size:  # covered: a plain resize
+        small = cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
+        return np.dstack([small, np.full((size, size), 255, np.uint8)])
+    return _shrink(np.dstack([image, alpha]), size)
 
 
 def _resize_bgra(bgra: np.ndarray, size: tuple[int, int]) -> np.ndarray:
