@@ -377,6 +377,35 @@ def test_report_is_self_contained_and_says_what_happened(flight, tmp_path):
     assert f"{summary['metres_per_pixel'] * 100:.2f} cm/pixel" in text
 
 
+def test_the_runs_report_draws_its_map_from_the_tiles_as_the_png_shows_it(flight, tmp_path, monkeypatch):
+    """A run writes report.html without reading its (maybe huge) PNG back: the thumbnail comes
+    from the map's tiles in bands. It shows what `export --report` draws from the PNG."""
+    import base64
+
+    from photomap.io import report
+
+    def thumbnail(text):
+        parser = _Links()
+        parser.feed(text)
+        uri = next(r for r in parser.refs if r.startswith("data:image/"))
+        return cv2.imdecode(np.frombuffer(base64.b64decode(uri.split(",", 1)[1]), np.uint8), cv2.IMREAD_UNCHANGED)
+
+    sim, work = flight[0], tmp_path / "run"
+    with monkeypatch.context() as m:
+        m.setattr(report, "_thumbnail", lambda *a, **k: pytest.fail("the run read its PNG back"))
+        assert main(["replay", str(sim / "video.mp4"), "--out", str(work), "--no-progress", "-q",
+                     "--set", "output.max_mosaic_px=700"]) == 0
+    from_tiles = thumbnail((work / "report.html").read_text())
+    assert main(["export", str(work), "--report", "-q"]) == 0
+    from_png = thumbnail((work / "report.html").read_text())
+    png = cv2.imread(str(work / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+    assert from_tiles.shape == from_png.shape and max(from_png.shape[:2]) == min(960, max(png.shape[:2]))
+    inside = (from_tiles[..., 3] == 255) & (from_png[..., 3] == 255)
+    assert inside.mean() > 0.3
+    diff = np.abs(from_tiles[..., :3].astype(int) - from_png[..., :3])[inside]
+    assert np.median(diff) <= 4  # the same picture (both WebP-encoded)
+
+
 def test_export_without_georeference_is_one_clear_line(flight, tmp_path, capsys):
     work = tmp_path / "run"
     shutil.copytree(flight[1], work)

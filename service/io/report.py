@@ -57,10 +57,18 @@ def _table(rows: Sequence[tuple[str, str]]) -> str:
 
 
 def _thumbnail(png: Path, max_px: int = THUMB_PX) -> tuple[str, float, tuple[int, int]] | None:
-    """(data URI, thumbnail px per PNG px, (w, h)) of a map PNG, or None if unreadable."""
+    """(data URI, thumbnail px per PNG px, (w, h)) of a map PNG, or None if unreadable. Reads
+    the whole PNG (see :func:`report_html`'s ``map_image`` to avoid it)."""
     image = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
     if image is None:
         return None
+    return _encode_thumbnail(image, image.shape[1], max_px)
+
+
+def _encode_thumbnail(image: np.ndarray, png_width: int, max_px: int = THUMB_PX
+                      ) -> tuple[str, float, tuple[int, int]] | None:
+    """:func:`_thumbnail` of a map image whose PNG is ``png_width`` px wide (the image may
+    already be smaller: downscaled further to ``max_px`` when larger)."""
     if image.ndim == 2:
         image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGRA)
     elif image.shape[2] == 3:
@@ -83,7 +91,7 @@ def _thumbnail(png: Path, max_px: int = THUMB_PX) -> tuple[str, float, tuple[int
     if not ok:
         return None
     return (f"data:image/{kind};base64," + base64.b64encode(buf.tobytes()).decode("ascii"),
-            image.shape[1] / w, (image.shape[1], image.shape[0]))
+            image.shape[1] / png_width, (image.shape[1], image.shape[0]))
 
 
 def _area_premultiplied(bgra: np.ndarray, size: tuple[int, int], band: int = 256) -> np.ndarray:
@@ -227,8 +235,13 @@ def _files(run_dir: Path) -> list[tuple[str, str]]:
     return out
 
 
-def report_html(run_dir: str | Path) -> str:
-    """The text of ``report.html`` for a run folder (see the module docstring)."""
+def report_html(run_dir: str | Path, map_image: np.ndarray | None = None) -> str:
+    """The text of ``report.html`` for a run folder (see the module docstring).
+
+    ``map_image``: the main map (the run's first mosaic) already downscaled, BGRA over the same
+    extent as its PNG (e.g. rendered from the map's tiles in bands); None: the PNG is read,
+    whole (hundreds of MB for an 8192 px map).
+    """
     run = RunFiles(run_dir)
     s = run.summary
     try:
@@ -251,7 +264,10 @@ def report_html(run_dir: str | Path) -> str:
     # map
     map_html = '<p class="muted">no map image</p>'
     png = run.dir / entry["file"] if entry else run.dir / "preview.png"
-    thumb = _thumbnail(png) if png.is_file() else None
+    if map_image is not None and entry and len(entry.get("size") or []) == 2:
+        thumb = _encode_thumbnail(map_image, int(entry["size"][0]))
+    else:
+        thumb = _thumbnail(png) if png.is_file() else None
     if thumb is not None:
         uri, f, size = thumb
         svg = _map_svg(entry, rows, frame_size, f, size, mpp, m2c) if entry else ""
@@ -353,8 +369,9 @@ def report_html(run_dir: str | Path) -> str:
     return "\n".join(out) + "\n"
 
 
-def write_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
-    """Write ``report.html`` (default: in the run folder) atomically; returns its path."""
+def write_report(run_dir: str | Path, path: str | Path | None = None, *, map_image: np.ndarray | None = None) -> Path:
+    """Write ``report.html`` (default: in the run folder) atomically; returns its path.
+    ``map_image``: see :func:`report_html`."""
     target = Path(path) if path is not None else Path(run_dir) / "report.html"
-    atomic_write_text(target, report_html(run_dir))
+    atomic_write_text(target, report_html(run_dir, map_image))
     return target

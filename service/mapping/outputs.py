@@ -151,6 +151,17 @@ def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
             "pixel_scale": [ow / w, oh / h], "bounds": [int(v) for v in bounds], "size": [int(ow), int(oh)]}
 
 
+def render_small(mosaic: TiledMosaic, max_px: int) -> np.ndarray | None:
+    """The map of ``mosaic`` as one BGRA image of at most ``max_px`` on its longer side, over
+    the extent of its PNG (:func:`write_png`); rendered in bands, so memory is the small image
+    and one band. None for an empty map."""
+    if mosaic.bounds() is None:
+        return None
+    _, _, w, h = mosaic.bounds()
+    _, _, bands = render_bands(mosaic, min(1.0, max_px / max(w, h)))
+    return np.vstack([_bgra(image[..., 0] if image.shape[2] == 1 else image, alpha) for image, alpha in bands])
+
+
 def write_tiles(folder: Path, mosaic: TiledMosaic) -> None:
     """Every map tile at full resolution as ``tile_{tx}_{ty}.png`` (BGRA) in ``folder``."""
     folder.mkdir(exist_ok=True)

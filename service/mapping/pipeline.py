@@ -53,7 +53,7 @@ from photomap.drivers.images import ImageFolderSource
 from photomap.geometry import frame_centre, pose_angle_deg
 from photomap.errors import OutputError, PhotomapError
 from photomap.io.keyframestore import KeyframeStore
-from photomap.io.report import write_report
+from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
 from photomap.io.tilestore import DiskTileStore
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
@@ -62,7 +62,7 @@ from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.memory import limit_heap_growth, release_free_memory
-from photomap.mapping.outputs import png_placement, remove_sidecars, write_png, write_sidecars, write_tiles
+from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
 from photomap.mapping.rerender import Rerenderer
 from photomap.mapping.telemetry_join import TelemetryJoin
@@ -977,8 +977,10 @@ class MappingPipeline:
         self.stats.timing.add("final_outputs", time.perf_counter() - t0)
         summary["timing_ms"] = self.stats.timing.summary()
         self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
-        try:
-            write_report(self.out_dir)  # report.html: the flight at a glance, offline
+        try:  # report.html: the flight at a glance, offline (its map from the tiles, not the PNG)
+            main = self.mosaics.get(maps[0]["segment"]) if maps else None
+            small = render_small(main, min(THUMB_PX, max(maps[0]["size"]))) if main is not None else None
+            write_report(self.out_dir, map_image=small)
         except (OSError, ValueError, PhotomapError) as exc:
             log.warning("report.html not written: %s", exc)
         if self._own_cache and self._cache_dir is not None:
