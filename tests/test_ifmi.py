@@ -290,3 +290,36 @@ def test_refinement_corrects_a_few_degrees_on_smooth_ground(sand):
     assert centre_error(refined, truth, shape) < 0.5
     assert scale_error(refined, truth) < 0.005
 
+
+
+def test_the_shift_prior_peak_is_that_of_the_whole_masked_surface():
+    """The translation peak within a shift prior is read on the rows and columns its disc can
+    touch only: the same peak (position and value, ties to the first) as masking the whole
+    surface, also for discs that wrap around the periodic surface's edges or hold nothing."""
+    import scipy.fft
+
+    h, w = 60, 80
+    reg = Registrar((h, w))
+    rng = np.random.default_rng(5)
+
+    def whole(r, angle, scale, prior):  # the former full-surface mask
+        ys = scipy.fft.fftfreq(h, 1.0 / h)[:, None]
+        xs = scipy.fft.fftfreq(w, 1.0 / w)[None, :]
+        lin = similarity_matrix(angle, scale)[:, :2]
+        base = np.asarray(reg.center) - lin @ np.asarray(reg.center)
+        tx, ty = base[0] - xs - prior.shift[0], base[1] - ys - prior.shift[1]
+        return Registrar._peaks(np.where(tx ** 2 + ty ** 2 <= prior.shift_tol ** 2, r, -np.inf), 1, exclude=4)
+
+    found = empty = 0
+    for k in range(400):
+        r = rng.normal(size=(h, w)).astype(np.float32)
+        if k % 3 == 0:
+            r = np.round(r)  # ties: the first in row-major order wins
+        angle, scale = float(rng.uniform(-180, 180)), float(rng.uniform(0.8, 1.25))
+        shift = (float(rng.uniform(-w, w)), float(rng.uniform(-h, h)))
+        prior = Prior(shift=shift, shift_tol=float(rng.choice([0.3, 2.0, 4.5, 12.0, 40.0])))
+        want = whole(r, angle, scale, prior)
+        assert reg._shift_peak(r, angle, scale, prior) == want
+        found += bool(want)
+        empty += not want
+    assert found > 50 and empty > 10  # both cases were exercised

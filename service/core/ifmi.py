@@ -409,6 +409,7 @@ class Registrar:
         self._lp_allowed = np.broadcast_to((np.abs(shifts_r) <= nr // 4)[None, :], (na, nr))
 
         self._grids: dict[int, _Grid] = {}
+        self._shift_axes: tuple[np.ndarray, np.ndarray] | None = None  # fftfreq rows, columns (px)
         # gradient energy weight of each log-polar ring on each pyramid level of the refinement:
         # r^2 (gradient) * r^2 (ring area on the log grid) * |transfer function|^2 of pyrDown^L
         # (Gaussian, sigma 1 px of each level it reads) and the refinement's own smoothing
@@ -646,7 +647,7 @@ class Registrar:
             peaks = self._peaks(r, 2, exclude=4)
             if prior is not None and prior.shift is not None:
                 # also the best peak within the prior's tolerance (periodic ground)
-                peaks += self._peaks(self._mask_shift(r, hyp_angle, scale, prior), 1, exclude=4)
+                peaks += self._shift_peak(r, hyp_angle, scale, prior)
             for iy, ix, _ in dict.fromkeys(peaks):
                 fy, fx, height = self._subpixel(r, iy, ix)
                 dy = (fy + h / 2) % h - h / 2
@@ -658,17 +659,31 @@ class Registrar:
                                      float(np.clip(peak, 0.0, 1.0))))
         return out
 
-    def _mask_shift(self, r: np.ndarray, angle: float, scale: float, prior: Prior) -> np.ndarray:
-        """Keep translation peaks whose matrix shift lies within the prior's tolerance."""
+    def _shift_peak(self, r: np.ndarray, angle: float, scale: float, prior: Prior) -> list[tuple[int, int, float]]:
+        """The highest translation peak whose matrix shift lies within the prior's tolerance
+        (``[]`` when none is finite): ``_peaks`` of ``r`` masked to that disc, read on the rows and
+        columns the disc can touch only (the mask of the whole surface cost more than the peak)."""
         h, w = self.shape
-        ys = scipy.fft.fftfreq(h, 1.0 / h)[:, None]
-        xs = scipy.fft.fftfreq(w, 1.0 / w)[None, :]
+        if self._shift_axes is None:
+            self._shift_axes = (scipy.fft.fftfreq(h, 1.0 / h), scipy.fft.fftfreq(w, 1.0 / w))
+        ys, xs = self._shift_axes
         # matrix shift for a peak at d: t = c + tau - L c with tau = -d
         lin = similarity_matrix(angle, scale)[:, :2]
         base = np.asarray(self.center) - lin @ np.asarray(self.center)
-        tx = base[0] - xs - prior.shift[0]
-        ty = base[1] - ys - prior.shift[1]
-        return np.where(tx ** 2 + ty ** 2 <= prior.shift_tol ** 2, r, -np.inf)
+        tx2 = (base[0] - xs - prior.shift[0]) ** 2
+        ty2 = (base[1] - ys - prior.shift[1]) ** 2
+        tol2 = prior.shift_tol ** 2
+        # tx^2 + ty^2 <= tol^2 needs tx^2 <= tol^2 and ty^2 <= tol^2 (also in floating point)
+        rows, cols = np.flatnonzero(ty2 <= tol2), np.flatnonzero(tx2 <= tol2)
+        if not rows.size or not cols.size:
+            return []
+        inside = tx2[cols][None, :] + ty2[rows][:, None] <= tol2
+        masked = np.where(inside, r[np.ix_(rows, cols)], -np.inf)
+        # rows and columns ascending: the first maximum here is the first of the whole masked surface
+        i, j = divmod(int(np.argmax(masked)), cols.size)
+        iy, ix = int(rows[i]), int(cols[j])
+        val = float(r[iy, ix])
+        return [(iy, ix, val)] if np.isfinite(masked[i, j]) else []
 
     # ------------------------------------------------------------------ refinement
     def _grid(self, level: int) -> _Grid:
