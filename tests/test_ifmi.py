@@ -323,3 +323,37 @@ def test_the_shift_prior_peak_is_that_of_the_whole_masked_surface():
         found += bool(want)
         empty += not want
     assert found > 50 and empty > 10  # both cases were exercised
+
+
+def test_a_pair_registered_again_gives_what_a_fresh_registrar_gives(terrain):
+    """The registrar keeps the last pair's prior-free work (surfaces, refinements): registering
+    the same pair again with other priors (as the tracker does) gives exactly the results of a
+    registrar that never saw the pair, and the second registration reuses that work."""
+    shape = (120, 160)
+    pairs = [cut_pair(terrain, shape, angle, scale, shift, centre)
+             for angle, scale, shift, centre in ((7.0, 1.03, (9.0, -5.0), (900.0, 700.0)),
+                                                 (-31.0, 0.97, (-14.0, 6.0), (1200.0, 900.0)),
+                                                 (95.0, 1.0, (3.0, 11.0), (700.0, 1100.0)))]
+    priors = [None, Prior(angle_deg=5.0, angle_tol_deg=10.0, scale=1.0, scale_tol=0.1),
+              Prior(angle_deg=0.0, angle_tol_deg=180.0, scale=1.0, scale_tol=10.0, shift=(8.0, -4.0), shift_tol=6.0),
+              Prior(angle_deg=-30.0, angle_tol_deg=5.0, scale=0.97, scale_tol=0.0, shift=(-12.0, 5.0), shift_tol=3.0),
+              Prior(angle_deg=170.0, angle_tol_deg=20.0, scale=1.2, scale_tol=0.05)]
+    kept = Registrar(shape)
+    inverses = []
+    for a, b, _ in pairs:
+        pa, pb = kept.prepare(a), kept.prepare(b)
+        for prior in priors:
+            fresh = Registrar(shape)
+            want = fresh.register(fresh.prepare(a), fresh.prepare(b), prior)
+            calls = []
+            inverse = kept._ccs.inverse
+            kept._ccs.inverse = lambda packed, calls=calls, inverse=inverse: calls.append(1) or inverse(packed)
+            try:
+                got = kept.register(pa, pb, prior)
+            finally:
+                del kept._ccs.inverse
+            inverses.append(len(calls))
+            assert np.array_equal(got.matrix, want.matrix)
+            assert (got.confidence, got.ambiguous, got.refined) == (want.confidence, want.ambiguous, want.refined)
+            assert got.candidates == want.candidates
+    assert sum(inverses[1:len(priors)]) < (len(priors) - 1) * inverses[0]  # surfaces were reused
