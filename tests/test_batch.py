@@ -197,3 +197,30 @@ def test_batch_on_two_workers(flights, tmp_path, capsys):
             cv2.fillConvexPoly(grid, np.rint(q.T - lo).astype(np.int32), 1)
         true_area = grid.sum() * meta["gsd"] ** 2
         assert feats[f"f{seed}-video"]["properties"]["area_m2"] == pytest.approx(true_area, rel=0.05)
+
+
+def test_a_flight_keeps_to_its_opencv_threads(flights, tmp_path, monkeypatch):
+    """map_flight's thread budget holds inside the pipeline, which sets OpenCV's pool from
+    mapping.opencv_threads (default 2) for its run: 2 flights on 2 cores get 1 thread each."""
+    from photomap.cli.batch import map_flight
+    from photomap.mapping.pipeline import MappingPipeline
+
+    seen: set[int] = set()
+    process = MappingPipeline._process
+
+    def spy(self, frame):
+        seen.add(cv2.getNumThreads())
+        return process(self, frame)
+
+    monkeypatch.setattr(MappingPipeline, "_process", spy)
+    spec = FlightSpec(str(flights / "f41" / "video.mp4"), "f41", str(flights / "f41" / "telemetry.tlog"))
+    cfg = load_config()
+    assert cfg.mapping.opencv_threads == 2
+    before = cv2.getNumThreads()
+    entry = map_flight(spec, str(tmp_path), cfg, threads=1)
+    assert entry["status"] == "ok" and entry["frames"] == FRAMES
+    assert seen == {1}
+    assert cv2.getNumThreads() == before  # restored
+    seen.clear()
+    entry = map_flight(spec, str(tmp_path / "more"), cfg.updated({"mapping": {"opencv_threads": 1}}), threads=2)
+    assert entry["status"] == "ok" and seen == {1}  # a lower setting is kept

@@ -290,3 +290,70 @@ def test_refinement_corrects_a_few_degrees_on_smooth_ground(sand):
     assert centre_error(refined, truth, shape) < 0.5
     assert scale_error(refined, truth) < 0.005
 
+
+
+def test_the_shift_prior_peak_is_that_of_the_whole_masked_surface():
+    """The translation peak within a shift prior is read on the rows and columns its disc can
+    touch only: the same peak (position and value, ties to the first) as masking the whole
+    surface, also for discs that wrap around the periodic surface's edges or hold nothing."""
+    import scipy.fft
+
+    h, w = 60, 80
+    reg = Registrar((h, w))
+    rng = np.random.default_rng(5)
+
+    def whole(r, angle, scale, prior):  # the former full-surface mask
+        ys = scipy.fft.fftfreq(h, 1.0 / h)[:, None]
+        xs = scipy.fft.fftfreq(w, 1.0 / w)[None, :]
+        lin = similarity_matrix(angle, scale)[:, :2]
+        base = np.asarray(reg.center) - lin @ np.asarray(reg.center)
+        tx, ty = base[0] - xs - prior.shift[0], base[1] - ys - prior.shift[1]
+        return Registrar._peaks(np.where(tx ** 2 + ty ** 2 <= prior.shift_tol ** 2, r, -np.inf), 1, exclude=4)
+
+    found = empty = 0
+    for k in range(400):
+        r = rng.normal(size=(h, w)).astype(np.float32)
+        if k % 3 == 0:
+            r = np.round(r)  # ties: the first in row-major order wins
+        angle, scale = float(rng.uniform(-180, 180)), float(rng.uniform(0.8, 1.25))
+        shift = (float(rng.uniform(-w, w)), float(rng.uniform(-h, h)))
+        prior = Prior(shift=shift, shift_tol=float(rng.choice([0.3, 2.0, 4.5, 12.0, 40.0])))
+        want = whole(r, angle, scale, prior)
+        assert reg._shift_peak(r, angle, scale, prior) == want
+        found += bool(want)
+        empty += not want
+    assert found > 50 and empty > 10  # both cases were exercised
+
+
+def test_a_pair_registered_again_gives_what_a_fresh_registrar_gives(terrain):
+    """The registrar keeps the last pair's prior-free work (surfaces, refinements): registering
+    the same pair again with other priors (as the tracker does) gives exactly the results of a
+    registrar that never saw the pair, and the second registration reuses that work."""
+    shape = (120, 160)
+    pairs = [cut_pair(terrain, shape, angle, scale, shift, centre)
+             for angle, scale, shift, centre in ((7.0, 1.03, (9.0, -5.0), (900.0, 700.0)),
+                                                 (-31.0, 0.97, (-14.0, 6.0), (1200.0, 900.0)),
+                                                 (95.0, 1.0, (3.0, 11.0), (700.0, 1100.0)))]
+    priors = [None, Prior(angle_deg=5.0, angle_tol_deg=10.0, scale=1.0, scale_tol=0.1),
+              Prior(angle_deg=0.0, angle_tol_deg=180.0, scale=1.0, scale_tol=10.0, shift=(8.0, -4.0), shift_tol=6.0),
+              Prior(angle_deg=-30.0, angle_tol_deg=5.0, scale=0.97, scale_tol=0.0, shift=(-12.0, 5.0), shift_tol=3.0),
+              Prior(angle_deg=170.0, angle_tol_deg=20.0, scale=1.2, scale_tol=0.05)]
+    kept = Registrar(shape)
+    inverses = []
+    for a, b, _ in pairs:
+        pa, pb = kept.prepare(a), kept.prepare(b)
+        for prior in priors:
+            fresh = Registrar(shape)
+            want = fresh.register(fresh.prepare(a), fresh.prepare(b), prior)
+            calls = []
+            inverse = kept._ccs.inverse
+            kept._ccs.inverse = lambda packed, calls=calls, inverse=inverse: calls.append(1) or inverse(packed)
+            try:
+                got = kept.register(pa, pb, prior)
+            finally:
+                del kept._ccs.inverse
+            inverses.append(len(calls))
+            assert np.array_equal(got.matrix, want.matrix)
+            assert (got.confidence, got.ambiguous, got.refined) == (want.confidence, want.ambiguous, want.refined)
+            assert got.candidates == want.candidates
+    assert sum(inverses[1:len(priors)]) < (len(priors) - 1) * inverses[0]  # surfaces were reused

@@ -242,6 +242,46 @@ def test_tiles_painted_during_a_rerender_keep_their_pixels_until_redone(tmp_path
     painter.close()
 
 
+def test_kept_images_are_decoded_once_for_all_strips_and_anew_when_kept_again(tmp_path):
+    """A correction re-renders strip after strip from the same kept frames: each kept image is
+    read back (decoded) once, within the cache's budget; a frame kept again is read anew."""
+    params = MosaicConfig(tile_size=64)
+    store = KeyframeStore(tmp_path / "kf")
+    reads: list[int] = []
+    image = store.image
+    store.image = lambda index: reads.append(index) or image(index)
+    rerenderer = Rerenderer(store, params, strip_tiles=1)
+    frames = [KeptFrame(i, pose(0, 50.0 * i, 10.0), (160, 120)) for i in range(3)]
+    for f in frames:
+        rerenderer.save(f.index, texture(120, 160, 20 + f.index))
+    rerenderer.wait()
+    tiles = set(render_from_store(store, frames, params).tiles())  # (reads the files once each)
+    reads.clear()
+
+    def render() -> TiledMosaic:
+        job = rerenderer.submit(0, frames, tiles)
+        got = TiledMosaic(params)
+        while True:
+            rerenderer.wait()
+            strips = rerenderer.collect()
+            for strip in strips:
+                assert strip.job == job
+                got.put_tiles(strip.tiles)
+            if not strips and not rerenderer.busy:
+                return got
+
+    got = render()
+    assert len(tiles) > 3 and sorted(reads) == [0, 1, 2]  # 1 tile a strip: every strip, no re-reads
+    assert_same_tiles(got, render_from_store(store, frames, params), tiles)
+    reads.clear()
+    rerenderer.save(1, texture(120, 160, 99))  # frame 1 kept again, with another image
+    rerenderer.wait()
+    got = render()
+    assert reads == [1]
+    assert_same_tiles(got, render_from_store(store, frames, params), tiles)
+    rerenderer.close()
+
+
 def test_tile_rects_merge_row_neighbours():
     assert tile_rects([(0, 0), (1, 0), (3, 0), (1, 1)], 10) == [(0, 0, 20, 10), (30, 0, 10, 10), (10, 10, 10, 10)]
 

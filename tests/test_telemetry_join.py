@@ -83,6 +83,32 @@ def test_tlog_joined_metric_and_georeferenced(flight, tmp_path):
     assert check is not None and abs(check["residual_offset_s"]) < 0.1
 
 
+def test_the_time_offset_check_reads_the_yaw_alone_and_finds_the_same(flight):
+    """With the buffer's one-field reader the check reads only the yaw: the same result as from
+    whole samples, also for a video that is off the log by 0.4 s."""
+    from photomap.drivers.mavlink import load_tlog
+    from photomap.mapping.telemetry_join import TelemetryJoin
+
+    buffer, _ = load_tlog(str(flight / "telemetry.tlog"))
+    cfg = load_config()
+    t0 = yaml.safe_load((flight / "meta.yaml").read_text())["t0_unix"]
+    truth = read_groundtruth(flight / "groundtruth.csv")
+    t = [k / 15.0 for k in range(len(truth.H))]
+    angles = [math.degrees(math.atan2(H[1, 0], H[0, 0])) for H in truth.H]
+    asked: list[str] = []
+
+    def field_at(name, when):
+        asked.append(name)
+        return buffer.value_at(name, when)
+
+    for start in (t0, t0 + 0.4):
+        whole = TelemetryJoin(buffer.at, "log", cfg, video_start=start).time_offset_check(t, angles)
+        alone = TelemetryJoin(buffer.at, "log", cfg, video_start=start, field_at=field_at).time_offset_check(t, angles)
+        assert whole is not None and alone == whole
+    assert asked and set(asked) == {"yaw"}
+    assert abs(whole["residual_offset_s"] + 0.4) < 0.1  # the check still sees the offset
+
+
 def test_the_same_flight_without_telemetry_still_maps(flight, tmp_path):
     summary = replay(str(flight / "video.mp4"), tmp_path, load_config())
     assert summary["registered"] == 60

@@ -261,7 +261,8 @@ def map_flight(spec: FlightSpec, out_root: str, cfg: Config, threads: int | dict
     ``footprint``, its GeoJSON feature (None unless georeferenced).
 
     ``threads``: OpenCV threads for this flight, or ``{host: threads}`` (the worker looks its
-    own host up; 1 when absent); BLAS/OpenMP pools are pinned to 1 thread (see :func:`run_batch`).
+    own host up; 1 when absent), also the most ``mapping.opencv_threads`` may give the flight's
+    pipeline; BLAS/OpenMP pools are pinned to 1 thread (see :func:`run_batch`).
     Log lines of the ``photomap`` loggers go to ``out_root/logs/<name>.log`` while the flight runs.
     """
     import cv2
@@ -292,6 +293,11 @@ def map_flight(spec: FlightSpec, out_root: str, cfg: Config, threads: int | dict
         logger.propagate = False  # the batch's console shows one line per flight
         old_cv = cv2.getNumThreads()
         cv2.setNumThreads(n)
+        # the pipeline sets OpenCV's pool to mapping.opencv_threads for its run: at most n here
+        # (else 2 workers of 2 threads each spin on 2 cores: ~0.6 CPU ms a 320x240 frame wasted)
+        wanted = cfg.mapping.opencv_threads
+        if wanted <= 0 or wanted > n:
+            cfg = cfg.updated({"mapping": {"opencv_threads": n}})
         try:
             with threadpool_limits(limits=1):  # BLAS/OpenMP: 1 (see run_batch: measured)
                 if spec.time_offset is not None:

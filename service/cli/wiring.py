@@ -109,7 +109,7 @@ def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None,
             log.warning("video start time unknown: assuming it starts with the telemetry log "
                         "(use --video-start or --time-offset)")
         join = TelemetryJoin(buffer.at, "log", cfg, video_start=float(video_start), offset=tcfg.time_offset,
-                             link_summary=lambda: _link_summary(spec, stats))
+                             link_summary=lambda: _link_summary(spec, stats), field_at=buffer.value_at)
         return join, None, cfg
     link_cfg = cfg.updated({"telemetry": {"source": spec, "send_heartbeat": tcfg.send_heartbeat and live}})
     reader = TelemetryReader.from_config(link_cfg.telemetry).start()

@@ -409,6 +409,8 @@ class Registrar:
         self._lp_allowed = np.broadcast_to((np.abs(shifts_r) <= nr // 4)[None, :], (na, nr))
 
         self._grids: dict[int, _Grid] = {}
+        self._shift_axes: tuple[np.ndarray, np.ndarray] | None = None  # fftfreq rows, columns (px)
+        self._pair: tuple[PreparedFrame, PreparedFrame, dict] | None = None  # the last pair registered
         # gradient energy weight of each log-polar ring on each pyramid level of the refinement:
         # r^2 (gradient) * r^2 (ring area on the log grid) * |transfer function|^2 of pyrDown^L
         # (Gaussian, sigma 1 px of each level it reads) and the refinement's own smoothing
@@ -529,19 +531,25 @@ class Registrar:
         return out
 
     # ------------------------------------------------------------------ rotation and scale
-    def _rotation_scale(self, a: PreparedFrame, b: PreparedFrame,
-                        prior: Prior | None) -> list[tuple[float, float, float]]:
-        """Candidate (angle_deg mod 180 in (-90, 90], scale, peak) of the matrix b -> a."""
+    def _rotation_scale(self, a: PreparedFrame, b: PreparedFrame, prior: Prior | None,
+                        memo: dict | None = None) -> list[tuple[float, float, float]]:
+        """Candidate (angle_deg mod 180 in (-90, 90], scale, peak) of the matrix b -> a.
+
+        ``memo``: the pair's surfaces (see :meth:`register`)."""
         na, nr = self.angle_bins, self.radius_bins
-        ccs = self._lp_ccs
-        cross = np.empty((na, nr), np.float32)
-        inner = ccs.inner(cross)
-        np.conjugate(ccs.inner(a.logpolar), out=inner)
-        inner *= ccs.inner(b.logpolar)
-        inner *= self._lp_gauss[0]
-        ccs.set_edges(cross, np.conj(a._cache["lp_edges"]) * b._cache["lp_edges"] * self._lp_gauss[1])
-        r = ccs.inverse(cross)
-        r *= np.float32(1.0 / self._lp_ref)
+        r = memo.get("logpolar") if memo is not None else None
+        if r is None:
+            ccs = self._lp_ccs
+            cross = np.empty((na, nr), np.float32)
+            inner = ccs.inner(cross)
+            np.conjugate(ccs.inner(a.logpolar), out=inner)
+            inner *= ccs.inner(b.logpolar)
+            inner *= self._lp_gauss[0]
+            ccs.set_edges(cross, np.conj(a._cache["lp_edges"]) * b._cache["lp_edges"] * self._lp_gauss[1])
+            r = ccs.inverse(cross)
+            r *= np.float32(1.0 / self._lp_ref)
+            if memo is not None:
+                memo["logpolar"] = r  # only read from here on (the peak search masks a copy)
         # The log-polar image of b is that of a shifted by (+log s, -angle) (rows: angle, cols: log r).
         # Restrict the radius shift to +-nr/4 (scale within exp(+-nr/4 * step)) and apply priors.
         allowed = self._lp_allowed
@@ -595,26 +603,46 @@ class Registrar:
 
     def _translation(self, a: PreparedFrame, b: PreparedFrame, angle: float, scale: float,
                      prior: Prior | None,
-                     weight: tuple[np.ndarray, np.ndarray, float, float]) -> list[Candidate]:
-        """Score the hypotheses ``angle`` and ``angle + 180`` of the matrix b -> a."""
+                     weight: tuple[np.ndarray, np.ndarray, float, float],
+                     memo: dict | None = None) -> list[Candidate]:
+        """Score the hypotheses ``angle`` and ``angle + 180`` of the matrix b -> a.
+
+        ``memo``: the pair's surfaces (see :meth:`register`)."""
         h, w = self.shape
         ccs = self._ccs
-        # With M = [L | t] (L = scale * R(angle)), b'(q) = b(L^-1 (q - c) + c) = a(q + tau) where
-        # t = c + tau - L c: warping b by L about the centre c leaves a pure translation.
-        lin_fwd = similarity_matrix(angle, scale, center=self.center)  # maps b pixels to b' pixels
-        mean_b = b._cache["mean"]
-        warped = cv2.warpAffine(b.gray, lin_fwd, (w, h), flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=mean_b)
-        spec_b = self._windowed_spectrum(warped, mean_b)
         w_in, w_e, ref, noise = weight
         if ref <= _EPS:
             return [Candidate(angle, scale, (0.0, 0.0), 0.0)]
         a_in, a_e = ccs.inner(a.spectrum), a._cache["edges"]
-        b_in, b_e = ccs.inner(spec_b), ccs.edges(spec_b)
+        warped_b: list[tuple[np.ndarray, np.ndarray]] = []
+
+        def spectrum_b() -> tuple[np.ndarray, np.ndarray]:
+            """CCS interior and edges of b', once."""
+            if not warped_b:
+                # With M = [L | t] (L = scale * R(angle)), b'(q) = b(L^-1 (q - c) + c) = a(q + tau)
+                # where t = c + tau - L c: warping b by L about the centre c leaves a pure translation.
+                lin_fwd = similarity_matrix(angle, scale, center=self.center)  # maps b pixels to b' pixels
+                mean_b = b._cache["mean"]
+                warped = cv2.warpAffine(b.gray, lin_fwd, (w, h), flags=cv2.INTER_LINEAR,
+                                        borderMode=cv2.BORDER_CONSTANT, borderValue=mean_b)
+                spec_b = self._windowed_spectrum(warped, mean_b)
+                warped_b.append((ccs.inner(spec_b), ccs.edges(spec_b)))
+            return warped_b[0]
+
+        def surface(mirrored: bool) -> np.ndarray:
+            """The translation POMF's surface of b' (or its point mirror), through ``memo``."""
+            key = ("translation", angle, scale, mirrored)
+            r = memo.get(key) if memo is not None else None
+            if r is None:
+                r = ccs.inverse(pomf(mirrored))
+                if memo is not None:
+                    memo[key] = r  # the peak search restores what it masks
+            return r
 
         def pomf(mirrored: bool) -> np.ndarray:
             """Weighted, phase-normalised cross-power spectrum of a and b' (or its point mirror),
             CCS-packed: conj(a) b', or conj(a) ramp conj(b') for b' rotated by 180 deg."""
+            b_in, b_e = spectrum_b()
             packed = np.empty((h, w), np.float32)
             inner = ccs.inner(packed)
             if mirrored:
@@ -635,18 +663,18 @@ class Registrar:
             d0 = abs(_wrap180(angle - prior.angle_deg))
             keep = d0 <= 90
             flip = d0 > 90 - prior.angle_tol_deg or not keep
-        hyps = [(angle, pomf(False))] if keep else []
+        hyps = [(angle, False)] if keep else []
         if flip:
-            hyps.append((_wrap180(angle + 180.0), pomf(True)))
+            hyps.append((_wrap180(angle + 180.0), True))
 
         out = []
         k = math.sqrt(2.0 * math.log(h * w)) + 1.0
-        for hyp_angle, spectrum in hyps:
-            r = ccs.inverse(spectrum)
+        for hyp_angle, mirrored in hyps:
+            r = surface(mirrored)
             peaks = self._peaks(r, 2, exclude=4)
             if prior is not None and prior.shift is not None:
                 # also the best peak within the prior's tolerance (periodic ground)
-                peaks += self._peaks(self._mask_shift(r, hyp_angle, scale, prior), 1, exclude=4)
+                peaks += self._shift_peak(r, hyp_angle, scale, prior)
             for iy, ix, _ in dict.fromkeys(peaks):
                 fy, fx, height = self._subpixel(r, iy, ix)
                 dy = (fy + h / 2) % h - h / 2
@@ -658,17 +686,31 @@ class Registrar:
                                      float(np.clip(peak, 0.0, 1.0))))
         return out
 
-    def _mask_shift(self, r: np.ndarray, angle: float, scale: float, prior: Prior) -> np.ndarray:
-        """Keep translation peaks whose matrix shift lies within the prior's tolerance."""
+    def _shift_peak(self, r: np.ndarray, angle: float, scale: float, prior: Prior) -> list[tuple[int, int, float]]:
+        """The highest translation peak whose matrix shift lies within the prior's tolerance
+        (``[]`` when none is finite): ``_peaks`` of ``r`` masked to that disc, read on the rows and
+        columns the disc can touch only (the mask of the whole surface cost more than the peak)."""
         h, w = self.shape
-        ys = scipy.fft.fftfreq(h, 1.0 / h)[:, None]
-        xs = scipy.fft.fftfreq(w, 1.0 / w)[None, :]
+        if self._shift_axes is None:
+            self._shift_axes = (scipy.fft.fftfreq(h, 1.0 / h), scipy.fft.fftfreq(w, 1.0 / w))
+        ys, xs = self._shift_axes
         # matrix shift for a peak at d: t = c + tau - L c with tau = -d
         lin = similarity_matrix(angle, scale)[:, :2]
         base = np.asarray(self.center) - lin @ np.asarray(self.center)
-        tx = base[0] - xs - prior.shift[0]
-        ty = base[1] - ys - prior.shift[1]
-        return np.where(tx ** 2 + ty ** 2 <= prior.shift_tol ** 2, r, -np.inf)
+        tx2 = (base[0] - xs - prior.shift[0]) ** 2
+        ty2 = (base[1] - ys - prior.shift[1]) ** 2
+        tol2 = prior.shift_tol ** 2
+        # tx^2 + ty^2 <= tol^2 needs tx^2 <= tol^2 and ty^2 <= tol^2 (also in floating point)
+        rows, cols = np.flatnonzero(ty2 <= tol2), np.flatnonzero(tx2 <= tol2)
+        if not rows.size or not cols.size:
+            return []
+        inside = tx2[cols][None, :] + ty2[rows][:, None] <= tol2
+        masked = np.where(inside, r[np.ix_(rows, cols)], -np.inf)
+        # rows and columns ascending: the first maximum here is the first of the whole masked surface
+        i, j = divmod(int(np.argmax(masked)), cols.size)
+        iy, ix = int(rows[i]), int(cols[j])
+        val = float(r[iy, ix])
+        return [(iy, ix, val)] if np.isfinite(masked[i, j]) else []
 
     # ------------------------------------------------------------------ refinement
     def _grid(self, level: int) -> _Grid:
@@ -871,15 +913,24 @@ class Registrar:
         if pa.energy <= _EPS or pb.energy <= _EPS:
             return Registration(matrix=similarity_matrix(0.0, 1.0), confidence=0.0)
 
+        # The prior-free work on this pair (correlation surfaces, refinements) is kept until
+        # another pair is registered: the tracker often registers a pair twice in a row, with two
+        # priors (telemetry's, then the motion model's), and gets the same results for less.
+        pair = self._pair
+        if pair is None or pair[0] is not pa or pair[1] is not pb:
+            pair = self._pair = (pa, pb, {})
+        memo = pair[2]
         cands: list[Candidate] = []
-        weight = self._translation_weight(pa, pb)
-        for angle, scale, _ in self._rotation_scale(pa, pb, prior):
-            cands.extend(self._translation(pa, pb, angle, scale, prior, weight))
+        weight = memo.get("weight")
+        if weight is None:
+            weight = memo["weight"] = self._translation_weight(pa, pb)
+        for angle, scale, _ in self._rotation_scale(pa, pb, prior, memo):
+            cands.extend(self._translation(pa, pb, angle, scale, prior, weight, memo))
         if (prior is not None and prior.angle_deg is not None and prior.scale is not None
                 and max(c.peak for c in cands) < _WEAK_PEAK):
             # Little overlap starves the log-polar POMF first: also try the expected rotation and
             # scale directly in the translation step (the refinement then corrects them).
-            cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior, weight))
+            cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior, weight, memo))
         cands = self._rank(cands, prior)
         best = cands[0]
         m = similarity_matrix(best.angle_deg, best.scale)
@@ -887,7 +938,10 @@ class Registrar:
         ambiguous = any(c.peak >= 0.8 * best.peak and not self._same(c, best) for c in cands[1:])
         refined = False
         if self.refine_iterations and best.peak > 0:
-            m_ref = self._refine(pa, pb, m)
+            key = ("refined", m.tobytes())
+            if key not in memo:
+                memo[key] = self._refine(pa, pb, m)
+            m_ref = None if memo[key] is None else memo[key].copy()
             if m_ref is not None:
                 m, refined = m_ref, True
         return Registration(matrix=m, confidence=best.peak, ambiguous=ambiguous,

@@ -141,14 +141,20 @@ class TelemetryJoin:
         The configuration (sections ``telemetry``, ``camera``, ``georef``).
     link_summary : callable
         What the link saw (messages, gaps, link losses), for ``run.json``.
+    field_at : callable, optional
+        ``(field, t) -> value or None``: one field of what ``sample_at(t)`` gives (a buffer's
+        ``value_at``), for checks that read one field over the whole flight (the time-offset
+        check reads the yaw every 0.05 s: a whole sample each time cost 0.1 s a 1000-frame flight).
     """
 
     def __init__(self, sample_at: Callable[[float], TelemetrySample], mode: str, cfg: Config, *,
                  video_start: float = 0.0, offset: float = 0.0,
-                 link_summary: Callable[[], dict] = dict) -> None:
+                 link_summary: Callable[[], dict] = dict,
+                 field_at: Callable[[str, float], float | None] | None = None) -> None:
         if mode not in ("live", "log", "link", "stills"):
             raise ValueError(f"unknown telemetry time mode {mode!r}")
         self.sample_at = sample_at
+        self.field_at = field_at
         self.mode = mode
         self.video_start = video_start
         self.offset = offset
@@ -352,10 +358,14 @@ class TelemetryJoin:
         ts, yaws = [], []
         for t in np.arange(tel_t[0] - self.gcfg.timesync_window_s,
                            tel_t[-1] + self.gcfg.timesync_window_s, 0.05):
-            s = self.sample_at(float(t))
-            if s is not None and s.yaw is not None:
+            if self.field_at is not None:
+                yaw = self.field_at("yaw", float(t))
+            else:
+                s = self.sample_at(float(t))
+                yaw = s.yaw if s is not None else None
+            if yaw is not None:
                 ts.append(float(t))
-                yaws.append(s.yaw)
+                yaws.append(yaw)
         if len(ts) < 10:
             return None
         found = sync_time_offset(tel_t, angles, ts, yaws, nominal_s=0.0,
