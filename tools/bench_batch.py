@@ -8,13 +8,16 @@ configuration runs ``--repeat`` times; the table shows the median wall time (fro
 last output, cluster start-up and shutdown included) and the speed-up over the serial median.
 Every batch flight's ``trajectory.csv`` and ``mosaic.png`` are compared with the serial replay's.
 
+Then the same as a user runs it, each command a fresh process: ``photomap replay`` per flight,
+one after the other, against one ``photomap batch``.
+
 Part (b): pairs of simulated flights over the bundled terrain (overlapping ones and one that does
 not overlap) are mapped and merged by :func:`photomap.mapping.merge.merge_runs`, by the images
 alone and with the georeference as a prior. The error is the distance, in merged-map pixels,
 between where ``map_to_merged`` puts each frame centre of the second map and where the truth
 does (both maps' pixels go to the terrain through their first frame's ground-truth matrix).
 
-    python tools/bench_batch.py [--quick] [--frames N] [--repeat N] [--out FILE]
+    python -m tools.bench_batch [--quick] [--frames N] [--repeat N] [--skip-merge] [--out FILE]
 
 The full run replaces the section between ``<!-- batch:start -->`` and ``<!-- batch:end -->``
 of ``docs/benchmarks.md``; ``--quick`` only prints. Needs the ``batch`` extra (Dask).
@@ -29,6 +32,7 @@ import logging
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -67,7 +71,7 @@ def _same_outputs(a: Path, b: Path) -> tuple[bool, float, bool]:
     return diff < 1e-6, diff, ia is not None and ib is not None and ia.shape == ib.shape and np.array_equal(ia, ib)
 
 
-def batch_part(root: Path, frames: int, repeat: int) -> dict:
+def batch_part(root: Path, frames: int, repeat: int, commands: bool = True) -> dict:
     cfg = load_config()
     flights = []
     for seed in BATCH_SEEDS:
@@ -88,6 +92,7 @@ def batch_part(root: Path, frames: int, repeat: int) -> dict:
                     replay(f.input, out / f.name, cfg, mavlink=f.mavlink)
             elif how[1]:
                 run_batch(flights, out, cfg, workers=how[0], processes=True, echo=None)
+                _stop_fork_server()
             else:  # one worker process... as threads of this process: LocalCluster(processes=False)
                 run_batch_threads(flights, out, cfg, threads=how[0])
             times[name].append(time.perf_counter() - t)
@@ -107,7 +112,44 @@ def batch_part(root: Path, frames: int, repeat: int) -> dict:
                      "trajectories_equal": all(c[0] for c in checks) if checks else None,
                      "max_pose_diff": max((c[1] for c in checks), default=None),
                      "mosaics_equal": all(c[2] for c in checks) if checks else None})
-    return {"frames": frames, "flights": len(flights), "repeat": repeat, "rows": rows}
+    cmds = commands_part(root, flights, repeat) if commands else None
+    return {"frames": frames, "flights": len(flights), "repeat": repeat, "rows": rows, "commands": cmds}
+
+
+def commands_part(root: Path, flights: list, repeat: int, workers: int = 2) -> dict:
+    """Wall time of the commands a user runs, each a fresh process (imports included): ``photomap
+    replay`` of one flight after the other, against one ``photomap batch`` of them all."""
+    py = [sys.executable, "-m", "photomap"]
+
+    def run(cmd: list[str]) -> None:
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=root)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd[2:4])} failed:\n{proc.stderr[-2000:]}")
+
+    serial, batch = [], []
+    for rep in range(repeat):
+        t = time.perf_counter()
+        for f in flights:
+            run(py + ["replay", f.input, "--out", str(root / f"cmd{rep}" / f.name), "--mavlink", f.mavlink,
+                      "--no-progress", "-q"])
+        serial.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        run(py + ["batch", *[f.input for f in flights], "--out", str(root / f"cmdbatch{rep}"),
+                  "--workers", str(workers), "--no-progress", "-q"])
+        batch.append(time.perf_counter() - t)
+        log.info("commands: replay one after the other %.1f s, batch %.1f s", serial[-1], batch[-1])
+    return {"serial_s": serial, "batch_s": batch, "workers": workers}
+
+
+def _stop_fork_server() -> None:
+    """End the fork server the batch's worker processes came from (Python's, private API): the
+    next batch starts its own, as a fresh `photomap batch` does, and the workers' CPU time (its
+    children) comes back to this process's children's rusage."""
+    import multiprocessing.forkserver as fs
+
+    stop = getattr(getattr(fs, "_forkserver", None), "_stop", None)
+    if stop is not None:
+        stop()
 
 
 def _cpu_s() -> float:
@@ -185,11 +227,12 @@ def _true_overlap(ref_run: Path, mov_run: Path, truth: np.ndarray) -> float:
 
 def report(args, b: dict, m: list[dict], elapsed: float, load: tuple[float, float]) -> str:
     when = datetime.date.today().isoformat()
+    shared = (": **the machine was shared with other jobs**, so times and speed-ups are what this busy machine "
+              "gave, not what an idle one gives" if load[0] > 1.0 else ": a quiet machine when it started")
     lines = ["## Batch and merge", "",
              f"Written by `tools/bench_batch.py{' --quick' if args.quick else ''}` on {when} (Python "
              f"{platform.python_version()}, {os.cpu_count()} cores, {elapsed:.0f} s; 1-minute load average "
-             f"{load[0]:.1f} at the start and {load[1]:.1f} at the end: **the machine was shared with other "
-             "jobs**, so times and speed-ups are what this busy machine gave, not what an idle one gives).", "",
+             f"{load[0]:.1f} at the start and {load[1]:.1f} at the end{shared}).", "",
              f"### photomap batch: {b['flights']} flights of {b['frames']} frames (320x240, with telemetry)", "",
              f"Median of {b['repeat']} runs each, wall time from the call to the last output (the batch's "
              "cluster start-up and shutdown included). Serial: `replay` of one flight after the other in one "
@@ -205,6 +248,17 @@ def report(args, b: dict, m: list[dict], elapsed: float, load: tuple[float, floa
         mo = "-" if r["mosaics_equal"] is None else ("yes" if r["mosaics_equal"] else "**no**")
         lines.append(f"| {r['name']} | {r['median_s']:.1f} | {', '.join(f'{v:.1f}' for v in r['all_s'])} | "
                      f"{r['speedup']:.2f}x | {r['cpu_s']:.1f} | {r['cores_used']:.2f} | {eq} | {mo} |")
+    c = b.get("commands")
+    if c:
+        ser, bat = statistics.median(c["serial_s"]), statistics.median(c["batch_s"])
+        lines += ["", "As a user runs them, each command a fresh process (Python, NumPy, OpenCV and photomap "
+                  f"imported by each): `photomap replay` of one flight after the other against one `photomap "
+                  f"batch ... --workers {c['workers']}` (median of {len(c['serial_s'])}):", "",
+                  "| commands | median s | runs s | speed-up |", "|---|---|---|---|",
+                  f"| {b['flights']} x `photomap replay`, one after the other | {ser:.1f} | "
+                  f"{', '.join(f'{v:.1f}' for v in c['serial_s'])} | 1.00x |",
+                  f"| `photomap batch`, {c['workers']} workers | {bat:.1f} | "
+                  f"{', '.join(f'{v:.1f}' for v in c['batch_s'])} | {ser / bat:.2f}x |"]
     lines += ["", "### photomap merge against the simulator's truth", "",
               "Error: distance (merged-map px) between where `map_to_merged` puts each frame centre of the "
               "second map and where the truth does. *True overlap*: the part of the smaller map that the "
@@ -223,14 +277,14 @@ def report(args, b: dict, m: list[dict], elapsed: float, load: tuple[float, floa
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="small and once (prints only)")
-    ap.add_argument("--frames", type=int, default=None, help="frames per batch flight (default 400)")
+    ap.add_argument("--frames", type=int, default=None, help="frames per batch flight (default 1000)")
     ap.add_argument("--repeat", type=int, default=None, help="runs per configuration (default 3)")
     ap.add_argument("--skip-merge", action="store_true")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     logging.getLogger("photomap").setLevel(logging.WARNING)
-    args.frames = args.frames or (120 if args.quick else 400)
+    args.frames = args.frames or (120 if args.quick else 1000)
     args.repeat = args.repeat or (1 if args.quick else 3)
     out_md = args.out if args.out is not None else (None if args.quick else REPO / "docs" / "benchmarks.md")
     start, load0 = time.perf_counter(), os.getloadavg()[0]

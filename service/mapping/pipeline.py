@@ -865,10 +865,11 @@ class MappingPipeline:
                               "gps_rms_m": geo.rms_m, "scale_source": geo.scale_source,
                               "world_file": world_file})
                 centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
-                for r in self._rows:
-                    if r.glued and r.segment == seg:
-                        lat, lon = geo.to_latlon((np.asarray(r.M) @ centre)[None, :])
-                        r.extra["lat"], r.extra["lon"] = float(lat[0]), float(lon[0])
+                rows = [r for r in self._rows if r.glued and r.segment == seg]
+                if rows:  # all at once (one row at a time: 0.17 s a 1000-frame flight)
+                    lat, lon = geo.to_latlon(np.array([np.asarray(r.M) @ centre for r in rows]))
+                    for r, la, lo in zip(rows, lat.tolist(), lon.tolist()):
+                        r.extra["lat"], r.extra["lon"] = la, lo
             info["georeference"] = entry
             geo_out[seg] = entry
         if not trusted:  # nothing from telemetry that does not fit stays in the trajectory
