@@ -278,9 +278,10 @@ def test_disk_tile_store_round_trip(tmp_path):
 
 
 @pytest.mark.parametrize("store_kind", ["disk", "memory"])
-def test_tile_image_later_copies_tiles_in_memory_now_and_reads_spilled_ones_later(tmp_path, store_kind):
+def test_tile_image_later_lends_tiles_in_memory_and_reads_spilled_ones_later(tmp_path, store_kind):
     """What a checkpoint or a preview takes from the worker: a tile in memory as it is now; a
-    spilled tile as the store has it when read (another thread, later); None once it is gone."""
+    spilled tile as the store has it when read (another thread, later); None once it is gone.
+    A tile in memory is lent: the map copies it before it changes it."""
     store = DiskTileStore(tmp_path) if store_kind == "disk" else MemoryTileStore()
     m = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=2), store=store)
     m.add(noise(40, 40, seed=1), shift(0, 0))
@@ -296,13 +297,20 @@ def test_tile_image_later_copies_tiles_in_memory_now_and_reads_spilled_ones_late
             np.testing.assert_array_equal(got, want)
     m.add(noise(200, 200, seed=3), shift(-20, -20))  # paints over both (and spills again)
     for got, want in zip(later[in_memory](), now[in_memory]):
-        np.testing.assert_array_equal(got, want)  # copied when asked
+        np.testing.assert_array_equal(got, want)  # as it was when asked
     assert spilled not in m._tiles
     for got, want in zip(later[spilled](), m.tile_image(spilled)):
         np.testing.assert_array_equal(got, want)  # read when called: the newer pixels
     assert not np.array_equal(m.tile_image(spilled)[0], now[spilled][0])
     m.clear_tiles([spilled])
     assert later[spilled]() is None
+    # copy on write: a tile lent out and then replaced keeps the lent pixels for the reader
+    key = next(k for k in m.tiles() if k in m._tiles)
+    lent, before = m.tile_image_later(key), m.tile_image(key)
+    m.set_tile(key, np.zeros_like(before[0]), np.full_like(before[1], 255))
+    for got, want in zip(lent(), before):
+        np.testing.assert_array_equal(got, want)
+    assert not m.tile_image(key)[0].any() and m.tile_image(key)[1].all()
 
 
 def test_clear_tiles_then_re_render(tmp_path):

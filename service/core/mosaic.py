@@ -119,6 +119,7 @@ class TiledMosaic:
         self._tiles: OrderedDict[TileKey, Tile] = OrderedDict()  # in memory, least recent first
         self._spilled: set[TileKey] = set()  # not in memory; current data is in the store
         self._clean: set[TileKey] = set()  # in memory and equal to the store's copy
+        self._lent: set[TileKey] = set()  # in memory, arrays lent out (tile_image_later): copy before a change
         self._frame_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
         # covered pixels of each tile: x0, y0, x1, y1 (map pixels, exclusive): bounds() reads no tile
         self._extent: dict[TileKey, tuple[int, int, int, int]] = {}
@@ -238,7 +239,7 @@ class TiledMosaic:
                 if sw == 0:
                     continue
                 key = (tx, ty)
-                tile = self._load(key)
+                tile = self._load(key, write=True)
                 dst_sl = (slice(my0 - ty * ts, my1 - ty * ts), slice(mx0 - tx * ts, mx1 - tx * ts))
                 sub = warped[src_sl]
                 if self.blend == "overwrite":
@@ -483,11 +484,15 @@ class TiledMosaic:
             return {"color": np.zeros((ts, ts, C), np.uint8), "cover": np.zeros((ts, ts), np.uint8)}
         return {"sum": np.zeros((ts, ts, C), np.float32), "weight": np.zeros((ts, ts), np.float32)}
 
-    def _load(self, key: TileKey) -> Tile:
-        """The tile at ``key`` in memory (loaded or created), marked most recently used."""
+    def _load(self, key: TileKey, write: bool = False) -> Tile:
+        """The tile at ``key`` in memory (loaded or created), marked most recently used.
+        ``write``: the caller changes its arrays (copied first when they are lent out)."""
         tile = self._tiles.get(key)
         if tile is not None:
             self._tiles.move_to_end(key)
+            if write and key in self._lent:
+                self._lent.discard(key)
+                tile = self._tiles[key] = {name: a.copy() for name, a in tile.items()}
             return tile
         if key in self._spilled:
             tile = self._store.get(key)
@@ -526,6 +531,7 @@ class TiledMosaic:
                     self._tiles.move_to_end(key, last=False)
                     self.spill_failures += 1
                     return
+            self._lent.discard(key)  # out of memory: the next load brings new arrays
             self._clean.discard(key)
             self._spilled.add(key)
 
@@ -575,17 +581,26 @@ class TiledMosaic:
     def tile_image_later(self, key: TileKey) -> Callable[[], tuple[np.ndarray, np.ndarray] | None]:
         """:meth:`tile_image` of ``key`` as a function to call later, maybe in another thread.
 
-        A tile in memory is copied now (a memcpy); a tile the map spilled is read from the tile
-        store when the function is called (the store never serves a partly written tile, so its
-        pixels are those of now or of a later change), or None if it left the store or cannot
-        be read. Raises KeyError if no such tile.
+        A tile in memory is lent, not copied (the map copies its arrays before it changes them:
+        copy on write), so the function gives its pixels as of now; a tile the map spilled is
+        read from the tile store when the function is called (the store never serves a partly
+        written tile, so its pixels are those of now or of a later change), or None if it left
+        the store or cannot be read. Raises KeyError if no such tile. The pixels may be views:
+        do not change them.
         """
-        if key in self._tiles:
-            pixels = self.tile_image(key)
-            return lambda: pixels
+        channels, pixels_of = self.channels, self._tile_pixels
+        tile = self._tiles.get(key)
+        if tile is not None:
+            self._lent.add(key)
+
+            def lent() -> tuple[np.ndarray, np.ndarray]:
+                image, alpha = pixels_of(tile)
+                return (image[..., 0] if channels == 1 else image), alpha
+
+            return lent
         if key not in self._spilled:
             raise KeyError(f"no map tile {key}")
-        store, channels, pixels_of = self._store, self.channels, self._tile_pixels
+        store = self._store
 
         def read() -> tuple[np.ndarray, np.ndarray] | None:
             try:
@@ -609,7 +624,7 @@ class TiledMosaic:
         if img.shape[2] != self.channels:
             raise InputError(f"tile {key} has {img.shape[2]} channels, the map {self.channels}")
         covered = np.asarray(alpha).reshape(ts, ts) != 0
-        tile = self._load(key)
+        tile = self._load(key, write=True)
         if self.blend == "overwrite":
             tile["color"][...] = np.where(covered[..., None], img, 0)
             tile["cover"][...] = np.where(covered, np.uint8(255), np.uint8(0))
@@ -641,6 +656,7 @@ class TiledMosaic:
         for key in keys:
             key = (int(key[0]), int(key[1]))
             self._tiles.pop(key, None)
+            self._lent.discard(key)
             self._spilled.discard(key)
             self._clean.discard(key)
             self._stamps.pop(key, None)
@@ -684,6 +700,7 @@ class TiledMosaic:
             self._clean.discard(key)
             self._stamp += 1
             self._stamps[key] = self._stamp
+            self._lent.discard(key)  # new arrays (those lent out stay as they were)
             if key in self._tiles:
                 self._tiles[key] = tile
                 continue

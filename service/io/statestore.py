@@ -109,10 +109,11 @@ class MapState:
         The state folder. An existing manifest is taken over (generation numbers go on from it),
         so files of the run being continued stay valid until replaced.
     max_snapshot_bytes : int
-        Budget of tile pixels copied per checkpoint (BGRA bytes); changed tiles beyond it are
+        Budget of tile pixels taken per checkpoint (BGRA bytes); changed tiles beyond it are
         written by the next checkpoints (until then the manifest names their previous version).
-        The worker copies the tiles in memory (a memcpy each); the writer reads those the map
-        spilled from its tile store, and encodes.
+        The worker takes the tiles (:meth:`TiledMosaic.tile_image_later`: tiles in memory are
+        lent, copy on write; spilled ones are read by the writer), which bounds the memory the
+        pending checkpoint holds.
     """
 
     def __init__(self, folder: str | Path, *, max_snapshot_bytes: int = 16 << 20) -> None:

@@ -1,8 +1,8 @@
 """Crash-safe checkpoints of the full-resolution map, and recovering a run from one.
 
-:class:`Checkpointer` is what the pipeline calls at each checkpoint: the worker copies the tiles
-that changed since the last checkpoint (:meth:`photomap.io.statestore.MapState.snapshot`, a few
-milliseconds) and a background thread writes them and the manifest (PNG encoding, fsync), so
+:class:`Checkpointer` is what the pipeline calls at each checkpoint: the worker takes the tiles
+that changed since the last checkpoint (:meth:`photomap.io.statestore.MapState.snapshot`: no
+pixel copied, the map copies a tile before it changes it) and a background thread writes them and the manifest (PNG encoding, fsync), so
 the worker does not wait for the disk. A checkpoint that fails (disk full, I/O error) is logged
 once, the previous checkpoint stays valid, and the next interval tries again; mapping goes on.
 
@@ -32,6 +32,7 @@ from photomap.io.tilestore import DiskTileStore
 from photomap.core.records import STATUSES
 from photomap.io.trajectory_files import read_trajectory_csv, write_json
 from photomap.mapping.outputs import remove_sidecars, write_png, write_sidecars, write_tiles
+from photomap.mapping.threads import lower_priority
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +52,7 @@ class Checkpointer:
     folder : path
         The state folder (created).
     background : bool
-        Write in a background thread (the worker only copies the changed tiles); False: write in
+        Write in a background thread (the worker only takes the changed tiles); False: write in
         the caller's thread (tests, the end of a run).
     max_snapshot_bytes : int
         Tile pixels copied per checkpoint at most (the rest go into the next ones).
@@ -101,6 +102,8 @@ class Checkpointer:
         return True
 
     def _write(self, snap) -> None:
+        if threading.current_thread() is self._thread:
+            lower_priority()  # the worker and the camera come first; the next interval can wait
         t0 = time.perf_counter()
         try:
             self.state.write(snap)

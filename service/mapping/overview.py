@@ -5,7 +5,8 @@ Rendering a preview from the map itself reads every tile (from disk when the map
 thumbnail per map tile, ``factor`` times smaller, refreshed only for the tiles that changed since
 the last preview; when the thumbnails outgrow ``max_pixels`` the factor doubles (each thumbnail
 halves). A preview then costs the changed tiles plus a resize of at most ``max_pixels``; the
-worker only copies the changed tiles' pixels, the thumbnails are made in a background thread.
+worker only takes the changed tiles (lent by the map, copy on write), the thumbnails are made
+in a background thread.
 
 A thumbnail pixel is the area average (``INTER_AREA``) of its map pixels: alpha is the covered
 fraction, colour the average of the covered pixels (empty pixels do not darken the map's edge),
@@ -45,17 +46,18 @@ class Overview:
         Initial downscale factor (map pixels per thumbnail pixel, each axis).
     max_pixels : int
         Thumbnail pixels kept at most (4 bytes each); beyond, the factor doubles.
-    max_copy_bytes : int
-        Tile pixels :meth:`write` copies for the background thread at most (tiles beyond keep
-        their previous thumbnail in this preview and are copied by the next ones).
+    max_tile_bytes : int
+        Tile pixels :meth:`write` takes for the background thread at most (what a pending
+        preview may hold in memory; tiles beyond keep their previous thumbnail in this preview
+        and go with the next ones).
     """
 
     def __init__(self, tile_size: int, factor: int = 2, max_pixels: int = 1_500_000,
-                 max_copy_bytes: int = 16 << 20) -> None:
+                 max_tile_bytes: int = 16 << 20) -> None:
         self.tile_size = tile_size
         self.factor = factor
         self.max_pixels = max_pixels
-        self.max_copy_bytes = max_copy_bytes
+        self.max_tile_bytes = max_tile_bytes
         self._thumbs: dict[TileKey, np.ndarray] = {}
         self._made: dict[TileKey, int] = {}  # tile -> clock of the pixels its thumbnail shows
         self._stale: dict[TileKey, int] = {}  # changed tile -> when (mark() calls)
@@ -156,12 +158,12 @@ class Overview:
     def write(self, path: str | Path, mosaic: TiledMosaic, max_px: int,
               later: Callable[[Callable[[], None]], None] | None = None) -> bool:
         """Write the preview PNG (atomically) with the thumbnails of the changed tiles refreshed;
-        False when the map is empty. The worker only copies the changed tiles' pixels (at most
-        ``max_copy_bytes``; tiles the map spilled are read later); ``later`` runs the thumbnails, the resize and the encoding
-        elsewhere (a background thread; None: here)."""
+        False when the map is empty. The worker only takes the changed tiles (at most
+        ``max_tile_bytes``: :meth:`TiledMosaic.tile_image_later`); ``later`` reads them, makes
+        the thumbnails, resizes and encodes elsewhere (a background thread; None: here)."""
         self._drain()
         copies = []
-        budget = self.max_copy_bytes
+        budget = self.max_tile_bytes
         for key in list(self._stale):
             if budget <= 0:
                 break

@@ -420,7 +420,7 @@ class Painter:
     def write_preview(self, path, segment: int, mosaic: TiledMosaic, max_px: int,
                       on_error: Callable[[BaseException], None] | None = None) -> bool:
         """A small PNG of map ``segment`` (at most ``max_px``), from thumbnails refreshed only where
-        the map changed since the last preview (the worker copies those tiles; thumbnails,
+        the map changed since the last preview (the worker takes those tiles; thumbnails,
         resize and encoding in the background thread);
         False when the map is empty. A write that fails there (disk full, read-only) goes to
         ``on_error`` (else it is logged), never to the re-render thread."""

@@ -62,6 +62,7 @@ from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.memory import limit_heap_growth, release_free_memory
+from photomap.mapping.threads import lower_priority, switch_interval
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
 from photomap.mapping.rerender import Rerenderer
@@ -260,10 +261,10 @@ class MappingPipeline:
         self._state: Checkpointer | None = None  # the checkpointed full-resolution map
         self._state_refused = False
         self._write_errors: dict[str, str] = {}  # output -> why it could not be written (once each)
-        # checkpoint copies of trajectory.csv are formatted and written by this thread (10,000 rows
-        # take ~0.25 s: a stall in the worker); the worker hands it a copy of the rows
+        # a checkpoint's trajectory.csv (10,000 rows take ~0.25 s to format: a stall in the worker)
+        # and run.json are written by this thread; the worker hands it a copy of the rows
         self._writer: ThreadPoolExecutor | None = None
-        self._trajectory_write: Future | None = None
+        self._checkpoint_files: Future | None = None
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
         self._segment_start: dict[int, int] = {}  # segment -> position in the rows where it started
         self._kept: set[int] = set()  # segments known to hold more than one posed frame
@@ -314,7 +315,7 @@ class MappingPipeline:
         if self.cfg.mapping.opencv_threads > 0:
             cv2.setNumThreads(self.cfg.mapping.opencv_threads)
         try:
-            with threadpool_limits(limits=1, user_api="blas"):
+            with threadpool_limits(limits=1, user_api="blas"), switch_interval():  # photomap.mapping.threads
                 worker = threading.Thread(target=work, name="photomap-worker", daemon=True)
                 worker.start()
                 closed = False
@@ -713,15 +714,25 @@ class MappingPipeline:
         if any(r.glued for r in rows):
             write_tum(self.out_dir / "trajectory.tum", rows, self.frame_size)
 
-    def _write_trajectory_later(self) -> None:
-        """A checkpoint's trajectory files, written by the writer thread from a copy of the rows
-        (the worker goes on; a write still running skips this checkpoint's)."""
-        if self.frame_size is None or (self._trajectory_write is not None and not self._trajectory_write.done()):
+    def _write_later(self, summary: dict) -> None:
+        """A checkpoint's files, written by the writer thread: the trajectory (from copies of the
+        rows), then ``run.json``, then the heap's free memory handed back to the system. The
+        worker goes on; while the previous checkpoint's are still being written, this one's are
+        skipped (the next has newer ones)."""
+        if self._checkpoint_files is not None and not self._checkpoint_files.done():
             return
         if self._writer is None:
-            self._writer = ThreadPoolExecutor(1, "photomap-writer")
-        rows = [copy.copy(r) for r in self._rows]  # poses are replaced, never changed in place
-        self._trajectory_write = self._writer.submit(self._attempt, "trajectory.csv", self._write_trajectory, rows)
+            self._writer = ThreadPoolExecutor(1, "photomap-writer", initializer=lower_priority)
+        rows = [copy.copy(r) for r in self._rows] if self.frame_size is not None else None  # poses are
+        # replaced, never changed in place
+
+        def write() -> None:
+            if rows is not None:
+                self._attempt("trajectory.csv", self._write_trajectory, rows)
+            self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
+            release_free_memory()
+
+        self._checkpoint_files = self._writer.submit(write)
 
     def _rerender(self) -> None:
         """Apply a finished loop-closure correction and swap re-rendered tiles in (never waits:
@@ -787,7 +798,7 @@ class MappingPipeline:
                 self._state_refused = True
                 log.error("%s: the full-resolution map is not checkpointed", exc)
                 return False
-        meta = {**self._state_meta(summary), **(extra or {})}
+        meta = {**self._state_meta(dict(summary)), **(extra or {})}  # the caller goes on changing summary
         if not final:
             return self._state.save(self.mosaics, meta)
         for _ in range(10000):  # the snapshot budget may need several rounds
@@ -801,7 +812,6 @@ class MappingPipeline:
         full-resolution map; a write that fails is logged once and tried again next time."""
         self._last_checkpoint = time.monotonic()
         self._rerender()
-        self._write_trajectory_later()
         summary = self.summary()
         summary["complete"] = False
         if self.mosaics and self._painter is not None:  # from thumbnails the painter keeps up to date
@@ -812,8 +822,7 @@ class MappingPipeline:
         self._save_state(summary)
         if self._state is not None:
             summary["checkpoint"] = self._state.summary()
-        self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
-        release_free_memory()
+        self._write_later(summary)
         self._live_track(summary)
 
     def _live_track(self, summary: dict) -> None:

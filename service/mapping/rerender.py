@@ -17,7 +17,6 @@ in :mod:`photomap.core.mosaic`.
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from collections import OrderedDict, deque
@@ -30,6 +29,7 @@ from photomap.config import MosaicConfig
 from photomap.core.mosaic import Tile, TiledMosaic, TileKey
 from photomap.errors import PhotomapError
 from photomap.io.keyframestore import KeyframeStore
+from photomap.mapping.threads import BACKGROUND_NICE, lower_priority
 
 log = logging.getLogger(__name__)
 
@@ -79,15 +79,6 @@ def tile_rects(keys: Sequence[TileKey], tile_size: int) -> list[tuple[int, int, 
     return rects
 
 
-def _lower_priority(nice: int) -> None:
-    """Raise the calling thread's nice value (Linux: per thread); no error elsewhere."""
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
-    except (AttributeError, OSError):
-        pass
-
-
 class Rerenderer:
     """One background thread that keeps frame images and re-renders map tiles from them.
 
@@ -117,7 +108,7 @@ class Rerenderer:
     """
 
     def __init__(self, store: KeyframeStore | None, params: MosaicConfig, *, strip_tiles: int = 32,
-                 max_pending_writes: int = 4, max_done: int = 1, nice: int = 10,
+                 max_pending_writes: int = 4, max_done: int = 1, nice: int = BACKGROUND_NICE,
                  cache_bytes: int = 32 << 20) -> None:
         self.store = store
         self.params = replace(params, max_tiles_in_memory=None)  # a scratch map never spills
@@ -220,7 +211,7 @@ class Rerenderer:
 
     # ------------------------------------------------------------------ the thread
     def _run(self) -> None:
-        _lower_priority(self.nice)
+        lower_priority(self.nice)
         while True:
             with self._cond:
                 while not self._writes and not self._closing and (
