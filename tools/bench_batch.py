@@ -230,7 +230,7 @@ def report(args, b: dict, m: list[dict], elapsed: float, load: tuple[float, floa
     shared = (": **the machine was shared with other jobs**, so times and speed-ups are what this busy machine "
               "gave, not what an idle one gives" if load[0] > 1.0 else ": a quiet machine when it started")
     lines = ["## Batch and merge", "",
-             f"Written by `tools/bench_batch.py{' --quick' if args.quick else ''}` on {when} (Python "
+             f"Written by `python -m tools.bench_batch{' --quick' if args.quick else ''}` on {when} (Python "
              f"{platform.python_version()}, {os.cpu_count()} cores, {elapsed:.0f} s; 1-minute load average "
              f"{load[0]:.1f} at the start and {load[1]:.1f} at the end{shared}).", "",
              f"### photomap batch: {b['flights']} flights of {b['frames']} frames (320x240, with telemetry)", "",

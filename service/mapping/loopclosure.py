@@ -36,6 +36,7 @@ from photomap.core.tracking import TrackStep
 from photomap.geo.georef import enu_from_latlon
 from photomap.geometry import scaling, to_h
 from photomap.io.keyframestore import KeyframeStore
+from photomap.mapping.threads import lower_priority
 from photomap.telemetry.samples import TelemetrySample
 
 log = logging.getLogger(__name__)
@@ -171,8 +172,9 @@ class LoopCloser:
         self._to_small = scaling(working_scale)
         self._from_small = np.linalg.inv(self._to_small)
         self._enu_origin: tuple[float, float] | None = None  # first GPS fix of the run
-        # optimisation in a background thread: one at a time, on a snapshot of the graph
-        self._executor = (ThreadPoolExecutor(1, "photomap-posegraph")
+        # optimisation in a background thread (at low priority: the worker comes first): one at
+        # a time, on a snapshot of the graph
+        self._executor = (ThreadPoolExecutor(1, "photomap-posegraph", initializer=lower_priority)
                           if params.optimize_in_background else None)
         self._running: tuple[int, Future] | None = None  # (segment, solve of its snapshot)
         # replay: a background solve is applied exactly lockstep_frames frames after it started
