@@ -62,11 +62,11 @@ from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.memory import limit_heap_growth, release_free_memory
-from photomap.mapping.threads import lower_priority, switch_interval
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
 from photomap.mapping.rerender import Rerenderer
 from photomap.mapping.telemetry_join import TelemetryJoin
+from photomap.mapping.threads import lower_priority, switch_interval
 from photomap.mapping.timing import StageTimes
 
 log = logging.getLogger(__name__)
