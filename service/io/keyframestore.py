@@ -9,6 +9,7 @@ indices may be written from different threads.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import cv2
@@ -57,18 +58,20 @@ class KeyframeStore:
 
     @staticmethod
     def _write(path: Path, ext: str, image: np.ndarray, params: list[int] | None = None) -> bool:
-        """Encode in memory, then write: a full disk is an OSError here (False), not libpng's
-        message on stderr; a partial file is removed."""
+        """Encode in memory, then write (a temporary file renamed): a full disk is an OSError
+        here (False), not libpng's message on stderr; a partial file is removed."""
         try:
             ok, buf = cv2.imencode(ext, image, params or [])
         except cv2.error:
             return False
         if not ok:
             return False
+        tmp = path.with_name(f".{path.name}.tmp")
         try:
-            path.write_bytes(buf.tobytes())
+            tmp.write_bytes(buf.tobytes())
+            os.replace(tmp, path)  # a kill leaves no partial file under the keyframe's name (no fsync)
         except OSError:
-            path.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
             return False
         return True
 

@@ -188,11 +188,16 @@ class MapState:
                     raise OSError(f"PNG encoding of tile {key} failed")
                 path = self._tile_path(seg, key, gen)
                 path.parent.mkdir(exist_ok=True)
-                new_files.append(path)
-                _write_file(path, buf)  # a new name: no manifest names it before it is synced
+                tmp = path.with_name(f".{path.name}.tmp")  # a kill leaves no partial file under a tile's name
+                new_files += [tmp, path]
+                _write_file(tmp, buf)
                 nbytes += len(buf)
-            for path in new_files:  # one journal commit for all of them, not one per tile
-                _fsync_file(path)
+            for tmp in new_files[::2]:  # one journal commit for all of them, not one per tile
+                _fsync_file(tmp)
+            for tmp, path in zip(new_files[::2], new_files[1::2]):
+                os.replace(tmp, path)  # a new name: no manifest names it before it is synced
+            for folder in {path.parent for path in new_files[1::2]}:
+                _fsync_dir(folder)
             written: dict[int, dict[TileKey, _Written]] = {}
             for seg, current in snap.stamps.items():
                 old = self._written.get(seg, {})
