@@ -9,11 +9,12 @@ indices may be written from different threads.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from photomap.io.trajectory_files import atomic_write_bytes
 
 
 class KeyframeStore:
@@ -66,12 +67,9 @@ class KeyframeStore:
             return False
         if not ok:
             return False
-        tmp = path.with_name(f".{path.name}.tmp")
-        try:
-            tmp.write_bytes(buf.tobytes())
-            os.replace(tmp, path)  # a kill leaves no partial file under the keyframe's name (no fsync)
+        try:  # a kill leaves no partial file under the keyframe's name (no fsync per keyframe)
+            atomic_write_bytes(path, buf.tobytes(), sync=False)
         except OSError:
-            tmp.unlink(missing_ok=True)
             return False
         return True
 

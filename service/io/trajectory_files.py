@@ -38,15 +38,18 @@ _GROUNDTRUTH_REQUIRED = ("frame", "t", *H_COLUMNS)
 
 # --- atomic writes ------------------------------------------------------------------------
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (temporary file in the same folder, ``os.replace``)."""
+def atomic_write_bytes(path: str | Path, data: bytes, *, sync: bool = True) -> None:
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder, ``os.replace``).
+    ``sync``: fsync before the rename (durable after power loss; without it a kill still never
+    leaves a partial file under ``path``)."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+            if sync:
+                f.flush()
+                os.fsync(f.fileno())
         mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
         os.chmod(tmp, mode)
         os.replace(tmp, path)
