@@ -66,7 +66,8 @@ class Snapshot:
     """What one checkpoint writes, taken in the worker thread (copies: the maps go on changing).
 
     ``stamps``: segment -> {tile: stamp} of every tile of the segment's map now; ``tiles``:
-    (segment, tile, stamp, :meth:`TiledMosaic.tile_image_later` of it) of the tiles that changed since the last checkpoint
+    (segment, tile, stamp, :meth:`TiledMosaic.tile_image_later` of it) of the tiles that changed
+    since the last checkpoint
     (at most the snapshot's byte budget; the rest wait for the next checkpoint); ``meta``:
     what the manifest records besides the tiles (frame size, segments' keyframes, counts...).
     """
@@ -172,7 +173,7 @@ class MapState:
         """
         t0 = time.perf_counter()
         gen = self.generation + 1
-        new_files: list[Path] = []
+        new_files: list[tuple[Path, Path]] = []  # (temporary, tile file)
         nbytes = 0
         fresh = {(seg, key): st for seg, key, st, _ in snap.tiles}
         try:
@@ -189,14 +190,14 @@ class MapState:
                 path = self._tile_path(seg, key, gen)
                 path.parent.mkdir(exist_ok=True)
                 tmp = path.with_name(f".{path.name}.tmp")  # a kill leaves no partial file under a tile's name
-                new_files += [tmp, path]
+                new_files.append((tmp, path))
                 _write_file(tmp, buf)
                 nbytes += len(buf)
-            for tmp in new_files[::2]:  # one journal commit for all of them, not one per tile
+            for tmp, _ in new_files:  # one journal commit for all of them, not one per tile
                 _fsync_file(tmp)
-            for tmp, path in zip(new_files[::2], new_files[1::2]):
+            for tmp, path in new_files:
                 os.replace(tmp, path)  # a new name: no manifest names it before it is synced
-            for folder in {path.parent for path in new_files[1::2]}:
+            for folder in {path.parent for _, path in new_files}:
                 _fsync_dir(folder)
             written: dict[int, dict[TileKey, _Written]] = {}
             for seg, current in snap.stamps.items():
@@ -218,7 +219,7 @@ class MapState:
             write_json(self.folder / MANIFEST, manifest)
             _fsync_dir(self.folder)
         except (OSError, PhotomapError) as exc:
-            for path in new_files:
+            for path in (p for pair in new_files for p in pair):
                 with contextlib.suppress(OSError):
                     path.unlink()
             reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
