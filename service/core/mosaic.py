@@ -575,8 +575,8 @@ class TiledMosaic:
         tile = self._peek(key)
         if tile is None:
             raise KeyError(f"no map tile {key}")
-        image, alpha = self._tile_pixels(tile)
-        return (image[..., 0] if self.channels == 1 else image).copy(), alpha.copy()
+        image, alpha = self._tile_image_of(tile)
+        return image.copy(), alpha.copy()
 
     def tile_image_later(self, key: TileKey) -> Callable[[], tuple[np.ndarray, np.ndarray] | None]:
         """:meth:`tile_image` of ``key`` as a function to call later, maybe in another thread.
@@ -588,16 +588,11 @@ class TiledMosaic:
         the store or cannot be read. Raises KeyError if no such tile. The pixels may be views:
         do not change them.
         """
-        channels, pixels_of = self.channels, self._tile_pixels
+        image_of = self._tile_image_of
         tile = self._tiles.get(key)
         if tile is not None:
             self._lent.add(key)
-
-            def lent() -> tuple[np.ndarray, np.ndarray]:
-                image, alpha = pixels_of(tile)
-                return (image[..., 0] if channels == 1 else image), alpha
-
-            return lent
+            return lambda: image_of(tile)
         if key not in self._spilled:
             raise KeyError(f"no map tile {key}")
         store = self._store
@@ -607,10 +602,7 @@ class TiledMosaic:
                 tile = store.get(key)
             except PhotomapError:
                 return None
-            if tile is None:
-                return None
-            image, alpha = pixels_of(tile)
-            return (image[..., 0] if channels == 1 else image), alpha
+            return None if tile is None else image_of(tile)
 
         return read
 
@@ -639,6 +631,11 @@ class TiledMosaic:
             self._extent[key] = (key[0] * ts + x, key[1] * ts + y, key[0] * ts + x + w, key[1] * ts + y + h)
         else:
             self._extent.pop(key, None)
+
+    def _tile_image_of(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`tile_image` of a tile's arrays (maybe views)."""
+        image, alpha = self._tile_pixels(tile)
+        return (image[..., 0] if self.channels == 1 else image), alpha
 
     def _tile_pixels(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
         """(image uint8 (ts, ts, C), alpha uint8 (ts, ts)) of a tile's arrays (maybe views)."""
