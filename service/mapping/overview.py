@@ -162,7 +162,7 @@ class Overview:
         ``max_tile_bytes``: :meth:`TiledMosaic.tile_image_later`); ``later`` reads them, makes
         the thumbnails, resizes and encodes elsewhere (a background thread; None: here)."""
         self._drain()
-        copies = []
+        taken = []
         budget = self.max_tile_bytes
         for key in list(self._stale):
             if budget <= 0:
@@ -172,15 +172,15 @@ class Overview:
                 pixels = mosaic.tile_image_later(key)
             except KeyError:  # emptied
                 pixels = _empty
-            copies.append((key, pixels))
+            taken.append((key, pixels))
             budget -= self.tile_size * self.tile_size * 4
-        if not self._thumbs and all(pixels is _empty for _, pixels in copies):
+        if not self._thumbs and all(pixels is _empty for _, pixels in taken):
             return False
         thumbs = dict(self._thumbs)  # the thumbnails are replaced, never changed in place
         clock, size, done = self._clock, self._size, self._done
 
         def encode() -> None:
-            for key, pixels in copies:
+            for key, pixels in taken:
                 thumb = _thumbnail(pixels(), size)
                 done.put((key, clock, thumb))
                 if thumb is None:

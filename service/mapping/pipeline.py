@@ -723,8 +723,8 @@ class MappingPipeline:
             return
         if self._writer is None:
             self._writer = ThreadPoolExecutor(1, "photomap-writer", initializer=lower_priority)
-        rows = [copy.copy(r) for r in self._rows] if self.frame_size is not None else None  # poses are
-        # replaced, never changed in place
+        # shallow copies: poses are replaced, never changed in place
+        rows = [copy.copy(r) for r in self._rows] if self.frame_size is not None else None
 
         def write() -> None:
             if rows is not None:
