@@ -21,7 +21,8 @@ from photomap.io.trajectory_files import atomic_write_bytes
 
 
 def _bgra(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    if image.ndim == 2:
+    """BGRA of a map image (BGR, or grey as (h, w) or (h, w, 1)) and its alpha."""
+    if image.ndim == 2 or image.shape[2] == 1:
         image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     return np.dstack([image, alpha])
 
@@ -145,7 +146,7 @@ def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
     bounds, (ow, oh), bands = render_bands(mosaic, scale)
     with PngStreamWriter(path, ow, oh, channels=4) as png:
         for image, alpha in bands:
-            png.write(_bgra(image[..., 0] if image.shape[2] == 1 else image, alpha))
+            png.write(_bgra(image, alpha))
     # exact per-axis scale of the PNG: output size over the map rectangle's size
     return {"file": path.name, "origin_xy": [int(bounds[0]), int(bounds[1])], "scale": scale,
             "pixel_scale": [ow / w, oh / h], "bounds": [int(v) for v in bounds], "size": [int(ow), int(oh)]}
@@ -159,7 +160,7 @@ def render_small(mosaic: TiledMosaic, max_px: int) -> np.ndarray | None:
         return None
     _, _, w, h = mosaic.bounds()
     _, _, bands = render_bands(mosaic, min(1.0, max_px / max(w, h)))
-    return np.vstack([_bgra(image[..., 0] if image.shape[2] == 1 else image, alpha) for image, alpha in bands])
+    return np.vstack([_bgra(image, alpha) for image, alpha in bands])
 
 
 def write_tiles(folder: Path, mosaic: TiledMosaic) -> None:
