@@ -33,7 +33,6 @@ from photomap.io.tilestore import DiskTileStore
 from photomap.core.records import STATUSES
 from photomap.io.trajectory_files import read_trajectory_csv, write_json
 from photomap.mapping.outputs import remove_sidecars, write_png, write_sidecars, write_tiles
-from photomap.mapping.threads import lower_priority
 
 log = logging.getLogger(__name__)
 
@@ -103,8 +102,6 @@ class Checkpointer:
         return True
 
     def _write(self, snap) -> None:
-        if threading.current_thread() is self._thread:
-            lower_priority()  # the worker and the camera come first; the next interval can wait
         t0 = time.perf_counter()
         try:
             self.state.write(snap)

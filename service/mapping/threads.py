@@ -6,9 +6,11 @@ that run Python code (the pose-graph optimiser, the re-render and checkpoint thr
 take-back waits until the holder lets go: after the interpreter's switch interval at worst, 5 ms
 by default. A checkpoint does dozens of such calls; on the 10,000-frame 1080p flight of
 ``tools/bench_pipeline.py`` (2 cores) its worker time went from 71 / 183 ms (median / max) to
-44 / 110 ms with the interval at 1 ms and the checkpoint writer at low priority. A run sets
-:data:`SWITCH_INTERVAL_S` for its duration (:func:`switch_interval`) and the background writers
-lower their own priority (:func:`lower_priority`).
+44 / 110 ms with the interval at 1 ms (and the checkpoint writer at low priority, since given
+back its normal one: starved on a loaded computer it wrote no checkpoint before a small disk
+filled, and the map was lost). A run sets :data:`SWITCH_INTERVAL_S` for its duration
+(:func:`switch_interval`); the threads whose work can wait (trajectory writer, re-renders,
+pose-graph solves) lower their own priority (:func:`lower_priority`).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from typing import Iterator
 __all__ = ["SWITCH_INTERVAL_S", "BACKGROUND_NICE", "lower_priority", "switch_interval"]
 
 SWITCH_INTERVAL_S = 0.001  # seconds (Python's default: 0.005)
-BACKGROUND_NICE = 10  # added to the nice value of threads whose work can wait (writers, re-renders)
+BACKGROUND_NICE = 10  # added to the nice value of threads whose work can wait
 
 
 def lower_priority(nice: int = BACKGROUND_NICE) -> None:
