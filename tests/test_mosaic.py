@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 
 import cv2
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 from photomap.config import MosaicConfig, load_config
 from photomap.errors import ConfigError, InputError
 from photomap.core.mosaic import TiledMosaic
-from photomap.io.tilestore import DiskTileStore, MemoryTileStore
+from photomap.io.tilestore import DiskTileStore, MemoryTileStore, WriteBehindTileStore
 
 
 def noise(h: int, w: int, channels: int = 3, seed: int = 0) -> np.ndarray:
@@ -444,3 +445,73 @@ def test_twenty_megapixel_stills_are_mapped_but_a_wild_pose_is_not():
     assert m.add(still, np.array([[1.0, 0.0, 1800.0], [0.0, 1.0, 0.0]]))
     with pytest.raises(InputError, match="footprint"):
         m.add(still, np.array([[3.0, 0.0, 0.0], [0.0, 3.0, 0.0]]))
+
+
+class GatedStore(MemoryTileStore):
+    """A store whose writes wait for ``gate`` (a slow disk), or fail (a full one)."""
+
+    def __init__(self, fail: bool = False) -> None:
+        super().__init__()
+        self.gate = threading.Event()
+        self.fail = fail
+        self.writing = 0
+
+    def put(self, key, arrays):
+        self.writing += 1
+        self.gate.wait(30)
+        if self.fail:
+            raise OSError("No space left on device")
+        super().put(key, arrays)
+
+
+def _tile(value: int) -> dict:
+    return {"color": np.full((8, 8, 3), value, np.uint8), "cover": np.full((8, 8), 255, np.uint8)}
+
+
+def test_write_behind_store_serves_tiles_until_written_and_bounds_what_waits():
+    slow = GatedStore()
+    store = WriteBehindTileStore(slow, max_pending=3)
+    for k in range(3):
+        store.put((k, 0), _tile(k))  # returns at once: the disk is stalled
+    assert slow.keys() == [] and sorted(store.keys()) == [(0, 0), (1, 0), (2, 0)]
+    got = store.get((1, 0))
+    assert got["color"][0, 0, 0] == 1
+    got["color"][...] = 99  # a copy: what is written stays as put
+    store.discard((2, 0))
+    assert store.get((2, 0)) is None
+    blocked = threading.Thread(target=store.put, args=((3, 0), _tile(3)))
+    blocked.start()
+    blocked.join(0.3)
+    assert blocked.is_alive()  # a fourth waits for the disk: memory stays bounded
+    slow.gate.set()
+    blocked.join(10)
+    assert store.flush(10)
+    assert sorted(slow.keys()) == [(0, 0), (1, 0), (3, 0)]
+    assert [slow.get((k, 0))["color"][0, 0, 0] for k in (0, 1, 3)] == [0, 1, 3]
+
+
+def test_write_behind_store_keeps_what_the_disk_refuses(caplog):
+    full = GatedStore(fail=True)
+    full.gate.set()
+    store = WriteBehindTileStore(full)
+    with caplog.at_level("WARNING"):
+        for k in range(4):
+            store.put((k, 0), _tile(k))
+        assert store.flush(10)
+    assert store.failures == 4 and full.keys() == []
+    assert [store.get((k, 0))["color"][0, 0, 0] for k in range(4)] == [0, 1, 2, 3]  # nothing lost
+    assert sum("kept in memory" in r.getMessage() for r in caplog.records) == 1  # said once
+
+
+def test_a_capped_map_over_a_write_behind_disk_store_is_the_same_map(tmp_path):
+    rng = np.random.default_rng(3)
+    frames = [(rng.integers(0, 255, (60, 80, 3), np.uint8), np.array([[1.0, 0, 37.0 * k], [0, 1, 11.0 * k]]))
+              for k in range(12)]
+    free = TiledMosaic(MosaicConfig(tile_size=32))
+    capped = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=3),
+                         store=WriteBehindTileStore(DiskTileStore(tmp_path)))
+    for img, M in frames + frames[::-1]:
+        free.add(img, M)
+        capped.add(img, M)
+    for a, b in zip(free.render(), capped.render()):
+        np.testing.assert_array_equal(a, b)

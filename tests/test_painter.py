@@ -16,6 +16,7 @@ import pytest
 from photomap.config import MosaicConfig, load_config
 from photomap.core.mosaic import TiledMosaic
 from photomap.io.keyframestore import KeyframeStore
+from photomap.io.tilestore import MemoryTileStore
 from photomap.mapping.painter import Painter, resize_factors
 from photomap.mapping.pipeline import MappingPipeline
 from photomap.mapping.rerender import KeptFrame, Rerenderer, tile_rects
@@ -61,6 +62,36 @@ def test_uncovered_is_the_new_ground_and_painting_it_completes_the_map():
     # where b was painted it is b (newest on top); elsewhere a as before
     same = (got[1] == 255) & (want[1] == 255)
     assert np.median(np.abs(got[0].astype(int) - want[0])[same]) == 0
+
+
+class CountingStore(MemoryTileStore):
+    def __init__(self) -> None:
+        super().__init__()
+        self.reads = 0
+
+    def get(self, key):
+        self.reads += 1
+        return super().get(key)
+
+
+@pytest.mark.parametrize("blend", ["overwrite", "feather"])
+def test_uncovered_reads_no_spilled_tile(blend):
+    """A map with a tile cap answers where new ground is from what it keeps of its spilled tiles:
+    the same answer as a map without a cap, and no tile read back from the store."""
+    frames = [(texture(120, 160, k), pose(5 * k, 60 * k, 15 * k)[:2]) for k in range(4)]
+    free = TiledMosaic(MosaicConfig(tile_size=32, blend=blend))
+    store = CountingStore()
+    capped = TiledMosaic(MosaicConfig(tile_size=32, blend=blend, max_tiles_in_memory=4), store=store)
+    for img, M in frames:
+        free.add(img, M)
+        capped.add(img, M)
+    store.reads = 0
+    for k, (_, M) in enumerate(frames):  # revisits, and a frame half over new ground
+        for probe in (M, pose(-3, 60 * k + 40.5, 15 * k + 20.25)[:2]):
+            assert capped.uncovered(probe, (160, 120)) == free.uncovered(probe, (160, 120))
+    assert store.reads == 0
+    capped.add(*frames[0])  # painting brings its tiles back: their summaries go
+    assert capped.uncovered(frames[0][1], (160, 120)) == []
 
 
 def test_a_strip_of_a_large_frame_is_downscaled_alone():

@@ -62,6 +62,8 @@ GAIN_PULL = 0.1
 
 TileKey = tuple[int, int]
 Rect = tuple[int, int, int, int]
+
+_COVER_STEP = 4  # px: a spilled tile's coverage is kept at this step (uncovered()'s default)
 Tile = dict[str, np.ndarray]
 
 
@@ -118,6 +120,9 @@ class TiledMosaic:
         self._store = store
         self._tiles: OrderedDict[TileKey, Tile] = OrderedDict()  # in memory, least recent first
         self._spilled: set[TileKey] = set()  # not in memory; current data is in the store
+        # where a spilled tile is covered, looked at every _COVER_STEP px (packed bits): uncovered()
+        # reads no tile from the store
+        self._coverage: dict[TileKey, np.ndarray] = {}
         self._clean: set[TileKey] = set()  # in memory and equal to the store's copy
         self._lent: set[TileKey] = set()  # in memory, arrays lent out (tile_image_later): copy before a change
         self._frame_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
@@ -317,12 +322,17 @@ class TiledMosaic:
                 key = (tx, ty)
                 if key not in self._tiles and key not in self._spilled:
                     continue
-                tile = self._load(key)
-                cover = tile["cover"] if self.blend == "overwrite" else (tile["weight"] > 0).view(np.uint8)
                 mx0, mx1 = max(tx * ts, gx0), min((tx + 1) * ts, gx1)  # multiples of step
                 my0, my1 = max(ty * ts, gy0), min((ty + 1) * ts, gy1)
                 sub = todo[(my0 - gy0) // step:(my1 - gy0) // step, (mx0 - gx0) // step:(mx1 - gx0) // step]
-                seen = cover[my0 - ty * ts + o:my1 - ty * ts:step, mx0 - tx * ts + o:mx1 - tx * ts:step]
+                if key in self._coverage and step == _COVER_STEP:  # spilled: its summary, no read
+                    n = ts // step
+                    seen = np.unpackbits(self._coverage[key], count=n * n).reshape(n, n)[
+                        (my0 - ty * ts) // step:(my1 - ty * ts) // step, (mx0 - tx * ts) // step:(mx1 - tx * ts) // step]
+                else:
+                    tile = self._load(key)
+                    cover = tile["cover"] if self.blend == "overwrite" else (tile["weight"] > 0).view(np.uint8)
+                    seen = cover[my0 - ty * ts + o:my1 - ty * ts:step, mx0 - tx * ts + o:mx1 - tx * ts:step]
                 cv2.bitwise_and(sub, cv2.compare(seen, 0, cv2.CMP_EQ), dst=sub)
         n = block // step
         grid = todo.reshape(H // block, n, W // step).max(axis=1).reshape(H // block, W // block, n).max(axis=2)
@@ -497,6 +507,7 @@ class TiledMosaic:
         if key in self._spilled:
             tile = self._store.get(key)
             self._spilled.discard(key)
+            self._coverage.pop(key, None)
             if tile is None:
                 self.lost_tiles += 1  # the store lost it: start it empty
             else:
@@ -533,7 +544,14 @@ class TiledMosaic:
                     return
             self._lent.discard(key)  # out of memory: the next load brings new arrays
             self._clean.discard(key)
+            self._spill_coverage(key, tile)
             self._spilled.add(key)
+
+    def _spill_coverage(self, key: TileKey, tile: Tile) -> None:
+        """Keep where tile ``key``, going to the store, is covered (see ``_coverage``)."""
+        cover = tile["cover"] if self.blend == "overwrite" else tile["weight"]
+        o = _COVER_STEP // 2
+        self._coverage[key] = np.packbits(cover[o::_COVER_STEP, o::_COVER_STEP] != 0, axis=None)
 
     def spill(self) -> None:
         """Move every tile in memory to the store (a map that no longer grows), and drop cached
@@ -655,6 +673,7 @@ class TiledMosaic:
             self._tiles.pop(key, None)
             self._lent.discard(key)
             self._spilled.discard(key)
+            self._coverage.pop(key, None)
             self._clean.discard(key)
             self._stamps.pop(key, None)
             self._extent.pop(key, None)
@@ -704,11 +723,13 @@ class TiledMosaic:
             if cap is not None and len(self._tiles) >= cap:
                 try:
                     self._store.put(key, tile)
+                    self._spill_coverage(key, tile)
                     self._spilled.add(key)
                     continue
                 except Exception:  # e.g. disk full: keep the tile in memory (over the cap)
                     self.spill_failures += 1
             self._spilled.discard(key)
+            self._coverage.pop(key, None)
             if self._store is not None:
                 self._store.discard(key)
             self._tiles[key] = tile
