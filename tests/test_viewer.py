@@ -530,3 +530,19 @@ def test_telemetry_series_are_shown(tmp_path):
         got = np.array(outlines[k][0])[:4]
         err_m = np.hypot((got[:, 0] - lat) * 111_320.0, (got[:, 1] - lon) * 111_320.0 * np.cos(np.radians(lat)))
         assert err_m.max() < 1.0, err_m  # the simulator's altitude/attitude give the exact footprint
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 50, 1001])
+def test_a_corrected_path_is_thinned_as_point_by_point(n):
+    """After a loop correction the whole path comes at once (an array): the viewer keeps the same
+    points, stride and count as if it had come point by point."""
+    path = np.column_stack([np.arange(n) * 1.5, np.arange(n) * -0.5, np.linspace(0, 1, n)])
+    one, bulk = (Viewer("none", params=ViewerConfig(trajectory_max_points=8)) for _ in range(2))
+    for x, y, c in path.tolist():
+        one._append_path(x, y, c)
+    bulk._rebuild_path(path)
+    assert bulk._path == one._path
+    assert (bulk._path_stride, bulk._path_count, bulk._last_point) == (
+        one._path_stride, one._path_count, one._last_point)
+    one.close()
+    bulk.close()

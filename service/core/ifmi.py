@@ -360,6 +360,7 @@ class Registrar:
         snr_weighting, candidate_ratio = params.snr_weighting, params.candidate_ratio
         max_candidates, refine_iterations = params.max_candidates, params.refine_iterations
         self.shape = (h, w)
+        self.params = params
         self.center = ((w - 1) / 2.0, (h - 1) / 2.0)
         self.snr_weighting = snr_weighting
         self.candidate_ratio = candidate_ratio

@@ -15,7 +15,6 @@ the working resolution (``working_scale``) and is converted as in :mod:`photomap
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -39,6 +38,28 @@ class KeyframePriors:
     yaw: float | None = None
     height: float | None = None
     east_north: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class LoopCandidate:
+    """Keyframe ``new`` to be registered against the older keyframe ``ref``: ``predicted`` is the
+    3x3 input px of ``new`` -> input px of ``ref`` from the current poses, ``prior`` its
+    registration prior (at the working resolution)."""
+
+    ref: int
+    new: int
+    predicted: np.ndarray
+    prior: Prior
+
+
+@dataclass(frozen=True)
+class LoopMeasurement:
+    """The registration of a :class:`LoopCandidate`: ``measured`` (3x3, input px of ``new`` -> of
+    ``ref``) or None when its ``confidence`` is below ``loop_min_confidence``."""
+
+    candidate: LoopCandidate
+    measured: np.ndarray | None
+    confidence: float
 
 
 @dataclass
@@ -116,40 +137,63 @@ class KeyframeGraph:
         """The current 3x3 pose of keyframe ``index`` (KeyError if it is not in this graph)."""
         return self.keyframes[self._node[index]].pose
 
-    def close_loops(self, image: np.ndarray) -> int:
-        """Try the newest keyframe (``image`` at the working resolution) against old ones nearby."""
+    def loop_candidates(self) -> list[LoopCandidate]:
+        """Old keyframes to register the newest against (their centres within ``loop_radius``
+        frame diagonals of its predicted centre, nearest first, at most ``loop_candidates``)."""
         if len(self.keyframes) <= self.min_gap:
-            return 0
+            return []
         new = self.keyframes[-1]
         centre = new.pose @ self.centre
         scale = math.sqrt(abs(np.linalg.det(new.pose[:2, :2])))
         limit = self.radius * self.diagonal * scale
         old = self.keyframes[:-self.min_gap]
         dist = np.array([np.hypot(*(k.pose @ self.centre - centre)[:2]) for k in old])
-        order = [i for i in np.argsort(dist) if dist[i] < limit][:self.max_candidates]
-        added = 0
-        prepared = None
-        for i in order:
-            ref = old[i]
-            predicted = np.linalg.inv(ref.pose) @ new.pose  # input px of new -> of ref
+        out = []
+        for i in [i for i in np.argsort(dist) if dist[i] < limit][:self.max_candidates]:
+            predicted = np.linalg.inv(old[i].pose) @ new.pose  # input px of new -> of ref
             small = self._to_small @ predicted @ self._from_small
             prior = Prior(angle_deg=pose_angle_deg(small), angle_tol_deg=10.0,
                           scale=pose_scale(small), scale_tol=0.1)
-            prepared = prepared or self.registrar.prepare(image)
-            reg = self.registrar.register(self.registrar.prepare(self.load_small(ref.index)), prepared, prior)
-            if reg.confidence < self.min_confidence:
+            out.append(LoopCandidate(old[i].index, new.index, predicted, prior))
+        return out
+
+    def measure_loops(self, image: np.ndarray, candidates: list[LoopCandidate],
+                      registrar: Registrar | None = None) -> list[LoopMeasurement]:
+        """Register the new keyframe (``image``, grey at the working resolution) against each
+        candidate. Reads nothing that changes (safe in another thread while the graph grows, given
+        a ``registrar`` of its own)."""
+        registrar = registrar or self.registrar
+        prepared = registrar.prepare(image) if candidates else None
+        out = []
+        for cand in candidates:
+            reg = registrar.register(registrar.prepare(self.load_small(cand.ref)), prepared, cand.prior)
+            measured = None
+            if reg.confidence >= self.min_confidence:
+                measured = self._from_small @ np.vstack([reg.matrix, [0, 0, 1]]) @ self._to_small
+            out.append(LoopMeasurement(cand, measured, float(reg.confidence)))
+        return out
+
+    def add_loops(self, measurements: list[LoopMeasurement]) -> int:
+        """Loop edges from confident measurements that agree with their prediction (a revisit
+        after drift may differ from it, but not wildly); returns how many were added."""
+        added = 0
+        for m in measurements:
+            if m.measured is None:
                 continue
-            measured = self._from_small @ np.vstack([reg.matrix, [0, 0, 1]]) @ self._to_small
-            # a revisit after drift: the measurement may differ from the prediction, but not wildly
-            jump = np.linalg.norm((measured - predicted) @ self.centre)
+            jump = np.linalg.norm((m.measured - m.candidate.predicted) @ self.centre)
             if jump > 0.25 * self.diagonal:
                 self.rejected_loops += 1
                 continue
-            self.graph.add_edge(self._node[ref.index], self._node[new.index], measured, reg.confidence,
-                                kind="loop")
+            self.graph.add_edge(self._node[m.candidate.ref], self._node[m.candidate.new], m.measured,
+                                m.confidence, kind="loop")
             added += 1
         self.loops += added
         return added
+
+    def close_loops(self, image: np.ndarray) -> int:
+        """Try the newest keyframe (``image`` at the working resolution) against old ones nearby;
+        returns the loop edges added."""
+        return self.add_loops(self.measure_loops(image, self.loop_candidates()))
 
     def absorb(self, other: KeyframeGraph, transform: np.ndarray,
                edge: tuple[int, int, np.ndarray, float]) -> None:
@@ -169,7 +213,7 @@ class KeyframeGraph:
 
     def snapshot(self) -> PoseGraph:
         """A copy of the graph to optimise elsewhere (another thread) while this one grows."""
-        return copy.deepcopy(self.graph)
+        return self.graph.copy()
 
     @staticmethod
     def solve(graph: PoseGraph, params: PosegraphConfig) -> tuple[np.ndarray, list[int]]:
@@ -197,14 +241,15 @@ class KeyframeGraph:
             self.loops -= len(dropped)
             self.graph.drop_edges(dropped)
         n = len(poses)
-        last = correction(self.keyframes[n - 1].pose, poses[n - 1])
-        out = {}
-        for k, kf in enumerate(self.keyframes):
-            new = poses[k] if k < n else last @ kf.pose
-            out[kf.index] = correction(kf.pose, new)
-            kf.pose = new
-        self.graph.set_poses(np.array([kf.pose for kf in self.keyframes]))
-        return out
+        old = np.array([kf.pose for kf in self.keyframes])  # (k, 3, 3)
+        new = old.copy()
+        new[:n] = poses
+        new[n:] = correction(old[n - 1], poses[n - 1]) @ old[n:]  # chained from the snapshot's last
+        fixes = new @ np.linalg.inv(old)  # old map px -> new map px, every keyframe at once
+        for kf, pose in zip(self.keyframes, new):
+            kf.pose = pose
+        self.graph.set_poses(new)
+        return dict(zip([kf.index for kf in self.keyframes], fixes))
 
     def optimize(self) -> dict[int, np.ndarray]:
         """Optimise the graph now; returns the 3x3 correction of every keyframe (by frame index)."""

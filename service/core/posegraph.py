@@ -52,6 +52,7 @@ Pure: arrays in, arrays out; no I/O, no threads.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -207,6 +208,15 @@ class PoseGraph:
         self._edges.append((i, j, z, sig, kind))
         return len(self._edges) - 1
 
+    def copy(self) -> PoseGraph:
+        """An independent copy (cheap: the lists are copied, their entries shared; no method
+        changes an entry in place, they append to or replace the lists)."""
+        other = copy.copy(self)
+        for name in ("_nodes", "_edges", "_position", "_gps", "_heading", "_scale"):
+            setattr(other, name, list(getattr(self, name)))
+        other.fixed = set(self.fixed)
+        return other
+
     def drop_edges(self, indices: Sequence[int]) -> None:
         """Remove edges (e.g. :attr:`PoseGraphResult.outliers`); later edges' indices shift down."""
         gone = {int(k) for k in indices}
@@ -220,7 +230,13 @@ class PoseGraph:
         poses = np.asarray(poses, dtype=np.float64)
         if len(poses) != len(self._nodes):
             raise ValueError(f"{len(poses)} poses for {len(self._nodes)} nodes")
-        self._nodes = [pose_params(p, self.center) for p in poses]
+        if poses.ndim != 3 or poses.shape[1:] not in ((2, 3), (3, 3)):
+            raise ValueError(f"poses must be (n, 2, 3) or (n, 3, 3), got {poses.shape}")
+        c = np.asarray(self.center)
+        xy = poses[:, :2, :2] @ c + poses[:, :2, 2]  # all nodes at once, as pose_params does one
+        theta = np.arctan2(poses[:, 1, 0], poses[:, 0, 0])
+        logs = 0.5 * np.log(poses[:, 0, 0] * poses[:, 1, 1] - poses[:, 0, 1] * poses[:, 1, 0])
+        self._nodes = list(np.column_stack([xy, theta, logs]))
 
     def absorb(self, other: PoseGraph, transform: np.ndarray) -> int:
         """Append ``other``'s nodes (their poses mapped through ``transform``, 3x3: other's map px

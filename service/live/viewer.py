@@ -719,11 +719,17 @@ class Viewer:
     def _color(self, confidence: float, segment: int) -> tuple[int, int, int]:
         return confidence_color(confidence) if self._color_by == "confidence" else segment_color(segment)
 
-    def _rebuild_path(self, path: tuple[tuple[float, float, float], ...]) -> None:
-        """After a pose-graph correction: the path again, from the corrected poses."""
-        self._path, self._path_stride, self._path_count = [], 1, 0
-        for x, y, confidence in path:
-            self._append_path(x, y, confidence)
+    def _rebuild_path(self, path: np.ndarray) -> None:
+        """After a pose-graph correction: the path again ((n, 3) x, y, confidence), thinned as
+        :meth:`_append_path` would have thinned it point by point."""
+        path = np.asarray(path, float).reshape(-1, 3)
+        stride = 1
+        while -(-len(path) // stride) > self._max_points:
+            stride *= 2
+        self._path = [tuple(p) for p in path[::stride].tolist()]
+        self._path_stride, self._path_count = stride, len(path)
+        if len(path):
+            self._last_point = tuple(path[-1].tolist())
         self._strip_due = True
 
     def _append_geo(self, lat: float, lon: float) -> None:

@@ -66,9 +66,9 @@ class FrameEvent:
     focal_px: float | None = None  # the camera's focal length at the input resolution, when known
     link_lost: int = 0  # cumulative telemetry link losses / regains
     link_regained: int = 0
-    # after a pose-graph correction of ``segment``: its whole path again, (x, y, confidence) of
-    # each posed frame's centre in frame order
-    corrected_path: tuple[tuple[float, float, float], ...] | None = None
+    # after a pose-graph correction of ``segment``: its whole path again, (n, 3) x, y, confidence
+    # of each posed frame's centre in frame order
+    corrected_path: np.ndarray | None = None
 
 
 FrameSink = Callable[[FrameEvent], None]

@@ -8,7 +8,9 @@ When a new keyframe closes a loop, the segment's pose graph is optimised
 of every frame it can re-pose (a frame keeps its measured pose relative to the keyframe it was
 registered against). The pipeline, which owns the trajectory, the tracker and the maps, applies
 it. The optimisation runs on a snapshot of the graph in a background thread (one at a time), so
-the worker never waits for it; a finished solution is returned by the next call.
+the worker never waits for it; a finished solution is returned by the next call. The loop
+registrations of a new keyframe (against up to ``loop_candidates`` old keyframes read back from
+the store) run in another background thread; their edges join the graph when they are done.
 
 Segments rejoin: a new map segment (started when the link to the map was lost) is not forever.
 Each of its new keyframes is also registered against keyframes of the other segments: the
@@ -22,15 +24,18 @@ and tracker.
 from __future__ import annotations
 
 import logging
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Iterator, Mapping
 
 import cv2
 import numpy as np
 
 from photomap.config import MappingConfig, PosegraphConfig
 from photomap.core.matching import PairMatcher
-from photomap.core.keyframes import KeyframeGraph, KeyframePriors
+from photomap.core.ifmi import Registrar
+from photomap.core.keyframes import KeyframeGraph, KeyframePriors, LoopMeasurement
 from photomap.core.places import place_signature, place_similarity
 from photomap.core.tracking import TrackStep
 from photomap.geo.georef import enu_from_latlon
@@ -42,18 +47,42 @@ from photomap.telemetry.samples import TelemetrySample
 log = logging.getLogger(__name__)
 
 
+class PoseTable(Mapping[int, np.ndarray]):
+    """Frame index -> 3x3 pose, held in two arrays: ``frames`` (n,) sorted, ``poses`` (n, 3, 3),
+    read-only (a consumer may keep views of them)."""
+
+    def __init__(self, frames: np.ndarray, poses: np.ndarray) -> None:
+        frames = np.asarray(frames, np.int64)
+        order = np.argsort(frames, kind="stable")
+        self.frames = frames[order]
+        self.poses = np.asarray(poses, np.float64).reshape(-1, 3, 3)[order]
+        self.frames.flags.writeable = self.poses.flags.writeable = False
+
+    def __getitem__(self, frame: int) -> np.ndarray:
+        i = int(np.searchsorted(self.frames, frame))
+        if i < len(self.frames) and self.frames[i] == frame:
+            return self.poses[i]
+        raise KeyError(frame)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.frames.tolist())
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+
 @dataclass(frozen=True)
 class Correction:
     """A pose-graph correction of one segment.
 
     ``poses``: frame index -> new 3x3 pose (input pixels -> map pixels) of every frame that could
-    be re-posed; ``latest``: the 3x3 correction (old map px -> new map px) of the segment's newest
+    be re-posed (a :class:`PoseTable`: apply it in bulk through its arrays); ``latest``: the 3x3 correction (old map px -> new map px) of the segment's newest
     keyframe, which the tracker applies to go on from the corrected pose; ``keyframes``: the
     segment's keyframes (index, new 3x3 pose) in order, to re-render the map from.
     """
 
     segment: int
-    poses: dict[int, np.ndarray]
+    poses: PoseTable
     latest: np.ndarray
     keyframes: tuple[tuple[int, np.ndarray], ...]
 
@@ -103,21 +132,18 @@ class RelativePoses:
         for frame, ref, rel in zip(other._frames[:other._n], other._refs[:other._n], other._rel[:other._n]):
             self.add(int(frame), int(ref), rel)
 
-    def poses(self, keyframes: dict[int, np.ndarray], skip: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-        """3x3 poses ``keyframes[ref] @ rel`` of the frames whose keyframe is in ``keyframes``
-        (and that are not in ``skip``)."""
+    def poses(self, keyframes: np.ndarray, keyframe_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Frame indices (n,) and 3x3 poses (n, 3, 3) ``pose of ref @ rel`` of the frames whose
+        keyframe is among ``keyframes`` (indices, (k,)) with poses ``keyframe_poses`` (k, 3, 3),
+        keyframes themselves left out."""
         frames, refs = self._frames[:self._n], self._refs[:self._n]
-        keep = ~np.isin(frames, np.fromiter(skip, np.int64, len(skip))) & \
-            np.isin(refs, np.fromiter(keyframes, np.int64, len(keyframes)))
-        if not keep.any():
-            return {}
+        keep = ~np.isin(frames, keyframes) & np.isin(refs, keyframes)
         frames, refs, rel = frames[keep], refs[keep], self._rel[:self._n][keep]
-        known = np.array(sorted({int(r) for r in refs}))
-        stack = np.array([keyframes[int(r)] for r in known])  # (k, 3, 3)
+        order = np.argsort(keyframes)
+        stack = np.asarray(keyframe_poses, np.float64)[order][np.searchsorted(keyframes[order], refs)]
         full = np.zeros((len(rel), 3, 3))
         full[:, :2], full[:, 2, 2] = rel, 1.0
-        poses = np.einsum("nij,njk->nik", stack[np.searchsorted(known, refs)], full)  # one product for all
-        return dict(zip(frames.tolist(), poses))
+        return frames, np.matmul(stack, full)  # one product for all
 
 
 class LoopCloser:
@@ -149,7 +175,7 @@ class LoopCloser:
     def __init__(self, store: KeyframeStore, matcher: PairMatcher, frame_size: tuple[int, int],
                  working_scale: float, params: MappingConfig, graph_params: PosegraphConfig,
                  use_priors: bool = False, join_candidates: int = 4, settle_on_priors: bool = False,
-                 lockstep_frames: int | None = None) -> None:
+                 lockstep_frames: int | None = None, loop_lockstep_frames: int | None = None) -> None:
         self.store = store
         self.matcher = matcher
         self.registrar = matcher.registrar
@@ -177,9 +203,16 @@ class LoopCloser:
         self._executor = (ThreadPoolExecutor(1, "photomap-posegraph", initializer=lower_priority)
                           if params.optimize_in_background else None)
         self._running: tuple[int, Future] | None = None  # (segment, solve of its snapshot)
-        # replay: a background solve is applied exactly lockstep_frames frames after it started
-        # (waiting for it if needed), so that the map does not depend on the machine's speed
+        # ... and a new keyframe's loop registrations in another (with a registrar of its own)
+        self._loop_executor = (ThreadPoolExecutor(1, "photomap-loops", initializer=lower_priority)
+                               if params.optimize_in_background else None)
+        self._loop_registrar = Registrar(self.registrar.shape, self.registrar.params)
+        self._loop_jobs: deque[tuple[int, int, Future]] = deque()  # (keyframe, frame submitted, measurements)
+        # replay: a background solve (a keyframe's loop registrations) is applied exactly
+        # lockstep_frames (loop_lockstep_frames) frames after it started, waiting for it if
+        # needed, so that the map does not depend on the machine's speed
         self.lockstep_frames = lockstep_frames
+        self.loop_lockstep_frames = lockstep_frames if loop_lockstep_frames is None else loop_lockstep_frames
         self._frame = 0  # the latest frame index seen by on_step
         self._started_frame = 0  # ... when the running solve started
         self._wanted: set[int] = set()  # segments with loop edges not optimised yet
@@ -223,11 +256,10 @@ class LoopCloser:
         frame itself is re-posed too.
         """
         self._frame = index
-        if step.pose is None:
-            return self._polled()
-        if step.reference is not None:
+        if step.pose is not None and step.reference is not None:
             self.relative.setdefault(step.segment, RelativePoses()).add(index, step.reference, step.relative)
-        if not step.keyframe:
+        if step.pose is None or not step.keyframe:
+            self._collect_loops()
             return self._polled()
         priors = self._priors(sample)
         self._keep(index, step.segment, small, image, priors)
@@ -239,17 +271,52 @@ class LoopCloser:
         if join is not None:
             updates.append(join)
             graph = self.graphs[join.into]
-        if graph.close_loops(small):
-            segment = join.into if join is not None else step.segment
-            log.info("loop closed at frame %d (segment %d): %d loop edges", index, segment, graph.loops)
+        segment = join.into if join is not None else step.segment
+        if self._loop_executor is None:
+            self._added(segment, graph.close_loops(small))
+        else:
+            candidates = graph.loop_candidates()
+            if candidates:
+                self._loop_jobs.append((index, index, self._loop_executor.submit(
+                    graph.measure_loops, small, candidates, self._loop_registrar)))
+        self._collect_loops()
+        return updates + self._polled()
+
+    def _added(self, segment: int, added: int) -> None:
+        if added:
+            log.info("loop closed at frame %d (segment %d): %d loop edges", self._frame, segment,
+                     self.graphs[segment].loops)
             self._wanted.add(segment)
-        done = self.poll(frame=index)
-        started = self._start()
-        return updates + [c for c in (done, started) if c is not None]
+
+    def _collect_loops(self, wait: bool = False) -> None:
+        """Add the loop edges of finished background registrations, oldest first (in lockstep:
+        those started ``loop_lockstep_frames`` ago, waited for; ``wait``: all of them)."""
+        while self._loop_jobs:
+            index, started, future = self._loop_jobs[0]
+            if not wait:
+                if self.lockstep_frames is not None:
+                    if self._frame - started < self.loop_lockstep_frames:
+                        return
+                elif not future.done():
+                    return
+            self._loop_jobs.popleft()
+            try:
+                measurements: list[LoopMeasurement] = future.result()
+            except Exception as exc:  # e.g. an old keyframe's image lost: no loop edge from it
+                if index in self._segment_of:
+                    log.warning("loop closure of keyframe %d skipped: %s: %s", index, type(exc).__name__, exc)
+                continue
+            segment = self._segment_of.get(index)
+            if segment is None or segment not in self.graphs:  # its segment was forgotten meanwhile
+                continue
+            self._added(segment, self.graphs[segment].add_loops(measurements))
 
     def _polled(self) -> list[Update]:
+        """A finished solve's correction, and the correction of a solve started now (when the
+        solver runs here)."""
         done = self.poll(frame=self._frame)
-        return [done] if done is not None else []
+        started = self._start()
+        return [c for c in (done, started) if c is not None]
 
     def _join_candidates(self, index: int, segment: int) -> list[int]:
         """Keyframes of the other segments to try against keyframe ``index``, best first."""
@@ -345,12 +412,13 @@ class LoopCloser:
         graph = self.graphs[segment]
         fixes = graph.apply(poses, dropped)
         self.corrections += 1
-        keyframes = {kf.index: kf.pose for kf in graph.keyframes}
-        new = dict(keyframes)
-        if segment in self.relative:
-            new.update(self.relative[segment].poses(keyframes, new))
+        indices = np.array([kf.index for kf in graph.keyframes], np.int64)
+        keyframe_poses = np.array([kf.pose for kf in graph.keyframes])
+        frames, frame_poses = (self.relative[segment].poses(indices, keyframe_poses) if segment in self.relative
+                               else (np.zeros(0, np.int64), np.zeros((0, 3, 3))))
+        table = PoseTable(np.concatenate([indices, frames]), np.concatenate([keyframe_poses, frame_poses]))
         latest = graph.keyframes[-1]
-        return Correction(segment, new, fixes[latest.index],
+        return Correction(segment, table, fixes[latest.index],
                           tuple((kf.index, kf.pose.copy()) for kf in graph.keyframes))
 
     def forget(self, segment: int) -> None:
@@ -375,12 +443,14 @@ class LoopCloser:
         out = []
         if self.settle_on_priors:
             self._wanted |= {s for s, g in self.graphs.items() if len(g.keyframes) >= 2 and g.graph.has_priors}
+        self._collect_loops(wait=True)
         while self._running is not None or self._wanted:
             correction = self.poll(wait=True) if self._running is not None else self._start()
             if correction is not None:
                 out.append(correction)
-        if self._executor is not None:
-            self._executor.shutdown(wait=True)
+        for executor in (self._executor, self._loop_executor):
+            if executor is not None:
+                executor.shutdown(wait=True)
         return out
 
     def summary(self) -> dict:

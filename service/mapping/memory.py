@@ -7,18 +7,27 @@ fragments: a 2500-frame flight measured (tools/bench_memory.py) RSS growing ~17-
 with only ~0.5 KB/frame of live Python objects and a fixed number of map tiles in memory. At most
 two arenas and ``malloc_trim`` at each checkpoint (free pages go back to the system) keep it
 flat. Elsewhere (another libc, another OS) these are no-ops.
+
+Python's cyclic garbage collector: a full collection walks every tracked object, ~60,000 of
+them after the imports (NumPy, OpenCV, pymavlink, ...), and a run adds few (a row per frame).
+Collections while mapping would cost the worker 40-57 ms each (10,000-frame 1080p flight of
+``tools/bench_pipeline.py``, 2 cores); :func:`frozen_heap` moves the objects that exist when a
+run starts out of the collector's sight for its duration (``gc.freeze``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
+import gc
 import logging
 import sys
+from typing import Iterator
 
 log = logging.getLogger(__name__)
 
-__all__ = ["limit_heap_growth", "release_free_memory"]
+__all__ = ["frozen_heap", "limit_heap_growth", "release_free_memory"]
 
 _M_MMAP_THRESHOLD = -3
 _M_ARENA_MAX = -8
@@ -62,3 +71,15 @@ def release_free_memory() -> None:
     libc = _glibc()
     if libc is not None:
         libc.malloc_trim(0)
+
+
+@contextlib.contextmanager
+def frozen_heap() -> Iterator[None]:
+    """Inside the block, the garbage collector leaves alone the objects that existed before it
+    (collected once first; ``gc.freeze``, undone after)."""
+    gc.collect()
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()

@@ -312,24 +312,42 @@ class Painter:
         seg.dirty.update((tx, ty) for ty in range(y0 // ts, (y1 - 1) // ts + 1)
                          for tx in range(x0 // ts, (x1 - 1) // ts + 1))
 
+    def _dirty_many(self, seg: _Segment, entries: list[_Kept], poses: np.ndarray) -> None:
+        """Mark the tiles of kept frames ``entries`` at ``poses`` ((k * len(entries), 3, 3),
+        input px -> map px, ``entries`` repeated k times) for re-rendering (``_dirty`` of each,
+        at once)."""
+        k = len(poses) // len(entries)
+        to_kept = np.array([e.to_kept for e in entries] * k)
+        size = np.array([e.size for e in entries] * k, float)
+        corners = np.zeros((len(poses), 4, 3))  # as KeptFrame.bbox: the pixels interpolation reaches
+        corners[:, :, 2] = 1.0
+        corners[:, [0, 1], 1] = corners[:, [0, 2], 0] = -1.0
+        corners[:, [1, 3], 0], corners[:, [2, 3], 1] = size[:, :1], size[:, 1:]
+        mapped = np.einsum("nij,nkj->nki", (poses @ np.linalg.inv(to_kept))[:, :2], corners)
+        lo = np.floor(mapped.min(axis=1)).astype(int)
+        hi = np.ceil(mapped.max(axis=1)).astype(int) + 1
+        ts = self.tile_size
+        for (x0, y0), (x1, y1) in zip((lo // ts).tolist(), ((hi - 1) // ts).tolist()):
+            seg.dirty.update((tx, ty) for ty in range(y0, y1 + 1) for tx in range(x0, x1 + 1))
+
     def on_correction(self, segment: int, poses: dict[int, np.ndarray]) -> int:
         """Frames of ``segment`` have new poses (3x3, input px -> map px): mark the tiles of the
         kept frames that moved (before and after) for re-rendering. Returns how many moved."""
         seg = self._segments.get(segment)
         if seg is None:
             return 0
+        found = [(entry, new) for entry in seg.kept if (new := poses.get(entry.index)) is not None]
         moved = 0
-        for entry in seg.kept:
-            new = poses.get(entry.index)
-            if new is None:
-                continue
-            new = to_h(np.asarray(new, float))
-            if np.abs((new - entry.pose) @ self._corners)[:2].max() <= self.move_px:
-                continue
-            self._dirty(seg, entry)
-            entry.pose = new
-            self._dirty(seg, entry)
-            moved += 1
+        if found:  # how far each kept frame's corners move, and the tiles they cover: all at once
+            old = np.array([entry.pose for entry, _ in found])
+            new = to_h(np.array([np.asarray(p, float) for _, p in found]))
+            far = np.flatnonzero(np.abs((new - old) @ self._corners)[:, :2].max(axis=(1, 2)) > self.move_px)
+            entries = [found[k][0] for k in far.tolist()]
+            if entries:
+                self._dirty_many(seg, entries, np.concatenate([old[far], new[far]]))
+            for entry, pose in zip(entries, new[far]):
+                entry.pose = pose.copy()  # not a view: it would keep all of new alive
+            moved = len(entries)
         if seg.tail is not None and seg.tail.index in poses:
             seg.tail.pose = to_h(np.asarray(poses[seg.tail.index], float))
         self.stats.moved_frames += moved

@@ -55,13 +55,13 @@ from photomap.errors import OutputError, PhotomapError
 from photomap.io.keyframestore import KeyframeStore
 from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
-from photomap.io.tilestore import DiskTileStore
+from photomap.io.tilestore import DiskTileStore, WriteBehindTileStore
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
-from photomap.mapping.memory import limit_heap_growth, release_free_memory
+from photomap.mapping.memory import frozen_heap, limit_heap_growth, release_free_memory
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
 from photomap.mapping.rerender import Rerenderer
@@ -76,6 +76,7 @@ _END = object()
 # most every this many frames, swapped in (a pose-graph solve applied) this many frames after it
 # started, so that the same input makes the same map on any machine.
 _LOCKSTEP_FRAMES = 30
+_LOOP_LOCKSTEP_FRAMES = 8  # ... and a new keyframe's loop registrations (a few ms each) join its graph
 
 
 @dataclass
@@ -255,6 +256,7 @@ class MappingPipeline:
         self._started = 0.0
         self._last_checkpoint = 0.0
         self._cache_dir: Path | None = None
+        self._tile_stores: dict[int, WriteBehindTileStore] = {}  # segment -> where its map spills
         self._own_cache = False
         self._warned: set[str] = set()
         self._pending: tuple[int, np.ndarray, np.ndarray] | None = None  # last low-confidence frame: index, image, small
@@ -310,12 +312,14 @@ class MappingPipeline:
         # The thread budget, for the whole run (the worker, the loop closer's optimiser, the
         # re-render thread, the viewer and the final outputs): BLAS pools pinned to one thread
         # (the refinement's small products spin against every other busy thread otherwise: 10x
-        # slower on a busy 2-core computer); OpenCV's pool as configured (docs/onboard.md).
+        # slower on a busy 2-core computer); OpenCV's pool as configured (docs/onboard.md); the
+        # interpreter's switch interval (photomap.mapping.threads) and the objects the garbage
+        # collector walks (photomap.mapping.memory) set for the worker's latency.
         opencv_threads = cv2.getNumThreads()
         if self.cfg.mapping.opencv_threads > 0:
             cv2.setNumThreads(self.cfg.mapping.opencv_threads)
         try:
-            with threadpool_limits(limits=1, user_api="blas"), switch_interval():  # photomap.mapping.threads
+            with threadpool_limits(limits=1, user_api="blas"), switch_interval(), frozen_heap():
                 worker = threading.Thread(target=work, name="photomap-worker", daemon=True)
                 worker.start()
                 closed = False
@@ -360,7 +364,8 @@ class MappingPipeline:
             self.loops = LoopCloser(store, matcher, self.frame_size,
                                     f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None,
                                     settle_on_priors=self.telemetry is not None and self.telemetry.mode == "stills",
-                                    lockstep_frames=None if self.source.live else _LOCKSTEP_FRAMES)
+                                    lockstep_frames=None if self.source.live else _LOCKSTEP_FRAMES,
+                                    loop_lockstep_frames=_LOOP_LOCKSTEP_FRAMES)
         # the painter's background thread: kept images, re-renders after corrections, previews
         self._painter = Painter(self.frame_size, self.cfg.mosaic.tile_size,
                                 rerenderer=Rerenderer(store, self.cfg.mosaic), keep=self.loops is not None,
@@ -382,7 +387,9 @@ class MappingPipeline:
         if segment not in self.mosaics:
             store = None
             if self.cfg.mosaic.max_tiles_in_memory:
-                store = DiskTileStore(self._cache() / f"segment{segment}")
+                # spilled tiles are written by a thread: the worker never waits for the disk
+                store = self._tile_stores[segment] = WriteBehindTileStore(
+                    DiskTileStore(self._cache() / f"segment{segment}"))
             self.mosaics[segment] = TiledMosaic(self.cfg.mosaic, store)
         return self.mosaics[segment]
 
@@ -449,6 +456,8 @@ class MappingPipeline:
             if math.isfinite(row.confidence):
                 self.stats.confidence_sum -= row.confidence
         self.mosaics.pop(seg, None)
+        if seg in self._tile_stores:
+            self._tile_stores.pop(seg).flush()  # its writes done before its folder goes
         if self.cfg.mosaic.max_tiles_in_memory and self._cache_dir is not None:
             shutil.rmtree(self._cache_dir / f"segment{seg}", ignore_errors=True)
         self._painter.forget(seg)
@@ -597,20 +606,33 @@ class MappingPipeline:
         for sink in self.sinks:
             sink(event)
 
-    def _path(self, segment: int) -> tuple[tuple[float, float, float], ...]:
-        """The map positions of the frame centres of ``segment`` (x, y, confidence), in order."""
+    def _path(self, segment: int) -> np.ndarray:
+        """The map positions of the frame centres of ``segment``, (n, 3): x, y, confidence, in order."""
         rows = [row for row in self._rows if row.glued and row.segment == segment]
         if not rows:
-            return ()
+            return np.zeros((0, 3))
         centre = np.array([*frame_centre(*self.frame_size), 1.0])
-        xy = np.array([np.asarray(row.M, float)[:2] for row in rows]) @ centre  # one product for all
-        return tuple(zip(xy[:, 0].tolist(), xy[:, 1].tolist(), [float(row.confidence) for row in rows]))
+        xy = np.array([row.M[:2] for row in rows], float) @ centre  # one product for all
+        return np.column_stack([xy, np.array([row.confidence for row in rows], float)])
+
+    def _row(self, frame: int) -> PoseRow | None:
+        """The row of ``frame``: rows are appended in frame order, one a frame (gaps included)."""
+        rows = self._rows
+        k = frame - rows[0].frame if rows else -1
+        if 0 <= k < len(rows) and rows[k].frame == frame:
+            return rows[k]
+        return next((row for row in reversed(rows) if row.frame == frame), None)
 
     def _apply(self, correction: Correction) -> None:
         """Re-pose the frames of a corrected segment; the tracker goes on from the corrected pose."""
-        for row in self._rows:
-            if row.M is not None and row.segment == correction.segment and row.frame in correction.poses:
-                row.M = correction.poses[row.frame][:2].copy()
+        table = correction.poses  # the rows keep views of its (read-only) poses
+        rows, n = self._rows, len(self._rows)
+        first = rows[0].frame if rows else 0
+        for frame, pose in zip(table.frames.tolist(), table.poses[:, :2]):
+            k = frame - first  # the row's place, as a rule (see _row)
+            row = rows[k] if 0 <= k < n and rows[k].frame == frame else self._row(frame)
+            if row is not None and row.M is not None and row.segment == correction.segment:
+                row.M = pose
         if correction.segment == self.tracker.segment:
             self.tracker.correct(correction.latest)
         self._painter.on_correction(correction.segment, correction.poses)  # re-rendered in the background
@@ -993,6 +1015,8 @@ class MappingPipeline:
             write_report(self.out_dir, map_image=small)
         except (OSError, ValueError, PhotomapError) as exc:
             log.warning("report.html not written: %s", exc)
+        for store in self._tile_stores.values():
+            store.flush()  # its writes done before the folder goes
         if self._own_cache and self._cache_dir is not None:
             shutil.rmtree(self._cache_dir, ignore_errors=True)
         return summary
