@@ -515,3 +515,31 @@ def test_a_capped_map_over_a_write_behind_disk_store_is_the_same_map(tmp_path):
         capped.add(img, M)
     for a, b in zip(free.render(), capped.render()):
         np.testing.assert_array_equal(a, b)
+
+
+def test_write_behind_store_reads_ahead_and_never_serves_a_stale_tile():
+    disk = MemoryTileStore()
+    store = WriteBehindTileStore(disk)
+    for k in range(3):
+        disk.put((k, 0), _tile(k))
+    store.prefetch([(0, 0), (1, 0), (2, 0), (9, 9)])  # (9, 9): nothing there
+    assert store.flush(10)
+    store.put((1, 0), _tile(11))  # newer than what was read ahead
+    assert store.flush(10)
+    assert [store.get((k, 0))["color"][0, 0, 0] for k in range(3)] == [0, 11, 2]
+    assert store.prefetched == 2 and store.get((9, 9)) is None
+
+
+def test_a_painted_map_reads_its_spilled_tiles_ahead(tmp_path):
+    """The painter asks for the tiles under (and around) each frame: a revisit finds them read."""
+    rng = np.random.default_rng(5)
+    img = rng.integers(0, 255, (60, 80, 3), np.uint8)
+    store = WriteBehindTileStore(DiskTileStore(tmp_path))
+    m = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=6), store=store)
+    for k in range(10):  # out ...
+        m.add(img, np.array([[1.0, 0, 50.0 * k], [0, 1, 0]]))
+    assert store.flush(10)
+    m.prefetch(np.array([[1.0, 0, 20.0], [0, 1, 0]]), (80, 60))  # ... and back
+    assert store.flush(10)
+    m.add(img, np.array([[1.0, 0, 20.0], [0, 1, 0]]))
+    assert store.prefetched >= 4

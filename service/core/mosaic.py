@@ -547,6 +547,24 @@ class TiledMosaic:
             self._spill_coverage(key, tile)
             self._spilled.add(key)
 
+    def prefetch(self, M: np.ndarray, size: tuple[int, int], margin: float = 0.5) -> None:
+        """Ask the store to read ahead the spilled tiles under a frame of ``size`` (w, h) at pose
+        ``M`` (2x3), grown by ``margin`` of its size on each side: the next frames will likely
+        paint there (a store without ``prefetch`` ignores it)."""
+        prefetch = getattr(self._store, "prefetch", None)
+        if prefetch is None or not self._spilled:
+            return
+        w, h = size
+        u = np.array([-margin * w, (1 + margin) * w])
+        v = np.array([-margin * h, (1 + margin) * h])
+        corners = np.array([[x, y, 1.0] for x in u for y in v]) @ _check_pose(M).T
+        ts = self.tile_size
+        (tx0, ty0), (tx1, ty1) = np.floor(corners.min(axis=0) / ts).astype(int), np.floor(corners.max(axis=0) / ts).astype(int)
+        keys = [(tx, ty) for ty in range(int(ty0), int(ty1) + 1) for tx in range(int(tx0), int(tx1) + 1)
+                if (tx, ty) in self._spilled]
+        if keys:
+            prefetch(keys)
+
     def _spill_coverage(self, key: TileKey, tile: Tile) -> None:
         """Keep where tile ``key``, going to the store, is covered (see ``_coverage``)."""
         cover = tile["cover"] if self.blend == "overwrite" else tile["weight"]

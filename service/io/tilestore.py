@@ -133,22 +133,28 @@ class DiskTileStore:
 
 class WriteBehindTileStore:
     """A :class:`TileStore` whose ``put`` and ``discard`` are carried out by a background thread
-    (oldest first; a thread while there is work), in front of ``store``.
+    (oldest first; a thread while there is work), in front of ``store``; :meth:`prefetch` reads
+    tiles that will soon be wanted in that thread too.
 
     Until written, a tile is served from memory (copies, like a disk). At most ``max_pending``
     tiles wait: a ``put`` beyond that waits for the thread (memory stays bounded when the disk is
     slow). A tile the store refuses (disk full) is kept in memory and served from there: a map
-    never loses a tile it spilled. Thread-safe.
+    never loses a tile it spilled. At most ``max_ready`` prefetched tiles wait to be taken (the
+    oldest are dropped). Thread-safe.
     """
 
-    def __init__(self, store: TileStore, max_pending: int = 32) -> None:
+    def __init__(self, store: TileStore, max_pending: int = 32, max_ready: int = 48) -> None:
         self.store = store
         self.max_pending = max(1, int(max_pending))
+        self.max_ready = max(0, int(max_ready))
         self._pending: OrderedDict[TileKey, TileArrays | None] = OrderedDict()  # None: to discard
         self._held: dict[TileKey, TileArrays] = {}  # refused by the store
+        self._wanted: OrderedDict[TileKey, None] = OrderedDict()  # to prefetch
+        self._ready: OrderedDict[TileKey, TileArrays] = OrderedDict()  # prefetched, not taken yet
         self._cv = threading.Condition()
         self._busy = False  # a writer thread is running
         self.failures = 0
+        self.prefetched = 0  # tiles a get() found read ahead
 
     def put(self, key: TileKey, arrays: Mapping[str, np.ndarray]) -> None:
         """Keep ``arrays`` (handed over: the caller must not change them afterwards)."""
@@ -163,18 +169,37 @@ class WriteBehindTileStore:
             self._held.pop(key, None)
             self._queue(key, None)
 
+    def prefetch(self, keys: list[TileKey]) -> None:
+        """Read these tiles ahead, in the thread (after the writes waiting), for a later get()."""
+        with self._cv:
+            for key in keys:
+                if key not in self._ready and key not in self._pending and key not in self._held:
+                    self._wanted[key] = None
+            if self._wanted:
+                self._start()
+
     def _queue(self, key: TileKey, arrays: TileArrays | None) -> None:
+        self._ready.pop(key, None)  # older than this
+        self._wanted.pop(key, None)
         self._pending[key] = arrays
         self._pending.move_to_end(key)
+        self._start()
+
+    def _start(self) -> None:
         if not self._busy:
             self._busy = True
-            threading.Thread(target=self._write, name="photomap-tile-writer", daemon=True).start()
+            threading.Thread(target=self._work, name="photomap-tile-writer", daemon=True).start()
 
     def get(self, key: TileKey) -> TileArrays | None:
         with self._cv:
             tile = self._pending[key] if key in self._pending else self._held.get(key)
             if tile is not None or key in self._pending:
                 return None if tile is None else {name: a.copy() for name, a in tile.items()}
+            self._wanted.pop(key, None)
+            ready = self._ready.pop(key, None)  # read for this call: handed over
+            if ready is not None:
+                self.prefetched += 1
+                return ready
         return self.store.get(key)
 
     def keys(self) -> list[TileKey]:
@@ -185,8 +210,16 @@ class WriteBehindTileStore:
         return sorted((on_disk - {k for k, v in pending.items() if v is None})
                       | {k for k, v in pending.items() if v is not None} | set(held))
 
-    def _write(self) -> None:
+    def _work(self) -> None:
         while True:
+            with self._cv:
+                if not self._pending and self._wanted:
+                    key = self._wanted.popitem(last=False)[0]
+                else:
+                    key = None
+            if key is not None:
+                self._read_ahead(key)
+                continue
             with self._cv:
                 if not self._pending:
                     self._busy = False
@@ -210,6 +243,18 @@ class WriteBehindTileStore:
                 if key in self._pending and self._pending[key] is tile:  # not replaced meanwhile
                     del self._pending[key]
                 self._cv.notify_all()
+
+    def _read_ahead(self, key: TileKey) -> None:
+        try:
+            tile = self.store.get(key)
+        except Exception:  # the get() that wants it reads it again, and says why
+            return
+        with self._cv:
+            if tile is None or key in self._pending or key in self._held or self.max_ready == 0:
+                return  # a newer version was put meanwhile
+            self._ready[key] = tile
+            while len(self._ready) > self.max_ready:
+                self._ready.popitem(last=False)
 
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until every write is done (True), or ``timeout`` seconds (False)."""

@@ -215,6 +215,7 @@ class Painter:
         its new ground only (``whole_frames``: whole anyway). A frame painted ``whole`` is kept
         for re-rendering (a keyframe). Returns the tiles it changed."""
         pose = to_h(np.asarray(pose, float))
+        mosaic.prefetch(pose[:2], self.frame_size)  # the tiles the next frames will paint, read ahead
         seg = self._seg(segment)
         keyframe = whole
         whole = whole or self.whole_frames
