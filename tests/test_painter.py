@@ -17,6 +17,7 @@ from photomap.config import MosaicConfig, load_config
 from photomap.core.mosaic import TiledMosaic
 from photomap.io.keyframestore import KeyframeStore
 from photomap.io.tilestore import MemoryTileStore
+from photomap.mapping.loopclosure import PoseTable
 from photomap.mapping.painter import Painter, resize_factors
 from photomap.mapping.pipeline import MappingPipeline
 from photomap.mapping.rerender import KeptFrame, Rerenderer, tile_rects
@@ -207,7 +208,8 @@ def assert_same_tiles(got: TiledMosaic, want: TiledMosaic, keys) -> None:
         assert np.abs(gi.astype(int) - wi)[both].max(initial=0) <= 1
 
 
-def test_a_correction_rerenders_the_moved_tiles_in_the_background(tmp_path):
+@pytest.mark.parametrize("as_table", [False, True])
+def test_a_correction_rerenders_the_moved_tiles_in_the_background(tmp_path, as_table):
     params = MosaicConfig(tile_size=64)
     store = KeyframeStore(tmp_path / "kf")
     painter = Painter((160, 120), 64, rerenderer=Rerenderer(store, params, strip_tiles=5), interval_s=0.0)
@@ -223,7 +225,9 @@ def test_a_correction_rerenders_the_moved_tiles_in_the_background(tmp_path):
     corrected = dict(poses)
     for i in (3, 4, 5):
         corrected[i] = pose(4 * i, 60.0 * i - 2.0 * (i - 2), 10.0 * i + 3.5 * (i - 2))
-    assert painter.on_correction(0, corrected) == 3
+    # as the loop closer hands it over (frames in arrays, with one more frame that was not kept)
+    given = PoseTable(np.array([*corrected, 99]), np.array([*corrected.values(), np.eye(3)])) if as_table else corrected
+    assert painter.on_correction(0, given) == 3
     changed = painter.finish({0: live})
     assert changed[0] and (0, 0) not in changed[0]
     # the re-rendered tiles are the corrected map (from the kept images), the others untouched

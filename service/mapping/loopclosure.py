@@ -24,6 +24,7 @@ and tracker.
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -46,6 +47,10 @@ from photomap.telemetry.samples import TelemetrySample
 
 log = logging.getLogger(__name__)
 
+# Live, a pose-graph solve starts at most this often (s): each correction costs the worker time
+# in proportion to the flight's frames (a replay: one every lockstep_frames at most).
+SOLVE_INTERVAL_S = 1.0
+
 
 class PoseTable(Mapping[int, np.ndarray]):
     """Frame index -> 3x3 pose, held in two arrays: ``frames`` (n,) sorted, ``poses`` (n, 3, 3),
@@ -63,6 +68,13 @@ class PoseTable(Mapping[int, np.ndarray]):
         if i < len(self.frames) and self.frames[i] == frame:
             return self.poses[i]
         raise KeyError(frame)
+
+    def take(self, frames: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Which of ``frames`` the table holds (bool (n,)) and their poses (in that order), at once."""
+        frames = np.asarray(frames, np.int64)
+        i = np.minimum(np.searchsorted(self.frames, frames), max(len(self.frames) - 1, 0))
+        hit = (self.frames[i] == frames) if len(self.frames) else np.zeros(len(frames), bool)
+        return hit, self.poses[i[hit]]
 
     def __iter__(self) -> Iterator[int]:
         return iter(self.frames.tolist())
@@ -215,6 +227,7 @@ class LoopCloser:
         self.loop_lockstep_frames = lockstep_frames if loop_lockstep_frames is None else loop_lockstep_frames
         self._frame = 0  # the latest frame index seen by on_step
         self._started_frame = 0  # ... when the running solve started
+        self._last_start = -float("inf")  # monotonic s (live)
         self._wanted: set[int] = set()  # segments with loop edges not optimised yet
 
     def _graph(self, segment: int) -> KeyframeGraph:
@@ -367,10 +380,15 @@ class LoopCloser:
             return join
         return None
 
-    def _start(self) -> Correction | None:
-        """Optimise a segment that needs it: in the background (None), or here and now."""
+    def _start(self, now: bool = False) -> Correction | None:
+        """Optimise a segment that needs it: in the background (None), or here and now. Live, a
+        background solve starts at most every ``SOLVE_INTERVAL_S`` (``now``: whenever)."""
         if self._running is not None or not self._wanted:
             return None
+        if self._executor is not None and self.lockstep_frames is None and not now:
+            if time.monotonic() - self._last_start < SOLVE_INTERVAL_S:
+                return None
+            self._last_start = time.monotonic()
         segment = min(self._wanted)
         self._wanted.discard(segment)
         graph = self.graphs[segment]
@@ -445,7 +463,7 @@ class LoopCloser:
             self._wanted |= {s for s, g in self.graphs.items() if len(g.keyframes) >= 2 and g.graph.has_priors}
         self._collect_loops(wait=True)
         while self._running is not None or self._wanted:
-            correction = self.poll(wait=True) if self._running is not None else self._start()
+            correction = self.poll(wait=True) if self._running is not None else self._start(now=True)
             if correction is not None:
                 out.append(correction)
         for executor in (self._executor, self._loop_executor):

@@ -337,7 +337,12 @@ class Painter:
         seg = self._segments.get(segment)
         if seg is None:
             return 0
-        found = [(entry, new) for entry in seg.kept if (new := poses.get(entry.index)) is not None]
+        take = getattr(poses, "take", None)  # a PoseTable looks them all up at once
+        if take is not None:
+            hit, table = take([entry.index for entry in seg.kept])
+            found = list(zip([e for e, h in zip(seg.kept, hit.tolist()) if h], table))
+        else:
+            found = [(entry, new) for entry in seg.kept if (new := poses.get(entry.index)) is not None]
         moved = 0
         if found:  # how far each kept frame's corners move, and the tiles they cover: all at once
             old = np.array([entry.pose for entry, _ in found])
