@@ -3,11 +3,12 @@
 The pipeline owns its state (trajectory, maps, tracker); sinks get an immutable
 :class:`FrameEvent` instead of the pipeline itself. Sinks run in the worker thread: they must be
 quick, must not raise, and copy what they keep (the frame image and the map tiles are read-only
-views that change after the call).
+views that change after the call; ``corrected_path`` is computed when first read, during the call).
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -66,9 +67,16 @@ class FrameEvent:
     focal_px: float | None = None  # the camera's focal length at the input resolution, when known
     link_lost: int = 0  # cumulative telemetry link losses / regains
     link_regained: int = 0
-    # after a pose-graph correction of ``segment``: its whole path again, (n, 3) x, y, confidence
-    # of each posed frame's centre in frame order
-    corrected_path: np.ndarray | None = None
+    # after a pose-graph correction of ``segment``: what computes its whole path again (see
+    # corrected_path); None otherwise
+    path_after_correction: Callable[[], np.ndarray] | None = None
+
+    @functools.cached_property
+    def corrected_path(self) -> np.ndarray | None:
+        """After a pose-graph correction of ``segment``: its whole path again, (n, 3) x, y,
+        confidence of each posed frame's centre in frame order (computed when first read: a
+        pass over the flight's frames that only a sink which shows the path pays for)."""
+        return None if self.path_after_correction is None else self.path_after_correction()
 
 
 FrameSink = Callable[[FrameEvent], None]

@@ -88,9 +88,10 @@ class Correction:
     """A pose-graph correction of one segment.
 
     ``poses``: frame index -> new 3x3 pose (input pixels -> map pixels) of every frame that could
-    be re-posed (a :class:`PoseTable`: apply it in bulk through its arrays); ``latest``: the 3x3 correction (old map px -> new map px) of the segment's newest
-    keyframe, which the tracker applies to go on from the corrected pose; ``keyframes``: the
-    segment's keyframes (index, new 3x3 pose) in order, to re-render the map from.
+    be re-posed (a :class:`PoseTable`: apply it in bulk through its arrays); ``latest``: the 3x3
+    correction (old map px -> new map px) of the segment's newest keyframe, which the tracker
+    applies to go on from the corrected pose; ``keyframes``: the segment's keyframes (index, new
+    3x3 pose) in order, to re-render the map from.
     """
 
     segment: int
@@ -218,7 +219,8 @@ class LoopCloser:
         # ... and a new keyframe's loop registrations in another (with a registrar of its own)
         self._loop_executor = (ThreadPoolExecutor(1, "photomap-loops", initializer=lower_priority)
                                if params.optimize_in_background else None)
-        self._loop_registrar = Registrar(self.registrar.shape, self.registrar.params)
+        self._loop_registrar = (Registrar(self.registrar.shape, self.registrar.params)
+                                if self._loop_executor is not None else None)
         self._loop_jobs: deque[tuple[int, int, Future]] = deque()  # (keyframe, frame submitted, measurements)
         # replay: a background solve (a keyframe's loop registrations) is applied exactly
         # lockstep_frames (loop_lockstep_frames) frames after it started, waiting for it if

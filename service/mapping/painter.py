@@ -307,16 +307,10 @@ class Painter:
         self._swaps = deque(item for item in self._swaps if item[0] != segment)
 
     # ------------------------------------------------------------------ corrections
-    def _dirty(self, seg: _Segment, entry) -> None:
-        x0, y0, x1, y1 = entry.frame().bbox()
-        ts = self.tile_size
-        seg.dirty.update((tx, ty) for ty in range(y0 // ts, (y1 - 1) // ts + 1)
-                         for tx in range(x0 // ts, (x1 - 1) // ts + 1))
-
-    def _dirty_many(self, seg: _Segment, entries: list[_Kept], poses: np.ndarray) -> None:
+    def _dirty(self, seg: _Segment, entries: list[_Kept], poses: np.ndarray) -> None:
         """Mark the tiles of kept frames ``entries`` at ``poses`` ((k * len(entries), 3, 3),
-        input px -> map px, ``entries`` repeated k times) for re-rendering (``_dirty`` of each,
-        at once)."""
+        input px -> map px, ``entries`` repeated k times) for re-rendering: those their
+        :meth:`KeptFrame.bbox` touches, all at once."""
         k = len(poses) // len(entries)
         to_kept = np.array([e.to_kept for e in entries] * k)
         size = np.array([e.size for e in entries] * k, float)
@@ -350,7 +344,7 @@ class Painter:
             far = np.flatnonzero(np.abs((new - old) @ self._corners)[:, :2].max(axis=(1, 2)) > self.move_px)
             entries = [found[k][0] for k in far.tolist()]
             if entries:
-                self._dirty_many(seg, entries, np.concatenate([old[far], new[far]]))
+                self._dirty(seg, entries, np.concatenate([old[far], new[far]]))
             for entry, pose in zip(entries, new[far]):
                 entry.pose = pose.copy()  # not a view: it would keep all of new alive
             moved = len(entries)
@@ -371,7 +365,8 @@ class Painter:
         for entry in gone.kept:
             entry.pose = t @ entry.pose
             seg.kept.append(entry)
-            self._dirty(seg, entry)
+        if gone.kept:
+            self._dirty(seg, gone.kept, np.array([entry.pose for entry in gone.kept]))
         seg.kept.sort(key=lambda e: e.index)
         if gone.tail is not None and (seg.tail is None or gone.tail.index > seg.tail.index):
             gone.tail.pose = t @ gone.tail.pose

@@ -23,6 +23,7 @@ the map is empty; the largest segment; other segments as ``mosaic_segment{N}.png
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 from collections import deque
@@ -571,7 +572,7 @@ class MappingPipeline:
                 self.stats.events.append(message)
                 messages.append(message)
                 if update.segment == step.segment or getattr(update, "into", None) == self._segment:
-                    corrected_path = self._path(self._segment)
+                    corrected_path = functools.partial(self._path, self._segment)
             if self._segment != step.segment:  # joined: this frame now lives in another map
                 step.segment = self._segment
             timing.add("loop_closure", time.perf_counter() - t3)
@@ -593,7 +594,7 @@ class MappingPipeline:
                 dropped_frames=int(self.source.stats.dropped), reconnects=int(self.source.stats.reconnects),
                 telemetry=sample, focal_px=self.telemetry.focal(self.frame_size[0]) if self.telemetry else None,
                 link_lost=int(link.get("link_lost", 0)),
-                link_regained=int(link.get("link_regained", 0)), corrected_path=corrected_path))
+                link_regained=int(link.get("link_regained", 0)), path_after_correction=corrected_path))
             timing.add("sinks", time.perf_counter() - t5)
         interval = self.cfg.output.checkpoint_interval
         if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
