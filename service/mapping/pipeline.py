@@ -615,22 +615,20 @@ class MappingPipeline:
         xy = np.array([row.M[:2] for row in rows], float) @ centre  # one product for all
         return np.column_stack([xy, np.array([row.confidence for row in rows], float)])
 
-    def _row(self, frame: int) -> PoseRow | None:
-        """The row of ``frame``: rows are appended in frame order, one a frame (gaps included)."""
-        rows = self._rows
-        k = frame - rows[0].frame if rows else -1
-        if 0 <= k < len(rows) and rows[k].frame == frame:
-            return rows[k]
-        return next((row for row in reversed(rows) if row.frame == frame), None)
-
     def _apply(self, correction: Correction) -> None:
         """Re-pose the frames of a corrected segment; the tracker goes on from the corrected pose."""
         table = correction.poses  # the rows keep views of its (read-only) poses
         rows, n = self._rows, len(self._rows)
         first = rows[0].frame if rows else 0
+        by_frame: dict[int, PoseRow] | None = None  # built if a row is not where frame order puts it
         for frame, pose in zip(table.frames.tolist(), table.poses[:, :2]):
-            k = frame - first  # the row's place, as a rule (see _row)
-            row = rows[k] if 0 <= k < n and rows[k].frame == frame else self._row(frame)
+            k = frame - first  # rows are appended in frame order, one a frame (gaps included)
+            if 0 <= k < n and rows[k].frame == frame:
+                row = rows[k]
+            else:
+                if by_frame is None:
+                    by_frame = {r.frame: r for r in rows}
+                row = by_frame.get(frame)
             if row is not None and row.M is not None and row.segment == correction.segment:
                 row.M = pose
         if correction.segment == self.tracker.segment:
