@@ -230,6 +230,7 @@ class LoopCloser:
         self._frame = 0  # the latest frame index seen by on_step
         self._started_frame = 0  # ... when the running solve started
         self._last_start = -float("inf")  # monotonic s (live)
+        self._deferred = False  # the last frame left a finished solve to this one
         self._wanted: set[int] = set()  # segments with loop edges not optimised yet
 
     def _graph(self, segment: int) -> KeyframeGraph:
@@ -295,7 +296,7 @@ class LoopCloser:
                 self._loop_jobs.append((index, index, self._loop_executor.submit(
                     graph.measure_loops, small, candidates, self._loop_registrar)))
         self._collect_loops()
-        return updates + self._polled()
+        return updates + self._polled(keyframe=True)
 
     def _added(self, segment: int, added: int) -> None:
         if added:
@@ -326,9 +327,16 @@ class LoopCloser:
                 continue
             self._added(segment, self.graphs[segment].add_loops(measurements))
 
-    def _polled(self) -> list[Update]:
+    def _polled(self, keyframe: bool = False) -> list[Update]:
         """A finished solve's correction, and the correction of a solve started now (when the
-        solver runs here)."""
+        solver runs here). A keyframe's frame (the worker paints it whole) leaves a finished
+        solve to the next frame, so that the two never add up in one frame (at most one frame
+        later: stills are all keyframes)."""
+        if keyframe and not self._deferred:
+            self._deferred = True
+            started = self._start()
+            return [started] if started is not None else []
+        self._deferred = False
         done = self.poll(frame=self._frame)
         started = self._start()
         return [c for c in (done, started) if c is not None]
