@@ -497,9 +497,10 @@ def test_map_px_lowers_the_map_resolution_of_video_only(tmp_path, stills):
 
 
 def test_a_replay_makes_the_same_map_however_slow_the_background_threads(tmp_path, monkeypatch):
-    """Replay runs the pose-graph solves and the re-renders in lockstep with the frames: with
-    both background threads slowed down a lot, the trajectory and mosaic.png are identical
-    (batch and replay of the same flight agree; a rerun reproduces a map)."""
+    """Replay runs the loop registrations, the pose-graph solves and the re-renders in lockstep
+    with the frames: with the background threads slowed down a lot, the trajectory and
+    mosaic.png are identical (batch and replay of the same flight agree; a rerun reproduces a
+    map)."""
     import time
 
     from test_drift import LOOPS, closed_flight
@@ -517,6 +518,11 @@ def test_a_replay_makes_the_same_map_however_slow_the_background_threads(tmp_pat
 
     quick, quick_rows, quick_map = run("quick")
     solve, render = loopclosure.KeyframeGraph.solve, rerender.Rerenderer._render
+    measure = loopclosure.KeyframeGraph.measure_loops
+
+    def slow_measure(*args, **kwargs):
+        time.sleep(0.1)
+        return measure(*args, **kwargs)
 
     def slow_solve(*args, **kwargs):
         time.sleep(0.3)
@@ -528,8 +534,10 @@ def test_a_replay_makes_the_same_map_however_slow_the_background_threads(tmp_pat
 
     monkeypatch.setattr(loopclosure.KeyframeGraph, "solve", staticmethod(slow_solve))
     monkeypatch.setattr(rerender.Rerenderer, "_render", slow_render)
+    monkeypatch.setattr(loopclosure.KeyframeGraph, "measure_loops", slow_measure)
     slow, slow_rows, slow_map = run("slow")
     assert quick["loop_closure"]["corrections"] >= 1 and quick["painting"]["rerendered_tiles"] > 0
+    assert quick["loop_closure"]["loop_edges"] >= 1 and slow["loop_closure"] == quick["loop_closure"]
     assert slow_rows == quick_rows
     assert np.array_equal(slow_map, quick_map)
 
