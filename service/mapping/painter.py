@@ -42,7 +42,7 @@ from photomap.core.mosaic import TiledMosaic, TileKey
 from photomap.errors import PhotomapError
 from photomap.geometry import to_h
 from photomap.mapping.overview import Overview
-from photomap.mapping.rerender import KeptFrame, Rerenderer
+from photomap.mapping.rerender import KeptFrame, Rerenderer, reach
 
 log = logging.getLogger(__name__)
 
@@ -308,22 +308,13 @@ class Painter:
 
     # ------------------------------------------------------------------ corrections
     def _dirty(self, seg: _Segment, entries: list[_Kept], poses: np.ndarray) -> None:
-        """Mark the tiles of kept frames ``entries`` at ``poses`` ((k * len(entries), 3, 3),
-        input px -> map px, ``entries`` repeated k times) for re-rendering: those their
-        :meth:`KeptFrame.bbox` touches, all at once."""
-        k = len(poses) // len(entries)
-        to_kept = np.array([e.to_kept for e in entries] * k)
-        size = np.array([e.size for e in entries] * k, float)
-        corners = np.zeros((len(poses), 4, 3))  # as KeptFrame.bbox: the pixels interpolation reaches
-        corners[:, :, 2] = 1.0
-        corners[:, [0, 1], 1] = corners[:, [0, 2], 0] = -1.0
-        corners[:, [1, 3], 0], corners[:, [2, 3], 1] = size[:, :1], size[:, 1:]
-        mapped = np.einsum("nij,nkj->nki", (poses @ np.linalg.inv(to_kept))[:, :2], corners)
-        lo = np.floor(mapped.min(axis=1)).astype(int)
-        hi = np.ceil(mapped.max(axis=1)).astype(int) + 1
+        """Mark for re-rendering the tiles kept frames ``entries`` reach at ``poses`` ((n, 3, 3),
+        input px -> map px), all at once (as each one's :meth:`KeptFrame.bbox`)."""
+        to_kept = np.array([e.to_kept for e in entries])
+        box = reach(poses @ np.linalg.inv(to_kept), np.array([e.size for e in entries]))
         ts = self.tile_size
-        for (x0, y0), (x1, y1) in zip((lo // ts).tolist(), ((hi - 1) // ts).tolist()):
-            seg.dirty.update((tx, ty) for ty in range(y0, y1 + 1) for tx in range(x0, x1 + 1))
+        for tx0, ty0, tx1, ty1 in (np.hstack([box[:, :2], box[:, 2:] - 1]) // ts).tolist():
+            seg.dirty.update((tx, ty) for ty in range(ty0, ty1 + 1) for tx in range(tx0, tx1 + 1))
 
     def on_correction(self, segment: int, poses: dict[int, np.ndarray]) -> int:
         """Frames of ``segment`` have new poses (3x3, input px -> map px): mark the tiles of the
@@ -343,8 +334,9 @@ class Painter:
             new = to_h(np.array([np.asarray(p, float) for _, p in found]))
             far = np.flatnonzero(np.abs((new - old) @ self._corners)[:, :2].max(axis=(1, 2)) > self.move_px)
             entries = [found[k][0] for k in far.tolist()]
-            if entries:
-                self._dirty(seg, entries, np.concatenate([old[far], new[far]]))
+            if entries:  # the tiles before and after
+                self._dirty(seg, entries, old[far])
+                self._dirty(seg, entries, new[far])
             for entry, pose in zip(entries, new[far]):
                 entry.pose = pose.copy()  # not a view: it would keep all of new alive
             moved = len(entries)

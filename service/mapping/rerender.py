@@ -47,11 +47,20 @@ class KeptFrame:
 
     def bbox(self) -> tuple[int, int, int, int]:
         """Map pixels its interpolation can reach: ``(x0, y0, x1, y1)``, exclusive."""
-        w, h = self.size
-        corners = np.array([[-1.0, -1.0, 1.0], [w, -1.0, 1.0], [-1.0, h, 1.0], [w, h, 1.0]]) @ self.pose[:2].T
-        x0, y0 = np.floor(corners.min(axis=0)).astype(int)
-        x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 1
-        return int(x0), int(y0), int(x1), int(y1)
+        x0, y0, x1, y1 = reach(self.pose[None], np.array([self.size]))[0].tolist()
+        return x0, y0, x1, y1
+
+
+def reach(poses: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Map pixels the interpolation of images of ``sizes`` ((n, 2): w, h) at ``poses`` ((n, 3, 3),
+    image px -> map px) can reach: (n, 4) ints ``x0, y0, x1, y1``, exclusive."""
+    w, h = np.asarray(sizes, float).T
+    corners = np.zeros((len(w), 4, 3))  # (-1, -1), (w, -1), (-1, h), (w, h): one pixel beyond the edge
+    corners[:, :, 2] = 1.0
+    corners[:, [0, 1], 1] = corners[:, [0, 2], 0] = -1.0
+    corners[:, [1, 3], 0], corners[:, [2, 3], 1] = w[:, None], h[:, None]
+    mapped = np.einsum("nij,nkj->nki", np.asarray(poses, float)[:, :2], corners)
+    return np.hstack([np.floor(mapped.min(axis=1)), np.ceil(mapped.max(axis=1)) + 1]).astype(int)
 
 
 @dataclass(frozen=True)
