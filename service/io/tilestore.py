@@ -260,10 +260,3 @@ class WriteBehindTileStore:
         """Wait until every write is done (True), or ``timeout`` seconds (False)."""
         with self._cv:
             return self._cv.wait_for(lambda: not self._busy, timeout)
-
-    def close(self) -> None:
-        """Finish the writes, then close the store (if it can be closed)."""
-        self.flush()
-        close = getattr(self.store, "close", None)
-        if close is not None:
-            close()

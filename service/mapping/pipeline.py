@@ -264,7 +264,7 @@ class MappingPipeline:
         self._state_refused = False
         self._write_errors: dict[str, str] = {}  # output -> why it could not be written (once each)
         # a checkpoint's trajectory.csv (10,000 rows take ~0.25 s to format: a stall in the worker)
-        # and run.json are written by this thread; the worker hands it a copy of the rows
+        # and run.json are written by this thread; the worker hands it the rows' fields
         self._writer: ThreadPoolExecutor | None = None
         self._checkpoint_files: Future | None = None
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
@@ -735,10 +735,10 @@ class MappingPipeline:
             write_tum(self.out_dir / "trajectory.tum", rows, self.frame_size)
 
     def _write_later(self, summary: dict) -> None:
-        """A checkpoint's files, written by the writer thread: the trajectory (from copies of the
-        rows), then ``run.json``, then the heap's free memory handed back to the system. The
-        worker goes on; while the previous checkpoint's are still being written, this one's are
-        skipped (the next has newer ones)."""
+        """A checkpoint's files, written by the writer thread: the trajectory (from the rows'
+        fields as of now), then ``run.json``, then the heap's free memory handed back to the
+        system. The worker goes on; while the previous checkpoint's are still being written, this
+        one's are skipped (the next has newer ones)."""
         if self._checkpoint_files is not None and not self._checkpoint_files.done():
             return
         if self._writer is None:
