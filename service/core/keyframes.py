@@ -158,14 +158,18 @@ class KeyframeGraph:
         return out
 
     def measure_loops(self, image: np.ndarray, candidates: list[LoopCandidate],
-                      registrar: Registrar | None = None) -> list[LoopMeasurement]:
+                      registrar: Registrar | None = None,
+                      callback: Callable[[], object] | None = None) -> list[LoopMeasurement]:
         """Register the new keyframe (``image``, grey at the working resolution) against each
         candidate. Reads nothing that changes (safe in another thread while the graph grows, given
-        a ``registrar`` of its own)."""
+        a ``registrar`` of its own). ``callback`` is called with no argument before each
+        registration (e.g. to let another thread go first)."""
         registrar = registrar or self.registrar
         prepared = registrar.prepare(image) if candidates else None
         out = []
         for cand in candidates:
+            if callback is not None:
+                callback()
             reg = registrar.register(registrar.prepare(self.load_small(cand.ref)), prepared, cand.prior)
             measured = None
             if reg.confidence >= self.min_confidence:
@@ -216,17 +220,18 @@ class KeyframeGraph:
         return self.graph.copy()
 
     @staticmethod
-    def solve(graph: PoseGraph, params: PosegraphConfig) -> tuple[np.ndarray, list[int]]:
+    def solve(graph: PoseGraph, params: PosegraphConfig,
+              callback: Callable[[], object] | None = None) -> tuple[np.ndarray, list[int]]:
         """Optimise ``graph`` (a snapshot); returns its poses and the loop edges it dropped.
 
         A loop closure that the robust solution flags as an outlier is dropped and the graph
-        solved again without it.
+        solved again without it. ``callback``: as in :func:`~photomap.core.posegraph.optimize`.
         """
-        result = optimize(graph, params)
+        result = optimize(graph, params, callback=callback)
         dropped = [int(k) for k in result.outliers if graph.edge_kinds[k] == "loop"]
         if dropped:
             graph.drop_edges(dropped)
-            result = optimize(graph, params)
+            result = optimize(graph, params, callback=callback)
         return result.poses, dropped
 
     def apply(self, poses: np.ndarray, dropped: list[int]) -> dict[int, np.ndarray]:

@@ -55,7 +55,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import scipy.optimize
@@ -541,8 +541,8 @@ class _Problem:
         return f, jac
 
 
-def _levenberg_marquardt(prob: _Problem, x0: np.ndarray, max_nfev: int, ftol: float,
-                         xtol: float) -> tuple[np.ndarray, int, bool, str, float]:
+def _levenberg_marquardt(prob: _Problem, x0: np.ndarray, max_nfev: int, ftol: float, xtol: float,
+                         callback: Callable[[], object]) -> tuple[np.ndarray, int, bool, str, float]:
     """Levenberg-Marquardt with Marquardt's diagonal scaling; each step a sparse direct solve.
 
     Returns ``(x, nfev, success, message, cost)``. Damping update after Nielsen (1999).
@@ -561,6 +561,7 @@ def _levenberg_marquardt(prob: _Problem, x0: np.ndarray, max_nfev: int, ftol: fl
             h = scipy.sparse.linalg.spsolve(a + scipy.sparse.diags(mu * d, format="csc"), -g,
                                             permc_spec="COLAMD")
             xn = x + h
+            callback()
             fn, jn = prob.evaluate(xn)
             nfev += 1
             cn = 0.5 * float(fn @ fn)
@@ -581,7 +582,7 @@ def _levenberg_marquardt(prob: _Problem, x0: np.ndarray, max_nfev: int, ftol: fl
 
 
 def optimize(graph: PoseGraph, params: PosegraphConfig = PosegraphConfig(), *, ftol: float = 1e-10,
-             xtol: float = 1e-10) -> PoseGraphResult:
+             xtol: float = 1e-10, callback: Callable[[], object] | None = None) -> PoseGraphResult:
     """Optimise the node poses of ``graph``.
 
     Parameters
@@ -599,21 +600,29 @@ def optimize(graph: PoseGraph, params: PosegraphConfig = PosegraphConfig(), *, f
         of the normal equations; "trf": ``scipy.optimize.least_squares(method="trf",
         tr_solver="lsmr")``. Both use the analytic sparse Jacobian (4 columns per node, a few
         per global); "trf"'s iterative LSMR steps get slow on long, ill-conditioned graphs.
+    callback : called with no argument before each evaluation of the residuals (e.g. to let
+        another thread go first); its result is ignored.
     """
     robust, f_scale, max_nfev = params.robust, params.f_scale, params.max_nfev
     outlier_sigma, solver = params.outlier_sigma, params.solver
     if graph.num_nodes == 0:
         raise ValueError("the pose graph has no nodes")
     prob = _Problem(graph, robust, f_scale)
+    callback = callback or (lambda: None)
+
+    def evaluate(v: np.ndarray) -> tuple[np.ndarray, scipy.sparse.csr_matrix]:
+        callback()
+        return prob.evaluate(v)
+
     f0, _ = prob.evaluate(prob.x0)
     initial_cost = 0.5 * float(f0 @ f0)
     if prob.num_params == 0 or f0.size == 0:
         x, nfev, success, message, cost = prob.x0, 1, True, "nothing to optimise", initial_cost
     elif solver == "lm":
-        x, nfev, success, message, cost = _levenberg_marquardt(prob, prob.x0, max_nfev, ftol, xtol)
+        x, nfev, success, message, cost = _levenberg_marquardt(prob, prob.x0, max_nfev, ftol, xtol, callback)
     else:
         sol = scipy.optimize.least_squares(
-            lambda v: prob.evaluate(v)[0], prob.x0, jac=lambda v: prob.evaluate(v)[1], method="trf",
+            lambda v: evaluate(v)[0], prob.x0, jac=lambda v: evaluate(v)[1], method="trf",
             tr_solver="lsmr", tr_options={"atol": 1e-10, "btol": 1e-10}, x_scale="jac", ftol=ftol,
             xtol=xtol, gtol=1e-10, max_nfev=max_nfev)
         x, nfev, success, message, cost = sol.x, int(sol.nfev), bool(sol.success), sol.message, float(sol.cost)

@@ -17,6 +17,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
+from collections.abc import Iterator
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -114,7 +115,7 @@ def _fmt_extra(v: Any) -> str:
 
 def format_trajectory_csv(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None) -> str:
     """The text of ``trajectory.csv`` (see :func:`write_trajectory_csv`)."""
-    rows = list(rows)
+    rows = list(rows) if isinstance(rows, Iterator) else rows  # iterated twice
     centre = frame_centre(*frame_size) if frame_size is not None else None
     extra_cols: list[str] = []
     for r in rows:
@@ -240,7 +241,7 @@ def largest_segment(rows: Iterable[PoseRow]) -> int | None:
 def format_tum(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None,
                segment: int | None = None) -> str:
     """The text of ``trajectory.tum`` (see :func:`write_tum`)."""
-    rows = list(rows)
+    rows = list(rows) if isinstance(rows, Iterator) else rows  # iterated twice
     seg = largest_segment(rows) if segment is None else segment
     centre = frame_centre(*frame_size) if frame_size is not None else None
     lines = [f"# t x y z qx qy qz qw | photomap segment {seg}: map pixels, x right, y down, "

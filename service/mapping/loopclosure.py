@@ -42,7 +42,7 @@ from photomap.core.tracking import TrackStep
 from photomap.geo.georef import enu_from_latlon
 from photomap.geometry import scaling, to_h
 from photomap.io.keyframestore import KeyframeStore
-from photomap.mapping.threads import lower_priority
+from photomap.mapping.threads import WorkerFirst, lower_priority
 from photomap.telemetry.samples import TelemetrySample
 
 log = logging.getLogger(__name__)
@@ -183,13 +183,18 @@ class LoopCloser:
     settle_on_priors : bool
         At the end, optimise every segment with telemetry priors even without loop closures
         (stills: chains of few, weak links, that the GPS and altitude of each still hold together).
+    first : WorkerFirst or None
+        The background solves and loop registrations wait at its pause points (before each
+        registration, each evaluation of a solve) while the worker maps a frame.
     """
 
     def __init__(self, store: KeyframeStore, matcher: PairMatcher, frame_size: tuple[int, int],
                  working_scale: float, params: MappingConfig, graph_params: PosegraphConfig,
                  use_priors: bool = False, join_candidates: int = 4, settle_on_priors: bool = False,
-                 lockstep_frames: int | None = None, loop_lockstep_frames: int | None = None) -> None:
+                 lockstep_frames: int | None = None, loop_lockstep_frames: int | None = None,
+                 first: WorkerFirst | None = None) -> None:
         self.store = store
+        self._first = first or WorkerFirst(enabled=False)
         self.matcher = matcher
         self.registrar = matcher.registrar
         self.frame_size = frame_size
@@ -294,7 +299,7 @@ class LoopCloser:
             candidates = graph.loop_candidates()
             if candidates:
                 self._loop_jobs.append((index, index, self._loop_executor.submit(
-                    graph.measure_loops, small, candidates, self._loop_registrar)))
+                    graph.measure_loops, small, candidates, self._loop_registrar, self._first.wait)))
         self._collect_loops()
         return updates + self._polled(keyframe=True)
 
@@ -405,7 +410,7 @@ class LoopCloser:
         if self._executor is None:
             return self._finish(segment, *KeyframeGraph.solve(graph.snapshot(), self.graph_params))
         self._running = (segment, self._executor.submit(KeyframeGraph.solve, graph.snapshot(),
-                                                        self.graph_params))
+                                                        self.graph_params, self._first.wait))
         self._started_frame = self._frame
         return None
 

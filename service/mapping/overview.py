@@ -156,11 +156,13 @@ class Overview:
         return canvas
 
     def write(self, path: str | Path, mosaic: TiledMosaic, max_px: int,
-              later: Callable[[Callable[[], None]], None] | None = None) -> bool:
+              later: Callable[[Callable[[], None]], None] | None = None,
+              pause: Callable[[], None] | None = None) -> bool:
         """Write the preview PNG (atomically) with the thumbnails of the changed tiles refreshed;
         False when the map is empty. The worker only takes the changed tiles (at most
         ``max_tile_bytes``: :meth:`TiledMosaic.tile_image_later`); ``later`` reads them, makes
-        the thumbnails, resizes and encodes elsewhere (a background thread; None: here)."""
+        the thumbnails, resizes and encodes elsewhere (a background thread; None: here),
+        calling ``pause`` before each tile."""
         self._drain()
         taken = []
         budget = self.max_tile_bytes
@@ -181,6 +183,8 @@ class Overview:
 
         def encode() -> None:
             for key, pixels in taken:
+                if pause is not None:
+                    pause()
                 thumb = _thumbnail(pixels(), size)
                 done.put((key, clock, thumb))
                 if thumb is None:

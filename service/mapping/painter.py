@@ -447,7 +447,8 @@ class Painter:
                         log.error("cannot write %s: %s", path, exc)
             (self.rerenderer.later if self.rerenderer is not None else lambda t: t())(guarded)
 
-        return self._seg(segment).overview.write(path, mosaic, max_px, later)
+        return self._seg(segment).overview.write(path, mosaic, max_px, later,
+                                                 self.rerenderer.first.wait if self.rerenderer is not None else None)
 
     def pending(self) -> bool:
         """Tiles waiting for a re-render or a swap, or a job running."""

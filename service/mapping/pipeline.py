@@ -35,7 +35,7 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -66,7 +66,7 @@ from photomap.mapping.outputs import png_placement, remove_sidecars, render_smal
 from photomap.mapping.painter import Painter
 from photomap.mapping.rerender import Rerenderer
 from photomap.mapping.telemetry_join import TelemetryJoin
-from photomap.mapping.threads import lower_priority, switch_interval
+from photomap.mapping.threads import WorkerFirst, lower_priority, switch_interval
 from photomap.mapping.timing import StageTimes
 
 log = logging.getLogger(__name__)
@@ -252,6 +252,9 @@ class MappingPipeline:
         self.tracker: Tracker | None = None
         self.loops: LoopCloser | None = None
         self._stop = threading.Event()
+        # live: the background threads' Python code waits while the worker maps a frame (a replay
+        # has no frame deadline: throughput first)
+        self._first = WorkerFirst(enabled=source.live)
         self._next_index = 0
         self._started = 0.0
         self._last_checkpoint = 0.0
@@ -302,7 +305,8 @@ class MappingPipeline:
                                                                     timing=self.stats.timing)
             try:
                 for frame in frames:  # after stop(), the frames already queued are drained
-                    self._process(frame)
+                    with self._first.frame():
+                        self._process(frame)
             except BaseException as exc:  # reported by run(), after the outputs are written
                 failure.append(exc)
             finally:
@@ -365,10 +369,11 @@ class MappingPipeline:
                                     f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None,
                                     settle_on_priors=self.telemetry is not None and self.telemetry.mode == "stills",
                                     lockstep_frames=None if self.source.live else _LOCKSTEP_FRAMES,
-                                    loop_lockstep_frames=_LOOP_LOCKSTEP_FRAMES)
+                                    loop_lockstep_frames=_LOOP_LOCKSTEP_FRAMES, first=self._first)
         # the painter's background thread: kept images, re-renders after corrections, previews
         self._painter = Painter(self.frame_size, self.cfg.mosaic.tile_size,
-                                rerenderer=Rerenderer(store, self.cfg.mosaic), keep=self.loops is not None,
+                                rerenderer=Rerenderer(store, self.cfg.mosaic, first=self._first),
+                                keep=self.loops is not None,
                                 whole_frames=mapping.paint == "every",
                                 lockstep_frames=None if self.source.live else _LOCKSTEP_FRAMES)
 
@@ -725,8 +730,9 @@ class MappingPipeline:
             return 0.0  # stills timed by their EXIF capture time
         return getattr(self.source, "creation_time", None)
 
-    def _write_trajectory(self, rows: list[PoseRow] | None = None) -> None:
-        """``trajectory.csv`` and ``trajectory.tum`` of ``rows`` (default: the rows now)."""
+    def _write_trajectory(self, rows: Iterable[PoseRow] | None = None) -> None:
+        """``trajectory.csv`` and ``trajectory.tum`` of ``rows`` (default: the rows now; iterated
+        several times)."""
         if self.frame_size is None:
             return
         rows = self._rows if rows is None else rows
@@ -750,8 +756,9 @@ class MappingPipeline:
 
         def write() -> None:
             if fields is not None:
-                rows = [PoseRow(f, t, M, c, status, seg, dict(extra)) for f, t, M, c, status, seg, extra in fields]
-                self._attempt("trajectory.csv", self._write_trajectory, rows)
+                rows = [PoseRow(f, t, M, c, status, seg, dict(extra))
+                        for f, t, M, c, status, seg, extra in self._first.paced(fields)]
+                self._attempt("trajectory.csv", self._write_trajectory, self._first.paced(rows))
             self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
             release_free_memory()
 

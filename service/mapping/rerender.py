@@ -29,7 +29,7 @@ from photomap.config import MosaicConfig
 from photomap.core.mosaic import Tile, TiledMosaic, TileKey
 from photomap.errors import PhotomapError
 from photomap.io.keyframestore import KeyframeStore
-from photomap.mapping.threads import BACKGROUND_NICE, lower_priority
+from photomap.mapping.threads import BACKGROUND_NICE, WorkerFirst, lower_priority
 
 log = logging.getLogger(__name__)
 
@@ -114,12 +114,16 @@ class Rerenderer:
         beyond this many bytes (at least 2 frames). A loop-closure correction re-renders its
         tiles from every kept frame over them, strip after strip: with 2 frames held, each
         strip decoded its frames' JPEGs again (0.4 ms a 320x240 frame, 10x that at 1080p).
+    first : WorkerFirst or None
+        The thread waits at its pause points (before each task, each kept frame of a strip)
+        while the worker maps a frame; None: never.
     """
 
     def __init__(self, store: KeyframeStore | None, params: MosaicConfig, *, strip_tiles: int = 32,
                  max_pending_writes: int = 4, max_done: int = 1, nice: int = BACKGROUND_NICE,
-                 cache_bytes: int = 32 << 20) -> None:
+                 cache_bytes: int = 32 << 20, first: WorkerFirst | None = None) -> None:
         self.store = store
+        self.first = first or WorkerFirst(enabled=False)  # its pause points: each task, each frame of a strip
         self.params = replace(params, max_tiles_in_memory=None)  # a scratch map never spills
         self.strip_tiles = max(1, int(strip_tiles))
         self.max_pending_writes = max(1, int(max_pending_writes))
@@ -238,6 +242,7 @@ class Rerenderer:
                     return  # closing, nothing left to write
                 self._active += 1
             try:
+                self.first.wait()
                 if task[0] == "write":
                     task[1]()
                 else:
@@ -297,6 +302,7 @@ class Rerenderer:
             clip = [r for r in rects if x0 < r[0] + r[2] and r[0] < x1 and y0 < r[1] + r[3] and r[1] < y1]
             if not clip:
                 continue
+            self.first.wait()
             image, mask = self._image(frame.index)
             if image is None:
                 continue

@@ -22,9 +22,11 @@ import contextlib
 import os
 import sys
 import threading
-from typing import Iterator
+from typing import Callable, Iterable, Iterator, TypeVar
 
-__all__ = ["SWITCH_INTERVAL_S", "BACKGROUND_NICE", "lower_priority", "switch_interval"]
+__all__ = ["SWITCH_INTERVAL_S", "BACKGROUND_NICE", "WorkerFirst", "lower_priority", "switch_interval"]
+
+T = TypeVar("T")
 
 SWITCH_INTERVAL_S = 0.0002  # seconds (Python's default: 0.005)
 BACKGROUND_NICE = 10  # added to the nice value of threads whose work can wait
@@ -48,3 +50,62 @@ def switch_interval(seconds: float = SWITCH_INTERVAL_S) -> Iterator[None]:
         yield
     finally:
         sys.setswitchinterval(old)
+
+
+class WorkerFirst:
+    """The worker's frames before the background threads' Python code.
+
+    The worker maps each frame inside ``with first.frame():``. A background thread calls
+    :meth:`wait` between the steps of its work (a kept frame of a re-render strip, a loop
+    registration, an iteration of a pose-graph solve, a few hundred trajectory rows): it returns
+    at once while the worker is between frames (reading the camera), else when the worker's
+    frame is done, or after ``max_wait_s`` (a worker that is never between frames cannot starve
+    the background; its work then goes on slowly). The background's C calls (warps, FFTs, PNG
+    encoding, sparse solves) run on regardless; what waits is its Python code, which holds the
+    interpreter between them: each time the worker takes the GIL back from a thread running
+    Python, it waits up to a switch interval, and a frame does hundreds of such take-backs
+    (300 small OpenCV calls: 0.7 ms alone, 14 ms beside one Python-busy thread, 80-110 ms beside
+    two at a 1 ms interval). With ``enabled=False`` (a replay: no frame deadline, throughput
+    first) :meth:`wait` returns at once; so does a wait in the worker's own thread (background
+    work it does itself when a background thread is behind).
+    """
+
+    def __init__(self, enabled: bool = True, max_wait_s: float = 0.1) -> None:
+        self.enabled = enabled
+        self.max_wait_s = max_wait_s
+        self._between = threading.Event()  # set while the worker is between frames
+        self._between.set()
+        self._worker: int | None = None  # thread id of the worker (the last to enter frame())
+
+    @contextlib.contextmanager
+    def frame(self) -> Iterator[None]:
+        """The worker maps a frame inside this block."""
+        self._worker = threading.get_ident()
+        self._between.clear()
+        try:
+            yield
+        finally:
+            self._between.set()
+
+    def wait(self) -> None:
+        """A background thread's pause point (see the class docstring); no wait when disabled."""
+        if self.enabled and not self._between.is_set() and threading.get_ident() != self._worker:
+            self._between.wait(self.max_wait_s)
+
+    def paced(self, items: Iterable[T], every: int = 256) -> Iterable[T]:
+        """A view of ``items`` that :meth:`wait`\ s before each ``every`` of them, each time it is
+        iterated (as often as ``items`` can be)."""
+        return _Paced(items, self.wait, every)
+
+
+class _Paced(Iterable[T]):
+    """See :meth:`WorkerFirst.paced`."""
+
+    def __init__(self, items: Iterable[T], wait: Callable[[], None], every: int) -> None:
+        self._items, self._wait, self._every = items, wait, max(1, int(every))
+
+    def __iter__(self) -> Iterator[T]:
+        for i, item in enumerate(self._items):
+            if i % self._every == 0:
+                self._wait()
+            yield item
