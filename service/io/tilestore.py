@@ -38,6 +38,10 @@ TileArrays = dict[str, np.ndarray]
 __all__ = ["TileStore", "MemoryTileStore", "DiskTileStore", "WriteBehindTileStore"]
 
 _NAME = re.compile(r"^tile_(-?\d+)_(-?\d+)\.npz$")
+# np.load parses each array's header with ast.literal_eval; in CPython 3.11 two threads parsing
+# at once can fail with "SystemError: AST constructor recursion depth mismatch" (cpython
+# gh-106905; seen on the long flight: the worker and the tile writer's read-ahead): one read at a time
+_READ_LOCK = threading.Lock()
 
 
 class MemoryTileStore:
@@ -100,7 +104,7 @@ class DiskTileStore:
     def get(self, key: TileKey) -> TileArrays | None:
         path = self._path(key)
         try:
-            with np.load(path, allow_pickle=False) as z:
+            with _READ_LOCK, np.load(path, allow_pickle=False) as z:
                 return {name: z[name] for name in z.files}
         except FileNotFoundError:
             return None
