@@ -93,7 +93,7 @@ class WorkerFirst:
             self._between.wait(self.max_wait_s)
 
     def paced(self, items: Iterable[T], every: int = 256) -> Iterable[T]:
-        """A view of ``items`` that :meth:`wait`\ s before each ``every`` of them, each time it is
+        """A view of ``items`` that calls :meth:`wait` before each ``every`` of them, each time it is
         iterated (as often as ``items`` can be)."""
         return _Paced(items, self.wait, every)
 
