@@ -173,6 +173,35 @@ def test_checkpoints_during_the_run(aukerman, tmp_path):
     assert not (tmp_path / "preview.png").exists()
 
 
+def test_checkpoint_files_take_a_bounded_share_of_the_writers_time(aukerman, tmp_path, monkeypatch):
+    """A long flight's rows take seconds to write: after a write that took 1 s the next
+    checkpoint's files wait 9 s (``_WRITER_SHARE`` 0.1), whatever the checkpoint interval."""
+    from photomap.mapping import pipeline as pipeline_module
+
+    seq = fly(*aukerman, 40, 9)
+    real = pipeline_module.write_trajectory_csv
+    slow_calls = []
+
+    def slow(path, rows, frame_size=None):
+        rows = list(rows)
+        if len(rows) < len(seq.frames):  # a checkpoint's
+            slow_calls.append(len(rows))
+            time.sleep(1.0)
+        real(path, rows, frame_size)
+
+    class Paced(ListSource):
+        def __iter__(self):
+            for frame in super().__iter__():
+                time.sleep(0.05)  # 2 s of frames: room for 2 writes and their rests without the bound
+                yield frame
+
+    monkeypatch.setattr(pipeline_module, "write_trajectory_csv", slow)
+    cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
+    MappingPipeline(Paced(seq.frames), cfg, tmp_path).run()
+    assert len(slow_calls) == 1
+    assert len(read_trajectory_csv(tmp_path / "trajectory.csv")) == len(seq.frames)
+
+
 def test_a_slow_checkpoint_trajectory_never_lands_after_the_final_one(aukerman, tmp_path, monkeypatch):
     """Checkpoint copies of trajectory.csv are written by a background thread from a copy of the
     rows; the final file (written by finish) always has every frame, however slow that thread."""

@@ -76,6 +76,7 @@ _END = object()
 # most every this many frames, swapped in (a pose-graph solve applied) this many frames after it
 # started, so that the same input makes the same map on any machine.
 _LOCKSTEP_FRAMES = 30
+_WRITER_SHARE = 0.1  # a checkpoint's files (whose rows grow with the flight) take at most this share of the time
 _LOOP_LOCKSTEP_FRAMES = 8  # ... and a new keyframe's loop registrations (a few ms each) join its graph
 
 
@@ -270,6 +271,7 @@ class MappingPipeline:
         # and run.json are written by this thread; the worker hands it the rows' fields
         self._writer: ThreadPoolExecutor | None = None
         self._checkpoint_files: Future | None = None
+        self._files_due = 0.0  # monotonic s: the next checkpoint's files not before (_WRITER_SHARE)
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
         self._segment_start: dict[int, int] = {}  # segment -> position in the rows where it started
         self._kept: set[int] = set()  # segments known to hold more than one posed frame
@@ -744,8 +746,12 @@ class MappingPipeline:
         """A checkpoint's files, written by the writer thread: the trajectory (from the rows'
         fields as of now), then ``run.json``, then the heap's free memory handed back to the
         system. The worker goes on; while the previous checkpoint's are still being written, this
-        one's are skipped (the next has newer ones)."""
+        one's are skipped (the next has newer ones), and so are those due before the writer has
+        rested 1 / ``_WRITER_SHARE`` - 1 times as long as the last write took (an hour's rows take
+        seconds to write)."""
         if self._checkpoint_files is not None and not self._checkpoint_files.done():
+            return
+        if time.monotonic() < self._files_due:
             return
         if self._writer is None:
             self._writer = ThreadPoolExecutor(1, "photomap-writer", initializer=lower_priority)
@@ -755,12 +761,15 @@ class MappingPipeline:
                   if self.frame_size is not None else None)
 
         def write() -> None:
+            started = time.monotonic()
             if fields is not None:
                 rows = [PoseRow(f, t, M, c, status, seg, dict(extra))
                         for f, t, M, c, status, seg, extra in self._first.paced(fields)]
                 self._attempt("trajectory.csv", self._write_trajectory, self._first.paced(rows))
             self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
             release_free_memory()
+            done = time.monotonic()
+            self._files_due = done + (done - started) * (1.0 / _WRITER_SHARE - 1.0)
 
         self._checkpoint_files = self._writer.submit(write)
 
