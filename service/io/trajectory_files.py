@@ -16,8 +16,8 @@ import logging
 import math
 import os
 import tempfile
-from pathlib import Path
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np

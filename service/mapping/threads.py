@@ -67,7 +67,9 @@ class WorkerFirst:
     (300 small OpenCV calls: 0.7 ms alone, 14 ms beside one Python-busy thread, 80-110 ms beside
     two at a 1 ms interval). With ``enabled=False`` (a replay: no frame deadline, throughput
     first) :meth:`wait` returns at once; so does a wait in the worker's own thread (background
-    work it does itself when a background thread is behind).
+    work it does itself when a background thread is behind). The worker must not block on a
+    background job inside :meth:`frame` (the job would wait at each pause point): it waits for
+    them at the end of the run, or in a replay, whose gate is disabled.
     """
 
     def __init__(self, enabled: bool = True, max_wait_s: float = 0.1) -> None:
