@@ -747,8 +747,8 @@ class MappingPipeline:
         fields as of now), then ``run.json``, then the heap's free memory handed back to the
         system. The worker goes on; while the previous checkpoint's are still being written, this
         one's are skipped (the next has newer ones), and so are those due before the writer has
-        rested 1 / ``_WRITER_SHARE`` - 1 times as long as the last write took (an hour's rows take
-        seconds to write)."""
+        rested 1 / ``_WRITER_SHARE`` - 1 times as long as the last trajectory took to write (an
+        hour's rows take seconds)."""
         if self._checkpoint_files is not None and not self._checkpoint_files.done():
             return
         if time.monotonic() < self._files_due:
@@ -761,15 +761,15 @@ class MappingPipeline:
                   if self.frame_size is not None else None)
 
         def write() -> None:
-            started = time.monotonic()
             if fields is not None:
+                started = time.monotonic()
                 rows = [PoseRow(f, t, M, c, status, seg, dict(extra))
                         for f, t, M, c, status, seg, extra in self._first.paced(fields)]
                 self._attempt("trajectory.csv", self._write_trajectory, self._first.paced(rows))
+                done = time.monotonic()
+                self._files_due = done + (done - started) * (1.0 / _WRITER_SHARE - 1.0)
             self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
             release_free_memory()
-            done = time.monotonic()
-            self._files_due = done + (done - started) * (1.0 / _WRITER_SHARE - 1.0)
 
         self._checkpoint_files = self._writer.submit(write)
 
