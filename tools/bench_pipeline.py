@@ -21,7 +21,8 @@ with us. This tool measures under the same kind of conditions:
 4. *Long flight*: ``--long-frames`` (10,000) frames of 1920x1080 rendered one by one from a
    lawn-mower flight (revisits: loop closures and re-renders) into an in-memory source, mapped in a
    fresh process with the onboard tile cap (``mosaic.max_tiles_in_memory``); RSS sampled every
-   50 ms (psutil): peak, the slope after the first 10 % of the frames (KB per frame), and the
+   50 ms (psutil): peak, the slope after the first 10 % of the frames (KB per frame; a
+   straight-line fit, noisy: the median RSS of each tenth of the flight is written too), and the
    worker's largest stall (longest frame, checkpoint, loop closure, re-render swap).
 
     python -m tools.bench_pipeline [--quick] [--sizes 640x480,1920x1080] [--frames N]
@@ -430,12 +431,14 @@ def memory_run(n_frames: int, overrides: list[str]) -> dict:
                                    None) for pct in (10, 50, 100)}
     late = np.array([(d, r) for d, r in mapping if d >= n_frames / 10], float)
     slope = float(np.polyfit(late[:, 0], late[:, 1], 1)[0]) * 1024.0 if len(late) > 10 else None  # KB/frame
+    tenths = [[r for d, r in mapping if k * n_frames / 10 <= d < (k + 1) * n_frames / 10] for k in range(10)]
     timing = summary.get("timing_ms", {})
     return {"overrides": overrides, "frames": summary["frames_in"], "registered": summary["registered"],
             "segments": summary["segments"], "wall_s": wall, "fps": summary["frames_in"] / wall,
             "rss_start_mb": rss0, "rss_before_mb": before,
             "peak_mapping_mb": max((r for _, r in mapping), default=before),
             "peak_mb": max(rss for _, rss, _ in sampler.samples), "slope_kb_per_frame": slope,
+            "rss_tenths_mb": [float(np.median(t)) if t else None for t in tenths],
             "tiles": tiles, "tiles_in_memory": in_memory, "painting": summary.get("painting"),
             "loop_closure": summary.get("loop_closure"),
             "stall_ms": {k: timing[k]["max"] for k in ("frame", "outputs", "loop_closure", "map_upkeep",
@@ -468,7 +471,9 @@ def memory_table(r: dict) -> list[str]:
         f"({r['tiles_in_memory']}) | {r['rss_start_mb']:.0f} / {r['rss_before_mb']:.0f} MB | {at} MB | "
         f"{r['peak_mapping_mb']:.0f} ({r['peak_mb']:.0f}) MB | "
         f"{'-' if slope is None else f'{slope:.2f}'} KB/frame | {worst:.0f} ms |", "",
-        "Largest worker time (ms): " + ", ".join(f"{k} {v:.0f}" for k, v in stall.items())
+        "Median RSS in each tenth of the flight (MB): "
+        + " / ".join("-" if v is None else f"{v:.0f}" for v in r.get("rss_tenths_mb", [])) + ". "
+        + "Largest worker time (ms): " + ", ".join(f"{k} {v:.0f}" for k, v in stall.items())
         + f". Loop closure: {lc.get('loop_edges', 0)} loop edges, {lc.get('corrections', 0)} corrections, "
         f"{lc.get('joins', 0)} joins; painting: {p.get('whole', 0)} frames whole, {p.get('new_ground', 0)} "
         f"new ground, {p.get('rerender_jobs', 0)} re-render jobs ({p.get('rerendered_tiles', 0)} tiles, "
