@@ -77,6 +77,7 @@ _END = object()
 # started, so that the same input makes the same map on any machine.
 _LOCKSTEP_FRAMES = 30
 _WRITER_SHARE = 0.1  # a checkpoint's files (whose rows grow with the flight) take at most this share of the time
+_WRITER_REST_AFTER_S = 0.05  # ... once the trajectory takes longer than this to write
 _LOOP_LOCKSTEP_FRAMES = 8  # ... and a new keyframe's loop registrations (a few ms each) join its graph
 
 
@@ -747,8 +748,8 @@ class MappingPipeline:
         fields as of now), then ``run.json``, then the heap's free memory handed back to the
         system. The worker goes on; while the previous checkpoint's are still being written, this
         one's are skipped (the next has newer ones), and so are those due before the writer has
-        rested 1 / ``_WRITER_SHARE`` - 1 times as long as the last trajectory took to write (an
-        hour's rows take seconds)."""
+        rested 1 / ``_WRITER_SHARE`` - 1 times the CPU time the last trajectory took to write, when
+        that was more than ``_WRITER_REST_AFTER_S`` (an hour's rows take seconds)."""
         if self._checkpoint_files is not None and not self._checkpoint_files.done():
             return
         if time.monotonic() < self._files_due:
@@ -762,12 +763,13 @@ class MappingPipeline:
 
         def write() -> None:
             if fields is not None:
-                started = time.monotonic()
+                cpu = time.thread_time()  # the writer's own work (not its waits for the CPU or the worker)
                 rows = [PoseRow(f, t, M, c, status, seg, dict(extra))
                         for f, t, M, c, status, seg, extra in self._first.paced(fields)]
                 self._attempt("trajectory.csv", self._write_trajectory, self._first.paced(rows))
-                done = time.monotonic()
-                self._files_due = done + (done - started) * (1.0 / _WRITER_SHARE - 1.0)
+                took = time.thread_time() - cpu
+                if took > _WRITER_REST_AFTER_S:
+                    self._files_due = time.monotonic() + took * (1.0 / _WRITER_SHARE - 1.0)
             self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
             release_free_memory()
 
