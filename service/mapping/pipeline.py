@@ -846,11 +846,13 @@ class MappingPipeline:
             return
         w, h = self.frame_size
         main = self._largest_segments()[0]
-        rows = [r for r in self._rows if r.glued and r.segment == main and self.telemetry.kept(r.frame)]
-        if len(rows) < self.cfg.georef.min_fixes:
+        glued = np.flatnonzero(self._rows.glued_mask(main))
+        found = [(k, f, s) for k, f in zip(glued.tolist(), self._rows.frames[glued].tolist())
+                 if (s := self.telemetry.kept(f))]
+        if len(found) < self.cfg.georef.min_fixes:
             return
-        fit = self.telemetry.fit_segment(w, h, [np.asarray(r.M) for r in rows],
-                                         [self.telemetry.kept(r.frame) for r in rows], [r.frame for r in rows])
+        fit = self.telemetry.fit_segment(w, h, list(self._rows.poses(np.array([k for k, _, _ in found]))),
+                                         [s for _, _, s in found], [f for _, f, _ in found])
         if fit.geo is None or fit.problem is not None:
             return
         try:

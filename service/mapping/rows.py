@@ -113,7 +113,7 @@ class TrajectoryRows:
         self._n = 0
         self._alloc(max(16, int(capacity)))
         self._extra: list[Mapping] = []
-        self._interned: dict[tuple, Mapping] = {(): _NO_EXTRA}  # shared extras (e.g. {"method": "ifmi"})
+        self._interned: dict[tuple, Mapping] = {}  # shared categorical extras (e.g. {"method": "ifmi"})
 
     def _alloc(self, capacity: int) -> None:
         def grow(old: np.ndarray | None, shape: tuple, dtype, fill) -> np.ndarray:
@@ -131,14 +131,14 @@ class TrajectoryRows:
         self._segment = grow(getattr(self, "_segment", None), (capacity,), np.int32, 0)
 
     def _shared(self, extra: Mapping | None) -> Mapping:
-        """``extra`` as a read-only mapping, shared by every row with equal extras when hashable."""
+        """``extra`` as a read-only mapping; categorical extras (all values strings, e.g. the
+        method) are one mapping shared by every row alike."""
         if not extra:
             return _NO_EXTRA
         items = tuple(extra.items())
-        try:
+        if all(isinstance(v, str) for _, v in items):
             return self._interned.setdefault(items, MappingProxyType(dict(items)))
-        except TypeError:  # unhashable values: a mapping of its own
-            return MappingProxyType(dict(items))
+        return MappingProxyType(dict(items))
 
     def append(self, frame: int, t: float, M: np.ndarray | None, confidence: float = np.nan,
                status: str = "registered", segment: int = 0, extra: Mapping | None = None) -> RowView:
@@ -153,9 +153,6 @@ class TrajectoryRows:
         if M is not None:
             self._M[i] = np.asarray(M, np.float64)[:2]
         self._extra.append(self._shared(extra))
-        # a long run's extras are few distinct ones (the method); beyond, stop sharing new ones
-        if len(self._interned) > 4096:
-            self._interned = {(): _NO_EXTRA}
         return RowView(self, i)
 
     def __len__(self) -> int:
@@ -196,7 +193,7 @@ class TrajectoryRows:
         return mask if segment is None else mask & (self._segment[:n] == segment)
 
     def poses(self, mask: np.ndarray) -> np.ndarray:
-        """The poses (k, 2, 3) of the rows selected by ``mask`` (a copy)."""
+        """The poses (k, 2, 3) of the rows selected by ``mask`` ((n,) bool, or row indices; a copy)."""
         return self._M[:self._n][mask].copy()
 
     def confidences(self, mask: np.ndarray) -> np.ndarray:
@@ -261,5 +258,5 @@ class TrajectoryRows:
         other._confidence, other._status = self._confidence[:n].copy(), self._status[:n].copy()
         other._segment = self._segment[:n].copy()
         other._extra = list(self._extra)
-        other._interned = {(): _NO_EXTRA}
+        other._interned = dict(self._interned)
         return other
