@@ -197,15 +197,17 @@ class TrajectoryRows:
         return self._M[:self._n][mask].copy()
 
     def confidences(self, mask: np.ndarray) -> np.ndarray:
+        """The confidences of the rows selected by ``mask`` (a copy)."""
         return self._confidence[:self._n][mask].copy()
 
-    def segment_counts(self, glued: bool = True) -> dict[int, int]:
-        """Rows per segment (glued ones only, by default)."""
-        seg = self._segment[:self._n][self.glued_mask()] if glued else self._segment[:self._n]
+    def segment_counts(self) -> dict[int, int]:
+        """Glued rows per segment."""
+        seg = self._segment[:self._n][self.glued_mask()]
         values, counts = np.unique(seg, return_counts=True)
         return dict(zip(values.tolist(), counts.tolist()))
 
     def status_counts(self) -> dict[str, int]:
+        """Rows per status (every status, zeros included)."""
         counts = np.bincount(self._status[:self._n], minlength=len(STATUSES))
         return {s: int(c) for s, c in zip(STATUSES, counts)}
 
