@@ -723,8 +723,8 @@ class MappingPipeline:
             write_tum(self.out_dir / "trajectory.tum", rows, self.frame_size)
 
     def _write_later(self, summary: dict) -> None:
-        """A checkpoint's files, written by the writer thread: the trajectory (from the rows'
-        fields as of now), then ``run.json``, then the heap's free memory handed back to the
+        """A checkpoint's files, written by the writer thread: the trajectory (from a copy of the
+        rows' columns as of now), then ``run.json``, then the heap's free memory handed back to the
         system. The worker goes on; while the previous checkpoint's are still being written, this
         one's are skipped (the next has newer ones), and so are those due before the writer has
         rested 1 / ``_WRITER_SHARE`` - 1 times the CPU time the last trajectory took to write, when
