@@ -20,7 +20,8 @@ GLUED = frozenset({"reference", "registered"})
 
 @dataclass(slots=True)
 class PoseRow:
-    """One input frame of a run (slots: a long flight keeps one per frame).
+    """One input frame of a run (slots: a reader makes one per row of a file; the mapping worker
+    keeps its rows as columns, :mod:`photomap.mapping.rows`).
 
     Parameters
     ----------
