@@ -174,33 +174,32 @@ def test_checkpoints_during_the_run(aukerman, tmp_path):
 
 
 def test_checkpoint_files_take_a_bounded_share_of_the_writers_time(aukerman, tmp_path, monkeypatch):
-    """A long flight's rows take seconds to write: after a write that took 0.5 s of CPU the next
-    checkpoint's files wait 4.5 s (``_WRITER_SHARE`` 0.1), whatever the checkpoint interval."""
+    """A long flight's rows take seconds to write: after a trajectory write that cost 1000 s of
+    the writer's CPU (a clock that the test moves) the next checkpoint's files wait 9000 s
+    (``_WRITER_SHARE`` 0.1): one checkpoint write in the whole run, whatever the interval."""
+    import types
+
     from photomap.mapping import pipeline as pipeline_module
 
     seq = fly(*aukerman, 40, 9)
     real = pipeline_module.write_trajectory_csv
-    slow_calls = []
+    cpu = [0.0]
+    clock = types.SimpleNamespace(**{name: getattr(time, name) for name in dir(time) if not name.startswith("_")})
+    clock.thread_time = lambda: cpu[0]
+    checkpoint_writes = []
 
-    def slow(path, rows, frame_size=None):
+    def costly(path, rows, frame_size=None):
         rows = list(rows)
         if len(rows) < len(seq.frames):  # a checkpoint's
-            slow_calls.append(len(rows))
-            busy_until = time.thread_time() + 0.5
-            while time.thread_time() < busy_until:  # the writer's own work, not a wait
-                pass
+            checkpoint_writes.append(len(rows))
+            cpu[0] += 1000.0
         real(path, rows, frame_size)
 
-    class Paced(ListSource):
-        def __iter__(self):
-            for frame in super().__iter__():
-                time.sleep(0.05)  # 2 s of frames: room for 2 writes and their rests without the bound
-                yield frame
-
-    monkeypatch.setattr(pipeline_module, "write_trajectory_csv", slow)
+    monkeypatch.setattr(pipeline_module, "time", clock)
+    monkeypatch.setattr(pipeline_module, "write_trajectory_csv", costly)
     cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
-    MappingPipeline(Paced(seq.frames), cfg, tmp_path).run()
-    assert len(slow_calls) == 1
+    MappingPipeline(ListSource(seq.frames), cfg, tmp_path).run()
+    assert len(checkpoint_writes) == 1
     assert len(read_trajectory_csv(tmp_path / "trajectory.csv")) == len(seq.frames)
 
 
