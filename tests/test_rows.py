@@ -69,6 +69,7 @@ def test_a_correction_and_a_join_equal_row_by_row_changes():
         else:
             np.testing.assert_allclose(view.M, obj.M, atol=1e-9)
     assert columns.segment_counts() == {1: sum(r.glued for r in objects)}
+    assert [r.frame for r in columns.glued(1, start=20)] == [r.frame for r in objects[20:] if r.glued]
 
 
 def test_rows_change_through_their_views_and_copies_are_independent():

@@ -448,7 +448,7 @@ class MappingPipeline:
             if seg == current:
                 continue
             if seg not in self._kept:
-                glued = [r for r in self._rows[self._segment_start.get(seg, 0):] if r.segment == seg and r.glued]
+                glued = self._rows.glued(seg, self._segment_start.get(seg, 0))
                 if len(glued) <= 1:
                     self._drop_segment(seg, glued)
                     continue
@@ -867,11 +867,11 @@ class MappingPipeline:
         join = self.telemetry
         w, h = self.frame_size or (0, 0)
         main = maps[0]["segment"] if maps else 0
-        posed = [r for r in self._rows if r.glued and r.segment == main]
+        posed = self._rows.glued(main)
         check = join.time_offset_check([r.t for r in posed], [pose_angle_deg(np.asarray(r.M)) for r in posed])
         fits = {}
         for info in maps:
-            rows = [r for r in self._rows if r.glued and r.segment == info["segment"] and join.kept(r.frame)]
+            rows = [r for r in self._rows.glued(info["segment"]) if join.kept(r.frame)]
             fits[info["segment"]] = join.fit_segment(w, h, [np.asarray(r.M) for r in rows],
                                                      [join.kept(r.frame) for r in rows], [r.frame for r in rows])
         trusted = join.verdict(check, fits.get(main)) == "ok"
@@ -890,7 +890,7 @@ class MappingPipeline:
                               "gps_rms_m": geo.rms_m, "scale_source": geo.scale_source,
                               "world_file": world_file})
                 centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
-                rows = [r for r in self._rows if r.glued and r.segment == seg]
+                rows = self._rows.glued(seg)
                 if rows:  # all at once (one row at a time: 0.17 s a 1000-frame flight)
                     lat, lon = geo.to_latlon(np.array([np.asarray(r.M) @ centre for r in rows]))
                     for r, la, lo in zip(rows, lat.tolist(), lon.tolist()):

@@ -192,6 +192,10 @@ class TrajectoryRows:
         mask = self._posed[:n] & _GLUED_CODES[self._status[:n]]
         return mask if segment is None else mask & (self._segment[:n] == segment)
 
+    def glued(self, segment: int, start: int = 0) -> list[RowView]:
+        """The rows of ``segment`` whose pose is part of its map, from row ``start`` on."""
+        return [RowView(self, k) for k in (start + np.flatnonzero(self.glued_mask(segment)[start:])).tolist()]
+
     def poses(self, mask: np.ndarray) -> np.ndarray:
         """The poses (k, 2, 3) of the rows selected by ``mask`` ((n,) bool, or row indices; a copy)."""
         return self._M[:self._n][mask].copy()
