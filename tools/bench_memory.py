@@ -41,7 +41,7 @@ sys.path.insert(0, str(REPO))
 from photomap.config import load_config  # noqa: E402
 from photomap.drivers.frames import CaptureStats, Frame, SourceBase  # noqa: E402
 from photomap.mapping.pipeline import MappingPipeline  # noqa: E402
-from tools.bench_pipeline import MB, SEED, RssSampler, SimulatedSource, long_flight  # noqa: E402
+from tools.bench_pipeline import MB, RssSampler, SimulatedSource  # noqa: E402
 
 ONBOARD = REPO / "config" / "photomap-onboard.yaml"
 
@@ -85,8 +85,7 @@ def run_case(case: str, n: int, config: str | None, overrides: list[str]) -> dic
 
     rss0 = psutil.Process().memory_info().rss / MB
     if case == "flight":
-        terrain, truth, camera = long_flight(n)
-        source = SimulatedSource(terrain, truth, camera, seed=SEED)
+        source = SimulatedSource(n)
     else:
         source = BlackSource(n)
     cfg = load_config(config, overrides)
@@ -119,8 +118,7 @@ def records_growth(n: int, config: str | None, overrides: list[str]) -> dict:
     (tracemalloc; tiles are bounded by ``mosaic.max_tiles_in_memory``, records are not)."""
     import tracemalloc
 
-    terrain, truth, camera = long_flight(n)
-    source = SimulatedSource(terrain, truth, camera, seed=SEED)
+    source = SimulatedSource(n)
     cfg = load_config(config, overrides)
     snaps = {}
 

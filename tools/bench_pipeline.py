@@ -330,38 +330,64 @@ def live_run(video: Path, out: Path, fps: float, busy: bool) -> dict:
 # --------------------------------------------------------------------------- (4) long flight
 
 class SimulatedSource(SourceBase):
-    """Frames of a planned flight, rendered one at a time as they are consumed (never drops).
+    """The frames of :func:`long_flight`, rendered one at a time in a child process and handed
+    over as fresh uint8 BGR arrays, one per frame (never drops).
 
-    ``Frame.t`` is the flight time ``truth.t`` (seconds from frame 0). ``live`` as on the drone:
-    the worker never waits for its background threads (a replay of a file runs them in lockstep
-    with the frames instead, for identical maps; its waits are not the drone's stalls).
+    What a camera driver hands the service: the renderer's terrain, pyramid and float32 working
+    arrays (24 MB each at 1080p, several per frame) stay in the child, as the camera, decoder
+    and encoder are other processes on the drone; the measured process holds only the product.
+    The child renders at most a frame ahead of the consumer (the pipe's buffer). ``Frame.t`` is
+    the flight time ``truth.t`` (s from frame 0). ``live`` as on the drone: the worker never
+    waits for its background threads (a replay of a file runs them in lockstep with the frames
+    instead, for identical maps; its waits are not the drone's stalls).
     """
 
     live = True
 
-    def __init__(self, terrain: np.ndarray, truth: Truth, camera: Camera, effects: Effects | None = None,
-                 seed: int = 0) -> None:
+    def __init__(self, n_frames: int, size: tuple[int, int] = LONG_SIZE, seed: int = SEED) -> None:
         self.stats = CaptureStats()
-        self._terrain, self._truth, self._camera = terrain, truth, camera
-        self._effects = effects or Effects()
-        self._seed = seed
-        self._pyramid = build_pyramid(terrain, float(truth.scale.max()) * 1.2)
+        self._n, self._size, self._seed = n_frames, size, seed
         self._closed = False
 
     def __len__(self) -> int:
-        return len(self._truth)
+        return self._n
 
     def __iter__(self) -> Iterator[Frame]:
-        frames = iter_frames(self._terrain, self._truth, self._camera, self._effects, self._seed,
-                             pyramid=self._pyramid)
-        for k, image in enumerate(frames):
-            if self._closed:
-                break
-            self.stats.read += 1
-            yield Frame(k, float(self._truth.t[k]), image, "simulated")
+        w, h = self._size
+        code = ("import sys; from tools.bench_pipeline import _render_long_flight; "
+                f"_render_long_flight(sys.stdout.buffer, {self._n}, ({w}, {h}), {self._seed})")
+        child = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, stdout=subprocess.PIPE)
+        try:
+            for k in range(self._n):
+                if self._closed:
+                    break
+                header = child.stdout.read(8)
+                image = bytearray(w * h * 3)  # a fresh buffer, as a decoder's
+                if len(header) < 8 or child.stdout.readinto(image) < len(image):
+                    raise RuntimeError(f"the flight renderer stopped at frame {k} (exit code {child.poll()})")
+                self.stats.read += 1
+                yield Frame(k, float(np.frombuffer(header, np.float64)[0]),
+                            np.frombuffer(image, np.uint8).reshape(h, w, 3), "simulated")
+        finally:
+            child.kill()
+            child.wait()
+            child.stdout.close()
 
     def close(self) -> None:
         self._closed = True
+
+
+def _render_long_flight(out, n_frames: int, size: tuple[int, int], seed: int) -> None:
+    """The child of :class:`SimulatedSource`: writes each frame to ``out`` (a binary stream), its
+    time (float64 s) then its pixels."""
+    terrain, truth, camera = long_flight(n_frames, size, seed)
+    frames = iter_frames(terrain, truth, camera, Effects(), seed,
+                         pyramid=build_pyramid(terrain, float(truth.scale.max()) * 1.2))
+    with contextlib.suppress(BrokenPipeError):  # the consumer stopped early
+        for k, image in enumerate(frames):
+            out.write(np.float64(truth.t[k]).tobytes())
+            out.write(np.ascontiguousarray(image).data)
+        out.flush()
 
 
 class RssSampler:
@@ -411,8 +437,7 @@ def memory_run(n_frames: int, overrides: list[str]) -> dict:
     import psutil
 
     rss0 = psutil.Process().memory_info().rss / MB
-    terrain, truth, camera = long_flight(n_frames)
-    source = SimulatedSource(terrain, truth, camera, seed=SEED)
+    source = SimulatedSource(n_frames)
     cfg = load_config(overrides=overrides)
     with tempfile.TemporaryDirectory(prefix="bench-pipeline-") as tmp, RssSampler() as sampler:
         before = sampler.rss_mb()

@@ -569,20 +569,28 @@ def render_view(pyramid: list[np.ndarray], h: np.ndarray, size: tuple[int, int])
         return np.zeros((fh, fw, 3), np.float32)
     roi = img[y0:y1, x0:x1].astype(np.float32)
     if sigma > 0.1:
-        roi = cv2.GaussianBlur(roi, (0, 0), sigma)
+        cv2.GaussianBlur(roi, (0, 0), sigma, dst=roi)
     hr = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ hl
     return cv2.warpPerspective(roi, hr, (fw, fh), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
                                borderMode=cv2.BORDER_REFLECT)
 
 
 def apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator, gain: float = 1.0) -> np.ndarray:
-    """Gain, blur, Gaussian noise, uint8 quantization, optional JPEG round trip (see :class:`Effects`)."""
-    out = img * np.float32(gain) if gain != 1.0 else img
+    """Gain, blur, Gaussian noise, uint8 quantization, optional JPEG round trip (see :class:`Effects`).
+
+    ``img`` (float32 BGR) is left unchanged; the arithmetic runs in place on one working copy
+    (a 1080p frame is 24 MB as float32: a long simulated flight would otherwise churn the heap
+    with several of them per frame)."""
+    out = np.multiply(img, np.float32(gain), dtype=np.float32)  # the working copy
     if effects.blur > 0:
-        out = cv2.GaussianBlur(out, (0, 0), effects.blur)
+        cv2.GaussianBlur(out, (0, 0), effects.blur, dst=out)
     if effects.noise > 0:
-        out = out + rng.standard_normal(out.shape, dtype=np.float32) * np.float32(effects.noise)
-    out = np.clip(out + 0.5, 0, 255).astype(np.uint8)
+        noise = rng.standard_normal(out.shape, dtype=np.float32)
+        noise *= np.float32(effects.noise)
+        out += noise
+        del noise
+    out += np.float32(0.5)
+    out = np.clip(out, 0, 255, out=out).astype(np.uint8)
     if effects.jpeg_quality > 0:
         ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(effects.jpeg_quality)])
         out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
