@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from photomap.core.records import PoseRow
+from photomap.io.trackfiles import track_features
 from photomap.io.trajectory_files import format_trajectory_csv, format_tum
 from photomap.mapping.rows import TrajectoryRows
 
@@ -39,6 +40,12 @@ def test_views_write_the_same_files_as_pose_rows():
     assert len(columns) == len(objects) == 50
     assert format_trajectory_csv(columns, (320, 240)) == format_trajectory_csv(objects, (320, 240))
     assert format_tum(columns, (320, 240)) == format_tum(objects, (320, 240))
+    georefs = {0: (np.array([[0.1, 0.0, 500000.0], [0.0, -0.1, 4000000.0]]), 32617),
+               1: (np.array([[0.1, 0.0, 500300.0], [0.0, -0.1, 4000000.0]]), 32617)}
+    for mode in ("spaced", "all"):  # footprints too (views are new objects at each pass over the rows)
+        feats = track_features(columns, (320, 240), georefs, footprints=mode)
+        assert feats == track_features(objects, (320, 240), georefs, footprints=mode)
+        assert sum(f["properties"]["kind"] == "footprint" for f in feats) > 2
     for obj, view in zip(objects, columns):
         assert (view.frame, view.status, view.segment, view.glued) == (obj.frame, obj.status, obj.segment, obj.glued)
         assert (view.M is None) == (obj.M is None)

@@ -188,6 +188,7 @@ def track_features(rows: Sequence[PoseRow], frame_size: tuple[int, int], georefs
         raise InputError("track files need the frame size (w, h)")
     w, h = int(frame_size[0]), int(frame_size[1])
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+    rows = list(rows)  # the same row objects on every pass (TrajectoryRows makes new views each time)
     chosen = {id(r) for r in select_footprints(rows, (w, h), footprints)}
     feats: list[dict] = []
     for seg in sorted(georefs):

@@ -35,7 +35,7 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -724,11 +724,12 @@ class MappingPipeline:
 
     def _write_later(self, summary: dict) -> None:
         """A checkpoint's files, written by the writer thread: the trajectory (from a copy of the
-        rows' columns as of now), then ``run.json``, then the heap's free memory handed back to the
-        system. The worker goes on; while the previous checkpoint's are still being written, this
-        one's are skipped (the next has newer ones), and so are those due before the writer has
-        rested 1 / ``_WRITER_SHARE`` - 1 times the CPU time the last trajectory took to write, when
-        that was more than ``_WRITER_REST_AFTER_S`` (an hour's rows take seconds)."""
+        rows' columns as of now), then ``run.json``, then the live track (with telemetry), then the
+        heap's free memory handed back to the system. The worker goes on; while the previous
+        checkpoint's are still being written, this one's are skipped (the next has newer ones), and
+        so are those due before the writer has rested 1 / ``_WRITER_SHARE`` - 1 times the CPU time
+        the last ones took to write, when that was more than ``_WRITER_REST_AFTER_S`` (an hour's
+        rows take seconds)."""
         if self._checkpoint_files is not None and not self._checkpoint_files.done():
             return
         if time.monotonic() < self._files_due:
@@ -737,15 +738,18 @@ class MappingPipeline:
             self._writer = ThreadPoolExecutor(1, "photomap-writer", initializer=lower_priority)
         # the rows as of now: a copy of their columns (their extras are never changed in place)
         rows = self._rows.copy() if self.frame_size is not None else None
+        track = self._live_track(rows, summary)
 
         def write() -> None:
+            cpu = time.thread_time()  # the writer's own work (not its waits for the CPU or the worker)
             if rows is not None:
-                cpu = time.thread_time()  # the writer's own work (not its waits for the CPU or the worker)
                 self._attempt("trajectory.csv", self._write_trajectory, self._first.paced(rows))
-                took = time.thread_time() - cpu
-                if took > _WRITER_REST_AFTER_S:
-                    self._files_due = time.monotonic() + took * (1.0 / _WRITER_SHARE - 1.0)
             self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
+            if track is not None:
+                track()
+            took = time.thread_time() - cpu
+            if took > _WRITER_REST_AFTER_S:
+                self._files_due = time.monotonic() + took * (1.0 / _WRITER_SHARE - 1.0)
             release_free_memory()
 
         self._checkpoint_files = self._writer.submit(write)
@@ -837,29 +841,37 @@ class MappingPipeline:
         if self._state is not None:
             summary["checkpoint"] = self._state.summary()
         self._write_later(summary)
-        self._live_track(summary)
 
-    def _live_track(self, summary: dict) -> None:
-        """Rewrite track.kml / track.geojson from the main map's current GPS fit (a ground
-        station that reloads them sees the coverage grow); nothing while the GPS does not fit."""
-        if self.telemetry is None or not self.mosaics or self.telemetry.stats.stopped_at_frame is not None:
-            return
-        w, h = self.frame_size
-        main = self._largest_segments()[0]
-        glued = np.flatnonzero(self._rows.glued_mask(main))
-        found = [(k, f, s) for k, f in zip(glued.tolist(), self._rows.frames[glued].tolist())
-                 if (s := self.telemetry.kept(f))]
-        if len(found) < self.cfg.georef.min_fixes:
-            return
-        fit = self.telemetry.fit_segment(w, h, list(self._rows.poses(np.array([k for k, _, _ in found]))),
-                                         [s for _, _, s in found], [f for _, f, _ in found])
-        if fit.geo is None or fit.problem is not None:
-            return
-        try:
-            refresh_track_files(self.out_dir, self._rows, self.frame_size, {main: (fit.geo.map_to_crs[:2], fit.geo.epsg)},
-                                t0_unix=summary.get("video_start_unix"), footprints=self.cfg.output.footprints)
-        except (OSError, PhotomapError) as exc:
-            log.warning("track files not refreshed: %s", exc)
+    def _live_track(self, rows: TrajectoryRows | None, summary: dict) -> Callable[[], None] | None:
+        """The writer's job that rewrites track.kml / track.geojson from the main map's current
+        GPS fit (a ground station that reloads them sees the coverage grow), or None when there
+        is no telemetry. It reads ``rows`` (the checkpoint's copy) and the telemetry join's kept
+        samples (each frame's is set once, by the worker, before its row exists): O(rows) work
+        (an hour's fit and files take seconds) off the worker. Nothing while the GPS does not fit."""
+        join = self.telemetry
+        if rows is None or join is None or not self.mosaics or join.stats.stopped_at_frame is not None:
+            return None
+        main, (w, h) = self._largest_segments()[0], self.frame_size
+        min_fixes, footprints = self.cfg.georef.min_fixes, self.cfg.output.footprints
+
+        def refresh() -> None:
+            glued = np.flatnonzero(rows.glued_mask(main))
+            found = [(k, f, s) for k, f in self._first.paced(zip(glued.tolist(), rows.frames[glued].tolist()))
+                     if (s := join.kept(f))]
+            if len(found) < min_fixes:
+                return
+            fit = join.fit_segment(w, h, list(rows.poses(np.array([k for k, _, _ in found]))),
+                                   [s for _, _, s in found], [f for _, f, _ in found])
+            if fit.geo is None or fit.problem is not None:
+                return
+            try:
+                refresh_track_files(self.out_dir, self._first.paced(rows), (w, h),
+                                    {main: (fit.geo.map_to_crs[:2], fit.geo.epsg)},
+                                    t0_unix=summary.get("video_start_unix"), footprints=footprints)
+            except (OSError, PhotomapError) as exc:
+                log.warning("track files not refreshed: %s", exc)
+
+        return refresh
 
     def _georeference(self, summary: dict, maps: list[dict]) -> None:
         """Metric scale and georeference per segment, world files beside the mosaics, when the
