@@ -60,7 +60,7 @@ from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
-from photomap.mapping.memory import frozen_heap, limit_heap_growth, release_free_memory
+from photomap.mapping.memory import frozen_heap, limit_heap_growth, trimmed_heap
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
 from photomap.mapping.rerender import Rerenderer
@@ -326,7 +326,8 @@ class MappingPipeline:
         if self.cfg.mapping.opencv_threads > 0:
             cv2.setNumThreads(self.cfg.mapping.opencv_threads)
         try:
-            with threadpool_limits(limits=1, user_api="blas"), switch_interval(), frozen_heap():
+            with threadpool_limits(limits=1, user_api="blas"), switch_interval(), frozen_heap(), \
+                    trimmed_heap(wait=self._first.wait):
                 worker = threading.Thread(target=work, name="photomap-worker", daemon=True)
                 worker.start()
                 closed = False
@@ -724,12 +725,11 @@ class MappingPipeline:
 
     def _write_later(self, summary: dict) -> None:
         """A checkpoint's files, written by the writer thread: the trajectory (from a copy of the
-        rows' columns as of now), then ``run.json``, then the live track (with telemetry), then the
-        heap's free memory handed back to the system. The worker goes on; while the previous
-        checkpoint's are still being written, this one's are skipped (the next has newer ones), and
-        so are those due before the writer has rested 1 / ``_WRITER_SHARE`` - 1 times the CPU time
-        the last ones took to write, when that was more than ``_WRITER_REST_AFTER_S`` (an hour's
-        rows take seconds)."""
+        rows' columns as of now), then ``run.json``, then the live track (with telemetry). The
+        worker goes on; while the previous checkpoint's are still being written, this one's are
+        skipped (the next has newer ones), and so are those due before the writer has rested
+        1 / ``_WRITER_SHARE`` - 1 times the CPU time the last ones took to write, when that was
+        more than ``_WRITER_REST_AFTER_S`` (an hour's rows take seconds)."""
         if self._checkpoint_files is not None and not self._checkpoint_files.done():
             return
         if time.monotonic() < self._files_due:
@@ -750,7 +750,6 @@ class MappingPipeline:
             took = time.thread_time() - cpu
             if took > _WRITER_REST_AFTER_S:
                 self._files_due = time.monotonic() + took * (1.0 / _WRITER_SHARE - 1.0)
-            release_free_memory()
 
         self._checkpoint_files = self._writer.submit(write)
 
