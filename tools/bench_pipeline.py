@@ -336,7 +336,9 @@ class SimulatedSource(SourceBase):
     What a camera driver hands the service: the renderer's terrain, pyramid and float32 working
     arrays (24 MB each at 1080p, several per frame) stay in the child, as the camera, decoder
     and encoder are other processes on the drone; the measured process holds only the product.
-    The child renders at most a frame ahead of the consumer (the pipe's buffer). ``Frame.t`` is
+    The child renders a frame when the consumer asks for it and the consumer waits (as it did
+    when the frames were rendered in its own thread: the renderer, far costlier than a camera's
+    capture, never competes with the mapping for the cores). ``Frame.t`` is
     the flight time ``truth.t`` (s from frame 0). ``live`` as on the drone: the worker never
     waits for its background threads (a replay of a file runs them in lockstep with the frames
     instead, for identical maps; its waits are not the drone's stalls).
@@ -355,12 +357,18 @@ class SimulatedSource(SourceBase):
     def __iter__(self) -> Iterator[Frame]:
         w, h = self._size
         code = ("import sys; from tools.bench_pipeline import _render_long_flight; "
-                f"_render_long_flight(sys.stdout.buffer, {self._n}, ({w}, {h}), {self._seed})")
-        child = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, stdout=subprocess.PIPE)
+                f"_render_long_flight(sys.stdin.buffer, sys.stdout.buffer, {self._n}, ({w}, {h}), {self._seed})")
+        child = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, stdin=subprocess.PIPE,
+                                 stdout=subprocess.PIPE)
         try:
             for k in range(self._n):
                 if self._closed:
                     break
+                try:
+                    child.stdin.write(b"\n")  # the next frame, please
+                    child.stdin.flush()
+                except BrokenPipeError:
+                    pass  # reported below
                 header = child.stdout.read(8)
                 image = bytearray(w * h * 3)  # a fresh buffer, as a decoder's
                 if len(header) < 8 or child.stdout.readinto(image) < len(image):
@@ -371,23 +379,28 @@ class SimulatedSource(SourceBase):
         finally:
             child.kill()
             child.wait()
-            child.stdout.close()
+            for pipe in (child.stdin, child.stdout):
+                with contextlib.suppress(OSError):
+                    pipe.close()
 
     def close(self) -> None:
         self._closed = True
 
 
-def _render_long_flight(out, n_frames: int, size: tuple[int, int], seed: int) -> None:
-    """The child of :class:`SimulatedSource`: writes each frame to ``out`` (a binary stream), its
-    time (float64 s) then its pixels."""
+def _render_long_flight(requests, out, n_frames: int, size: tuple[int, int], seed: int) -> None:
+    """The child of :class:`SimulatedSource`: for each line read from ``requests``, writes the
+    next frame to ``out`` (binary streams): its time (float64 s), then its pixels."""
     terrain, truth, camera = long_flight(n_frames, size, seed)
     frames = iter_frames(terrain, truth, camera, Effects(), seed,
                          pyramid=build_pyramid(terrain, float(truth.scale.max()) * 1.2))
     with contextlib.suppress(BrokenPipeError):  # the consumer stopped early
-        for k, image in enumerate(frames):
+        for k in range(n_frames):
+            if not requests.readline():
+                return
+            image = next(frames)
             out.write(np.float64(truth.t[k]).tobytes())
             out.write(np.ascontiguousarray(image).data)
-        out.flush()
+            out.flush()
 
 
 class RssSampler:
