@@ -546,3 +546,31 @@ def procedural_terrain_sand():
     from photomap.sim.terrain import procedural_terrain
 
     return procedural_terrain("sand", (2048, 2048), seed=5)
+
+
+def test_a_doubled_factor_shrinks_the_thumbnails_in_the_background(tmp_path):
+    """When the thumbnails outgrow their budget the factor doubles; the worker shrinks none of
+    them (100 ms for a long flight's map): the next preview's background task does, and the
+    preview shows the map as one made at the new factor from the start."""
+    from photomap.mapping.overview import Overview
+
+    m = flight_map(tile_size=64)
+    ov = Overview(64)  # 32 px thumbnails
+    ov.mark(m.tiles())
+    ov.update(m)
+    n = len(m.tiles())
+    ov.max_pixels = n * 16 * 16  # over budget at 32 px: 16 px
+    tasks, path = [], tmp_path / "preview.png"
+    assert ov.write(path, m, 300, later=tasks.append)
+    assert ov.factor == 4 and {t.shape[0] for t in ov._thumbs.values()} == {32}  # the worker shrank none
+    tasks.pop()()  # the background thread
+    ov.update(m)  # the worker's next call keeps what the background made
+    assert {t.shape[0] for t in ov._thumbs.values()} == {16} and len(ov._thumbs) == n
+    direct = Overview(64, factor=4)
+    direct.mark(m.tiles())
+    direct.update(m)
+    preview, want = cv2.imread(str(path), cv2.IMREAD_UNCHANGED), direct.render(300)
+    assert preview.shape == want.shape
+    covered = (preview[..., 3] == 255) & (want[..., 3] == 255)
+    assert covered.mean() > 0.2
+    assert np.abs(preview.astype(int) - want.astype(int))[covered].max() <= 2  # a shrink of a shrink rounds twice

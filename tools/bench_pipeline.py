@@ -19,8 +19,9 @@ with us. This tool measures under the same kind of conditions:
    frames (as a camera is: :class:`PacedVideoSource`), beside the busy neighbour: frames mapped
    and dropped.
 4. *Long flight*: ``--long-frames`` (10,000) frames of 1920x1080 rendered one by one from a
-   lawn-mower flight (revisits: loop closures and re-renders) into an in-memory source, mapped in a
-   fresh process with the onboard tile cap (``mosaic.max_tiles_in_memory``); RSS sampled every
+   lawn-mower flight (revisits: loop closures and re-renders) by a child process, each handed over
+   as a fresh frame buffer (:class:`SimulatedSource`), mapped in a fresh process with the onboard
+   tile cap (``mosaic.max_tiles_in_memory``); RSS sampled every
    50 ms (psutil): peak, the slope after the first 10 % of the frames (KB per frame; a
    straight-line fit, noisy: the median RSS of each tenth of the flight is written too), and the
    worker's largest stall (longest frame, checkpoint, loop closure, re-render swap).
@@ -593,13 +594,15 @@ def render_report(args: argparse.Namespace, threads: list[str], conds: list[Cond
     if memory:
         lines += ["", "### Long flight: memory and stalls", "",
                   f"{memory['frames']} frames of {LONG_SIZE[0]}x{LONG_SIZE[1]} rendered one by one (`plan_flight` "
-                  "+ `iter_frames`) into an in-memory source: lawn-mower strips over the bundled orthophoto "
+                  "+ `iter_frames`) by a child process, on request, each handed over as a fresh frame buffer "
+                  "(as a camera driver does; the renderer's terrain and float arrays are not in the measured "
+                  "process): lawn-mower strips over the bundled orthophoto "
                   f"(4212x3240 terrain px at 0.1125 m/px), {LONG_MOTION['speed']:g} m/s at {LONG_FPS:g} fps, "
                   "a closed loop flown again and again (loop closures, re-renders), mapped in a fresh process "
                   f"with `{' '.join(memory['overrides'])}` (as the onboard config) and "
                   f"`{' '.join(f'{k}={v}' for k, v in SERVICE_ENV.items())}` (as the systemd unit). "
-                  "RSS sampled every 50 ms; *before* includes the benchmark's frame generator (terrain and "
-                  "pyramid); the slope is a straight-line fit of RSS against frames after the first 10 %.", ""]
+                  "RSS sampled every 50 ms; the slope is a straight-line fit of RSS against frames after the "
+                  "first 10 %.", ""]
         lines += memory_table(memory)
     return "\n".join(lines) + "\n"
 

@@ -4,7 +4,8 @@ Rendering a preview from the map itself reads every tile (from disk when the map
 7 s for a 750-tile 1080p map on a busy 2-core computer, in the worker. :class:`Overview` keeps one
 thumbnail per map tile, ``factor`` times smaller, refreshed only for the tiles that changed since
 the last preview; when the thumbnails outgrow ``max_pixels`` the factor doubles (each thumbnail
-halves). A preview then costs the changed tiles plus a resize of at most ``max_pixels``; the
+halves, in the background thread at the next preview: shrinking the thumbnails of a 766-tile map
+took the worker 100 ms). A preview then costs the changed tiles plus a resize of at most ``max_pixels``; the
 worker only takes the changed tiles (lent by the map, copy on write), the thumbnails are made
 in a background thread.
 
@@ -105,14 +106,13 @@ class Overview:
         return n
 
     def _install(self, key: TileKey, clock: int, thumb: np.ndarray | None) -> None:
-        """Keep ``thumb`` (None: the tile is empty) unless a thumbnail of newer pixels is in."""
+        """Keep ``thumb`` (None: the tile is empty) unless a thumbnail of newer pixels is in (one
+        made before the factor doubled is kept as it is: the next preview shrinks it)."""
         if self._made.get(key, -1) > clock:
             return
         self._made[key] = clock
         if thumb is None:
             self._thumbs.pop(key, None)
-        elif thumb.shape[0] != self._size:  # made before the factor doubled
-            self._thumbs[key] = _shrink(thumb, self._size)
         else:
             self._thumbs[key] = thumb
 
@@ -127,26 +127,26 @@ class Overview:
         self._fit()
 
     def _fit(self) -> None:
-        """Double the factor while the thumbnails outgrow ``max_pixels``."""
-        t = self._size
-        while len(self._thumbs) * t * t > self.max_pixels and t > 1:
+        """Double the factor while the thumbnails would outgrow ``max_pixels`` at its size (those
+        of an older size are shrunk by the next :meth:`write`, in the background)."""
+        while len(self._thumbs) * self._size ** 2 > self.max_pixels and self._size > 1:
             self.factor *= 2
-            t = self._size
-            self._thumbs = {k: _shrink(v, t) for k, v in self._thumbs.items()}
 
     def render(self, max_px: int) -> np.ndarray | None:
         """The map as one BGRA image of at most ``max_px`` on its longer side (None if empty)."""
         self._drain()
-        return self._render(self._thumbs, max_px) if self._thumbs else None
+        return self._render(self._thumbs, max_px, self._size) if self._thumbs else None
 
     @staticmethod
-    def _render(thumbs: dict[TileKey, np.ndarray], max_px: int) -> np.ndarray:
-        t = next(iter(thumbs.values())).shape[0]
+    def _render(thumbs: dict[TileKey, np.ndarray], max_px: int, t: int) -> np.ndarray:
+        """``thumbs`` side by side (``t`` x ``t`` each; larger ones shrunk), cropped to the
+        covered part and shrunk to at most ``max_px``."""
         keys = np.array(list(thumbs))
         (kx0, ky0), (kx1, ky1) = keys.min(axis=0), keys.max(axis=0)
         canvas = np.zeros(((ky1 - ky0 + 1) * t, (kx1 - kx0 + 1) * t, 4), np.uint8)
         for (kx, ky), thumb in thumbs.items():
-            canvas[(ky - ky0) * t:(ky - ky0 + 1) * t, (kx - kx0) * t:(kx - kx0 + 1) * t] = thumb
+            canvas[(ky - ky0) * t:(ky - ky0 + 1) * t, (kx - kx0) * t:(kx - kx0 + 1) * t] = \
+                thumb if thumb.shape[0] == t else _shrink(thumb, t)
         x, y, w, h = cv2.boundingRect(canvas[..., 3])
         canvas = canvas[y:y + h, x:x + w]
         scale = min(1.0, max_px / max(w, h))
@@ -161,8 +161,8 @@ class Overview:
         """Write the preview PNG (atomically) with the thumbnails of the changed tiles refreshed;
         False when the map is empty. The worker only takes the changed tiles (at most
         ``max_tile_bytes``: :meth:`TiledMosaic.tile_image_later`); ``later`` reads them, makes
-        the thumbnails, resizes and encodes elsewhere (a background thread; None: here),
-        calling ``pause`` before each tile."""
+        the thumbnails, shrinks those made before the factor doubled, resizes and encodes
+        elsewhere (a background thread; None: here), calling ``pause`` before each tile."""
         self._drain()
         taken = []
         budget = self.max_tile_bytes
@@ -180,6 +180,7 @@ class Overview:
             return False
         thumbs = dict(self._thumbs)  # the thumbnails are replaced, never changed in place
         clock, size, done = self._clock, self._size, self._done
+        older = [(key, self._made[key]) for key, thumb in thumbs.items() if thumb.shape[0] != size]
 
         def encode() -> None:
             for key, pixels in taken:
@@ -191,8 +192,15 @@ class Overview:
                     thumbs.pop(key, None)
                 else:
                     thumbs[key] = thumb
+            for key, made in older:  # made before the factor doubled, not made again above
+                thumb = thumbs.get(key)
+                if thumb is not None and thumb.shape[0] != size:
+                    if pause is not None:
+                        pause()
+                    thumbs[key] = _shrink(thumb, size)
+                    done.put((key, made, thumbs[key]))
             if thumbs:
-                image = self._render(thumbs, max_px)
+                image = self._render(thumbs, max_px, size)
                 with PngStreamWriter(path, image.shape[1], image.shape[0], 4) as png:
                     png.write(image)
 
