@@ -65,7 +65,7 @@ from photomap.mapping.outputs import png_placement, remove_sidecars, render_smal
 from photomap.mapping.painter import Painter
 from photomap.mapping.rerender import Rerenderer
 from photomap.mapping.rows import RowView, TrajectoryRows
-from photomap.mapping.telemetry_join import TelemetryJoin
+from photomap.mapping.telemetry_join import SegmentFit, TelemetryJoin
 from photomap.mapping.threads import WorkerFirst, lower_priority, switch_interval
 from photomap.mapping.timing import StageTimes
 
@@ -850,27 +850,30 @@ class MappingPipeline:
         join = self.telemetry
         if rows is None or join is None or not self.mosaics or join.stats.stopped_at_frame is not None:
             return None
-        main, (w, h) = self._largest_segments()[0], self.frame_size
-        min_fixes, footprints = self.cfg.georef.min_fixes, self.cfg.output.footprints
+        main, footprints = self._largest_segments()[0], self.cfg.output.footprints
 
         def refresh() -> None:
-            glued = np.flatnonzero(rows.glued_mask(main))
-            found = [(k, f, s) for k, f in self._first.paced(zip(glued.tolist(), rows.frames[glued].tolist()))
-                     if (s := join.kept(f))]
-            if len(found) < min_fixes:
-                return
-            fit = join.fit_segment(w, h, list(rows.poses(np.array([k for k, _, _ in found]))),
-                                   [s for _, _, s in found], [f for _, f, _ in found])
+            fit = self._gps_fit(rows, main)  # no georeference below georef.min_fixes GPS fixes
             if fit.geo is None or fit.problem is not None:
                 return
             try:
-                refresh_track_files(self.out_dir, self._first.paced(rows), (w, h),
+                refresh_track_files(self.out_dir, self._first.paced(rows), self.frame_size,
                                     {main: (fit.geo.map_to_crs[:2], fit.geo.epsg)},
                                     t0_unix=summary.get("video_start_unix"), footprints=footprints)
             except (OSError, PhotomapError) as exc:
                 log.warning("track files not refreshed: %s", exc)
 
         return refresh
+
+    def _gps_fit(self, rows: TrajectoryRows, segment: int) -> SegmentFit:
+        """The telemetry join's GPS fit of the glued rows of ``segment`` that have a kept sample
+        (:meth:`TelemetryJoin.fit_segment`); from the worker or the writer (the rows' copy)."""
+        join, (w, h) = self.telemetry, self.frame_size or (0, 0)
+        glued = np.flatnonzero(rows.glued_mask(segment))
+        found = [(k, f, s) for k, f in self._first.paced(zip(glued.tolist(), rows.frames[glued].tolist()))
+                 if (s := join.kept(f))]
+        return join.fit_segment(w, h, list(rows.poses(np.array([k for k, _, _ in found], np.int64))),
+                                [s for _, _, s in found], [f for _, f, _ in found])
 
     def _georeference(self, summary: dict, maps: list[dict]) -> None:
         """Metric scale and georeference per segment, world files beside the mosaics, when the
@@ -880,11 +883,7 @@ class MappingPipeline:
         main = maps[0]["segment"] if maps else 0
         posed = self._rows.glued(main)
         check = join.time_offset_check([r.t for r in posed], [pose_angle_deg(np.asarray(r.M)) for r in posed])
-        fits = {}
-        for info in maps:
-            rows = [r for r in self._rows.glued(info["segment"]) if join.kept(r.frame)]
-            fits[info["segment"]] = join.fit_segment(w, h, [np.asarray(r.M) for r in rows],
-                                                     [join.kept(r.frame) for r in rows], [r.frame for r in rows])
+        fits = {info["segment"]: self._gps_fit(self._rows, info["segment"]) for info in maps}
         trusted = join.verdict(check, fits.get(main)) == "ok"
         geo_out = {}
         for info in maps:
