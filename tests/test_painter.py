@@ -423,6 +423,30 @@ def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path):
     assert blind_residual <= residual + 1.0
 
 
+@pytest.mark.parametrize("exposure", ["none", "gain"])
+def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure):
+    """``band_px``: a whole paint warps one band of tile rows and each later paint one more; the
+    frames in between paint their new ground under it first. The map ends as with every whole
+    paint at once (to the clipped warp's rounding), exposure gain included."""
+    params = MosaicConfig(tile_size=64, exposure=exposure)
+    frames = [(texture(120, 160, 30 + i), pose(3 * i, 23.0 * i, 9.0 * i), i % 4 == 0) for i in range(13)]
+    frames = [(np.clip(img.astype(int) * (1.0 + 0.04 * i), 0, 255).astype(np.uint8), p, key)
+              for i, (img, p, key) in enumerate(frames)]  # exposure changes from frame to frame
+    maps, calls = {}, {}
+    for band_px in (0, 64):
+        painter = Painter((160, 120), 64, min_move_px=30, band_px=band_px)
+        m = maps[band_px] = TiledMosaic(params)
+        calls[band_px] = [painter.paint(m, 0, i, img, p, whole=key) for i, (img, p, key) in enumerate(frames)]
+        painter.end_segment(m, 0)
+    banded, at_once = maps[64], maps[0]
+    # frame 4, a keyframe whose footprint spans 3 tile rows: one row of tiles at first, the rest with frames 5, 6
+    rows = [{ty for _, ty in calls[64][i]} for i in (4, 5, 6)]
+    assert {ty for _, ty in calls[0][4]} == {0, 1, 2}
+    assert rows[0] == {0} and 1 in rows[1] and 2 in rows[2]
+    assert set(banded.tiles()) == set(at_once.tiles())
+    assert_same_tiles(banded, at_once, at_once.tiles())
+
+
 def test_a_masked_frame_looks_for_new_ground_inside_its_valid_part():
     """A rectified view is valid in a quadrilateral only: blocks outside it are never new (else
     they would be painted again at every look)."""

@@ -378,7 +378,7 @@ class MappingPipeline:
         self._painter = Painter(self.frame_size, self.cfg.mosaic.tile_size,
                                 rerenderer=Rerenderer(store, self.cfg.mosaic, first=self._first),
                                 keep=self.loops is not None,
-                                whole_frames=mapping.paint == "every",
+                                whole_frames=mapping.paint == "every", band_px=self.cfg.mosaic.tile_size,
                                 lockstep_frames=None if self.source.live else _LOCKSTEP_FRAMES)
 
     def _cache(self) -> Path:
