@@ -23,7 +23,8 @@ with us. This tool measures under the same kind of conditions:
    as a fresh frame buffer (:class:`SimulatedSource`), mapped in a fresh process with the onboard
    tile cap (``mosaic.max_tiles_in_memory``); RSS sampled every
    50 ms (psutil): peak, the slope after the first 10 % of the frames (KB per frame; a
-   straight-line fit, noisy: the median RSS of each tenth of the flight is written too), and the
+   straight-line fit, noisy: the median RSS of each tenth of the flight is written too, and the
+   slope of the lowest RSS of each 1 %, right after a heap trim), and the
    worker's largest stall (longest frame, checkpoint, loop closure, re-render swap).
 
     python -m tools.bench_pipeline [--quick] [--sizes 640x480,1920x1080] [--frames N]
@@ -470,6 +471,12 @@ def memory_run(n_frames: int, overrides: list[str]) -> dict:
                                    None) for pct in (10, 50, 100)}
     late = np.array([(d, r) for d, r in mapping if d >= n_frames / 10], float)
     slope = float(np.polyfit(late[:, 0], late[:, 1], 1)[0]) * 1024.0 if len(late) > 10 else None  # KB/frame
+    # the lowest RSS of each 1 % of the flight: right after a heap trim (what the run holds, without
+    # the free heap pages of the last second); its slope after the first 10 %
+    floors = [(k, min(r for d, r in mapping if k * n_frames / 100 <= d < (k + 1) * n_frames / 100))
+              for k in range(10, 100) if any(k * n_frames / 100 <= d < (k + 1) * n_frames / 100 for d, _ in mapping)]
+    floor_slope = (float(np.polyfit([k * n_frames / 100 for k, _ in floors], [r for _, r in floors], 1)[0]) * 1024.0
+                   if len(floors) > 10 else None)
     tenths = [[r for d, r in mapping if k * n_frames / 10 <= d < (k + 1) * n_frames / 10] for k in range(10)]
     timing = summary.get("timing_ms", {})
     return {"overrides": overrides, "frames": summary["frames_in"], "registered": summary["registered"],
@@ -477,6 +484,7 @@ def memory_run(n_frames: int, overrides: list[str]) -> dict:
             "rss_start_mb": rss0, "rss_before_mb": before,
             "peak_mapping_mb": max((r for _, r in mapping), default=before),
             "peak_mb": max(rss for _, rss, _ in sampler.samples), "slope_kb_per_frame": slope,
+            "floor_slope_kb_per_frame": floor_slope,
             "rss_tenths_mb": [float(np.median(t)) if t else None for t in tenths],
             "tiles": tiles, "tiles_in_memory": in_memory, "painting": summary.get("painting"),
             "loop_closure": summary.get("loop_closure"),
@@ -512,6 +520,9 @@ def memory_table(r: dict) -> list[str]:
         f"{'-' if slope is None else f'{slope:.2f}'} KB/frame | {worst:.0f} ms |", "",
         "Median RSS in each tenth of the flight (MB): "
         + " / ".join("-" if v is None else f"{v:.0f}" for v in r.get("rss_tenths_mb", [])) + ". "
+        + ("" if r.get("floor_slope_kb_per_frame") is None else
+           f"Slope of the lowest RSS of each 1 % of the flight after the first 10 % (right after a heap "
+           f"trim: what the run holds): {r['floor_slope_kb_per_frame']:.2f} KB/frame. ")
         + "Largest worker time (ms): " + ", ".join(f"{k} {v:.0f}" for k, v in stall.items())
         + f". Loop closure: {lc.get('loop_edges', 0)} loop edges, {lc.get('corrections', 0)} corrections, "
         f"{lc.get('joins', 0)} joins; painting: {p.get('whole', 0)} frames whole, {p.get('new_ground', 0)} "
@@ -602,7 +613,7 @@ def render_report(args: argparse.Namespace, threads: list[str], conds: list[Cond
                   f"with `{' '.join(memory['overrides'])}` (as the onboard config) and "
                   f"`{' '.join(f'{k}={v}' for k, v in SERVICE_ENV.items())}` (as the systemd unit). "
                   "RSS sampled every 50 ms; the slope is a straight-line fit of RSS against frames after the "
-                  "first 10 %.", ""]
+                  "first 10 % (the target's measure; it includes the heap's free pages between two trims).", ""]
         lines += memory_table(memory)
     return "\n".join(lines) + "\n"
 
