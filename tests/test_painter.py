@@ -423,26 +423,30 @@ def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path):
     assert blind_residual <= residual + 1.0
 
 
-@pytest.mark.parametrize("exposure", ["none", "gain"])
-def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure):
-    """``band_px``: a whole paint warps one band of tile rows and each later paint one more; the
-    frames in between paint their new ground under it first. The map ends as with every whole
-    paint at once (to the clipped warp's rounding), exposure gain included."""
+@pytest.mark.parametrize("exposure,down", [("none", True), ("gain", True), ("gain", False)])
+def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure, down):
+    """``band_px``: a whole paint warps the band of tile rows ahead of the camera, and each later
+    paint one more (the rest before the next whole paint, or at the segment's end), all with
+    the exposure gain fitted once: the map is the one of each whole paint at once (to the
+    clipped warp's rounding). (Frames in between look for new ground as before: their maps
+    are checked against the terrain in test_new_ground_map_equals_the_every_frame_map.)"""
     params = MosaicConfig(tile_size=64, exposure=exposure)
-    frames = [(texture(120, 160, 30 + i), pose(3 * i, 23.0 * i, 9.0 * i), i % 4 == 0) for i in range(13)]
-    frames = [(np.clip(img.astype(int) * (1.0 + 0.04 * i), 0, 255).astype(np.uint8), p, key)
-              for i, (img, p, key) in enumerate(frames)]  # exposure changes from frame to frame
+    dy = 9.0 if down else -9.0
+    frames = [(np.clip(texture(120, 160, 30 + i).astype(int) * (1.0 + 0.04 * i), 0, 255).astype(np.uint8),
+               pose(3 * i, 23.0 * i, 200 + dy * i), i % 5 == 0) for i in range(13)]  # exposure changes
     maps, calls = {}, {}
     for band_px in (0, 64):
-        painter = Painter((160, 120), 64, min_move_px=30, band_px=band_px)
+        painter = Painter((160, 120), 64, min_move_px=1e9, band_px=band_px)  # no new-ground paints
         m = maps[band_px] = TiledMosaic(params)
         calls[band_px] = [painter.paint(m, 0, i, img, p, whole=key) for i, (img, p, key) in enumerate(frames)]
         painter.end_segment(m, 0)
     banded, at_once = maps[64], maps[0]
-    # frame 4, a keyframe whose footprint spans 3 tile rows: one row of tiles at first, the rest with frames 5, 6
-    rows = [{ty for _, ty in calls[64][i]} for i in (4, 5, 6)]
-    assert {ty for _, ty in calls[0][4]} == {0, 1, 2}
-    assert rows[0] == {0} and 1 in rows[1] and 2 in rows[2]
+    # frame 5, a keyframe over 3-4 tile rows: the row ahead at once, one more with each of frames 6, 7, 8
+    at_once_rows = sorted({ty for _, ty in calls[0][5]})
+    ahead = at_once_rows[::-1] if down else at_once_rows
+    assert len(ahead) >= 3 and not any(calls[0][6:10])
+    for k, ty in enumerate(ahead):
+        assert {t for _, t in calls[64][5 + k]} == {ty}
     assert set(banded.tiles()) == set(at_once.tiles())
     assert_same_tiles(banded, at_once, at_once.tiles())
 

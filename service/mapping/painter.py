@@ -15,11 +15,12 @@ cost of the worker) is mostly wasted. The :class:`Painter` paints
 - or, with ``whole_frames``, every frame whole (the behaviour before: for comparisons).
 
 A whole paint is spread over the frames that follow it (``band_px``; the ``overwrite`` blend):
-its footprint in horizontal bands of tile height, the first at once and one more each time the
-segment is painted (the rest at once before the next whole paint, or when the segment ends).
-The frames in between paint only ground that no frame covers: where that is under the keyframe,
-its band paints over it later, so the map ends as with the keyframe painted at once (to the
-warp's rounding), and no frame pays a whole keyframe's warp (16 ms for a 1080p frame on one
+its footprint in horizontal bands of tile height, the first at once (the end ahead of the
+camera: its new ground) and one more each time the segment is painted (the rest at once before
+the next whole paint, or when the segment ends).
+The frames in between look for new ground as before: where they find it under the keyframe,
+its band paints over it later, so the keyframe ends on top as if painted at once (to the warp's
+rounding), and no frame pays a whole keyframe's warp (16 ms for a 1080p frame on one
 core, 50-150 ms on a busy computer: the worker's largest stalls on a long flight).
 
 A frame whose pixels are much finer than the map's (``mapping.map_px``, ``map_scale`` < 1) is
@@ -261,7 +262,10 @@ class Painter:
                 return touched
         img, pose_m, mask_m, to_kept = self._at_map_resolution(image, pose, mask, clip)
         if whole and self.band_px > 0 and mosaic.blend == "overwrite" and not self.whole_frames:
-            seg.bands = _Bands(img, pose_m, mask_m, None, deque(self._band_rects(img, pose_m)))
+            rects = self._band_rects(img, pose_m)
+            if seg.last_painted is not None and ((pose - seg.last_painted) @ self._corners)[1].mean() > 0:
+                rects.reverse()  # moving down the map: its new ground is at the bottom, painted first
+            seg.bands = _Bands(img, pose_m, mask_m, None, deque(rects))
             touched |= self._band(mosaic, seg)
         else:
             touched |= self._add(mosaic, seg, img, pose_m, mask_m, clip=clip)
