@@ -368,6 +368,34 @@ def test_overview_preview_follows_the_map_and_reads_only_changed_tiles():
     assert ov.render(300) is not None
 
 
+def test_thumbnails_of_spilled_tiles_are_left_to_the_preview(tmp_path):
+    """The worker refreshes thumbnails of tiles in memory only: a spilled one is read by the
+    next preview, in the background thread."""
+    from photomap.mapping.overview import Overview
+
+    class CountingStore(MemoryTileStore):
+        reads = 0
+
+        def get(self, key):
+            CountingStore.reads += 1
+            return super().get(key)
+
+    store = CountingStore()
+    m = TiledMosaic(MosaicConfig(tile_size=64, max_tiles_in_memory=4), store)
+    ov = Overview(64)
+    for i in range(4):
+        ov.mark(m.add(texture(120, 160, 40 + i), pose(0, 200.0 * i, 0)[:2]))
+    spilled = [key for key in m.tiles() if not m.in_memory(key)]
+    assert spilled and m.tiles_in_memory == 4
+    reads = CountingStore.reads
+    assert ov.update(m) == 4 and ov.stale == len(spilled) and CountingStore.reads == reads
+    tasks = []
+    assert ov.write(tmp_path / "preview.png", m, 300, later=tasks.append) and ov.stale == 0 and CountingStore.reads == reads
+    tasks.pop()()  # the background thread reads the spilled tiles
+    assert CountingStore.reads == reads + len(spilled)
+    assert ov.update(m) == 0 and len(ov.render(10_000)) > 0
+
+
 def test_a_preview_leaves_the_thumbnails_to_the_background_thread(tmp_path):
     """The worker only copies the changed tiles; the thumbnails, made later in the background,
     show the map as it was copied, come back to the worker, and never replace newer ones."""

@@ -594,6 +594,10 @@ class TiledMosaic:
         """Number of tiles currently held in memory."""
         return len(self._tiles)
 
+    def in_memory(self, key: TileKey) -> bool:
+        """Whether tile ``key`` is held in memory (reading it reads no store)."""
+        return key in self._tiles
+
     def tiles(self) -> list[TileKey]:
         """Keys of every tile (in memory or spilled), sorted by row, then column."""
         return sorted(set(self._tiles) | self._spilled, key=lambda k: (k[1], k[0]))

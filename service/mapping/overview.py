@@ -85,7 +85,9 @@ class Overview:
 
         ``budget_s``: for at most that long (the rest stays for the next call). ``settled``: only
         tiles not changed in the last ``settled`` calls of :meth:`mark` (a tile under the camera
-        changes again and again: its thumbnail waits until the camera has moved on).
+        changes again and again: its thumbnail waits until the camera has moved on). Only tiles
+        in memory: one the map has spilled meanwhile stays for :meth:`write`, which reads it in
+        the background (a tile read from disk in the worker measured up to 50 ms).
         """
         self._drain()
         t0 = time.perf_counter()
@@ -93,7 +95,7 @@ class Overview:
         for key, marked in list(self._stale.items()):
             if budget_s is not None and time.perf_counter() - t0 >= budget_s:
                 break
-            if marked > self._clock - settled:
+            if marked > self._clock - settled or not mosaic.in_memory(key):
                 continue
             del self._stale[key]
             try:
