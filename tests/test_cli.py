@@ -56,6 +56,23 @@ def test_sigint_writes_the_map_and_exits_0(flight, tmp_path):
     assert "Traceback" not in err
 
 
+@pytest.mark.parametrize("argv", [["--version"], ["simulate", "--frames", "3", "--out", "SIM", "-q"]])
+def test_a_signal_after_the_command_ends_the_process_without_a_traceback(tmp_path, argv):
+    """A Ctrl-C that lands after the command is done (while the interpreter shuts down: atexit
+    hooks, thread joins) ends the process by the signal, with no KeyboardInterrupt traceback."""
+    argv = [str(tmp_path / "sim") if a == "SIM" else a for a in argv]
+    code = ("import os, signal, sys, time\n"
+            f"sys.argv = ['photomap', *{argv!r}]\n"
+            "from photomap.cli.main import main\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\n"
+            "os.kill(os.getpid(), signal.SIGINT)\n"
+            "time.sleep(5)\n"
+            "print('still running')\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -signal.SIGINT, (proc.returncode, proc.stderr)
+    assert "Traceback" not in proc.stderr and "still running" not in proc.stdout
+
+
 @pytest.mark.parametrize("args, code, words", [
     (["replay", "/no/such/video.mp4", "--out", "OUT"], 3, "not found"),
     (["replay", "VIDEO", "--out", "OUT", "--set", "mapping.no_such_key=1"], 2, "mapping.no_such_key"),

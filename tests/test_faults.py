@@ -335,7 +335,8 @@ def test_disk_full_on_a_small_tmpfs(flight, tmp_path):
         _umount(small)
     if not (copy / "mosaic.png").exists():  # the map did not fit: the checkpoint holds it
         assert "photomap recover" in result.stdout + result.stderr
-        assert photomap("recover", str(copy)).returncode == 0
+        recovered = photomap("recover", str(copy))
+        assert recovered.returncode == 0, recovered.stdout + recovered.stderr
     else:  # the map fitted, other outputs did not: each named once
         assert "not written:" in result.stdout
     assert cv2.imread(str(copy / "mosaic.png"), cv2.IMREAD_UNCHANGED)[..., 3].any()

@@ -144,7 +144,7 @@ def check_run(kind: str, rc: int, err: str, out: Path, material: Material) -> li
         if "error" not in kind:
             return check_complete(out, material)
     if "Traceback" in err:
-        problems.append("traceback on stderr: " + err.strip().splitlines()[-1])
+        problems.append("traceback on stderr: " + " | ".join(err.strip().splitlines()[-12:]))
     if "error" in kind:
         lines = [line for line in err.splitlines() if "error:" in line]
         if rc == 0 or (rc != 130 and len(lines) != 1):

@@ -108,6 +108,11 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if argv is None and threading.current_thread() is threading.main_thread():
+            # the command is over (its outputs written): a Ctrl-C or SIGTERM from now on ends the
+            # process at once, not with a KeyboardInterrupt traceback from the interpreter's shutdown
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 if __name__ == "__main__":
