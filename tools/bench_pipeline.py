@@ -251,7 +251,7 @@ def throughput_tables(conds: list[Condition]) -> list[str]:
     lines += ["", "Median ms per frame of each stage (`run.json` `timing_ms`, median over the repeats): "
               "*decode* runs in its own thread beside the worker; *resize* is the downscale to the "
               "working size; *register* the tracking (registration, pose); *paint* the map update "
-              "(keyframes whole, other frames their new ground); *loop* the loop closer's part in the "
+              "(keyframes in bands of a tile row, one per frame; other frames their new ground); *loop* the loop closer's part in the "
               "worker; *frame* the worker's whole time per frame (mean in brackets: painting and loop "
               "closure come in bursts).", "",
               "| input | condition | decode | resize | register | paint | loop | frame (mean) |",
