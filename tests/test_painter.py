@@ -469,12 +469,14 @@ def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure, down):
         calls[band_px] = [painter.paint(m, 0, i, img, p, whole=key) for i, (img, p, key) in enumerate(frames)]
         painter.end_segment(m, 0)
     banded, at_once = maps[64], maps[0]
-    # frame 5, a keyframe over 3-4 tile rows: the row ahead at once, one more with each of frames 6, 7, 8
+    assert calls[64][0] == calls[0][0]  # a segment's first frame at once: its map is never empty
+    # frame 5, a keyframe over 3-4 tile rows: the rows ahead at once, the others with frames 6, 7, 8
     at_once_rows = sorted({ty for _, ty in calls[0][5]})
     ahead = at_once_rows[::-1] if down else at_once_rows
     assert len(ahead) >= 3 and not any(calls[0][6:10])
-    for k, ty in enumerate(ahead):
-        assert {t for _, t in calls[64][5 + k]} == {ty}
+    seen = [sorted({t for _, t in calls[64][5 + k]}, reverse=down) for k in range(len(ahead))]
+    assert ahead[0] in seen[0] and ahead[-1] not in seen[0]
+    assert [ty for rows in seen for ty in rows] == ahead  # each row once, in the order of travel
     assert set(banded.tiles()) == set(at_once.tiles())
     assert_same_tiles(banded, at_once, at_once.tiles())
 

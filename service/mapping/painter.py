@@ -261,7 +261,8 @@ class Painter:
                 self.stats.nothing_new += 1
                 return touched
         img, pose_m, mask_m, to_kept = self._at_map_resolution(image, pose, mask, clip)
-        if whole and self.band_px > 0 and mosaic.blend == "overwrite" and not self.whole_frames:
+        if whole and self.band_px > 0 and mosaic.blend == "overwrite" and not self.whole_frames \
+                and seg.last_painted is not None:  # (a segment's first frame: at once, its map is never empty)
             rects = self._band_rects(img, pose_m)
             if seg.last_painted is not None and ((pose - seg.last_painted) @ self._corners)[1].mean() > 0:
                 rects.reverse()  # moving down the map: its new ground is at the bottom, painted first
@@ -293,15 +294,17 @@ class Painter:
         return touched
 
     def _band_rects(self, img: np.ndarray, pose_m: np.ndarray) -> list[tuple[int, int, int, int]]:
-        """The footprint's bounding box of ``img`` at ``pose_m`` (3x3, image px -> map px) in
-        bands of ``band_px`` map pixels, on multiples of it (a band of tile height is one row of
-        tiles): map rectangles (x, y, w, h), top to bottom."""
+        """The bounding box of the map pixels ``img`` at ``pose_m`` (3x3, image px -> map px) can
+        cover, in bands of ``band_px`` map pixels on multiples of it (a band of tile height is one
+        row of tiles; a sliver of less than a quarter band at either end goes with its
+        neighbour): map rectangles (x, y, w, h), top to bottom."""
         h, w = img.shape[:2]
-        corners = np.array([[-1.0, -1.0], [w, -1.0], [-1.0, h], [w, h]]) @ pose_m[:2, :2].T + pose_m[:2, 2]
+        corners = np.array([[0.0, 0.0], [w - 1, 0.0], [0.0, h - 1], [w - 1, h - 1]]) @ pose_m[:2, :2].T + pose_m[:2, 2]
         x0, y0 = (int(v) for v in np.floor(corners.min(axis=0)))
         x1, y1 = (int(v) + 1 for v in np.ceil(corners.max(axis=0)))
         b = self.band_px
-        edges = [y0, *range((y0 // b + 1) * b, y1, b), y1]
+        inner = [y for y in range((y0 // b + 1) * b, y1, b) if y - y0 >= b // 4 and y1 - y >= b // 4]
+        edges = [y0, *inner, y1]
         return [(x0, a, x1 - x0, c - a) for a, c in zip(edges, edges[1:])]
 
     def _bands(self, mosaic: TiledMosaic | None, seg: _Segment, every: bool) -> set[TileKey]:
