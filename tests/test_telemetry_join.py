@@ -57,6 +57,7 @@ def check_joined(run_dir, flight_dir, max_error_m):
     meta, gt, lat, lon = truth_latlon(flight_dir)
     # the map is frame 0's pixels: metres per map pixel = terrain px per frame px * gsd
     truth_mpp = float(np.sqrt(np.linalg.det(gt.H[0][:2, :2]))) * meta["gsd"]
+    assert run["metres_per_pixel"] is not None, run["telemetry"]  # not trusted: the join's verdict says why
     assert abs(run["metres_per_pixel"] / truth_mpp - 1) < 0.02
     assert run["telemetry"]["priors_used"] > 0
     assert run["georeference"]["crs"].startswith("EPSG:326")
