@@ -517,6 +517,33 @@ def test_a_preview_that_cannot_be_written_is_reported_not_raised(tmp_path):
     assert back is not None and back.shape[2] == 4 and len(errors) == 1
 
 
+def test_a_preview_is_never_made_in_the_worker_when_the_background_thread_is_behind(tmp_path):
+    """With the background thread's queue full, a checkpoint's preview is left to the next one
+    (no thumbnails or PNG encoding in the worker); its changed tiles stay for it."""
+    import threading
+
+    params = MosaicConfig(tile_size=64)
+    painter = Painter((160, 120), 64, rerenderer=Rerenderer(KeyframeStore(tmp_path / "kf"), params,
+                                                            max_pending_writes=1))
+    live = TiledMosaic(params)
+    painter.paint(live, 0, 0, texture(120, 160, 1), pose(0, 0, 0), whole=True)
+    painter.rerenderer.wait()  # the kept image is written
+    release, running = threading.Event(), threading.Event()
+    painter.rerenderer.later(lambda: (running.set(), release.wait(10)))  # the thread is busy ...
+    assert running.wait(10)
+    painter.rerenderer.later(lambda: None)  # ... and its queue full
+    path = tmp_path / "preview.png"
+    assert not painter.write_preview(path, 0, live, 100)
+    assert painter.stats.skipped_previews == 1 and painter.rerenderer.sync_writes == 0
+    release.set()
+    painter.rerenderer.wait()
+    assert not path.exists()
+    assert painter.write_preview(path, 0, live, 100)  # the next checkpoint's, with every tile
+    painter.close()
+    back = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert back is not None and (back[..., 3] > 0).mean() > 0.9  # the frame, all of it
+
+
 def test_kept_images_with_masks_are_forgotten_with_their_keyframe(tmp_path):
     store = KeyframeStore(tmp_path / "kf")
     image = texture(30, 40, 2)

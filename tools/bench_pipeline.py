@@ -251,8 +251,8 @@ def throughput_tables(conds: list[Condition]) -> list[str]:
     lines += ["", "Median ms per frame of each stage (`run.json` `timing_ms`, median over the repeats): "
               "*decode* runs in its own thread beside the worker; *resize* is the downscale to the "
               "working size; *register* the tracking (registration, pose); *paint* the map update "
-              "(keyframes in bands of a tile row, one per frame; other frames their new ground); *loop* the loop closer's part in the "
-              "worker; *frame* the worker's whole time per frame (mean in brackets: painting and loop "
+              "(keyframes in bands of a tile row, one per frame; other frames their new ground); *loop* "
+              "the loop closer's part in the worker; *frame* the worker's whole time per frame (mean in brackets: painting and loop "
               "closure come in bursts).", "",
               "| input | condition | decode | resize | register | paint | loop | frame (mean) |",
               "|---|---|---:|---:|---:|---:|---:|---:|"]
@@ -473,10 +473,10 @@ def memory_run(n_frames: int, overrides: list[str]) -> dict:
     slope = float(np.polyfit(late[:, 0], late[:, 1], 1)[0]) * 1024.0 if len(late) > 10 else None  # KB/frame
     # the lowest RSS of each 1 % of the flight: right after a heap trim (what the run holds, without
     # the free heap pages of the last second); its slope after the first 10 %
-    floors = [(k, min(r for d, r in mapping if k * n_frames / 100 <= d < (k + 1) * n_frames / 100))
-              for k in range(10, 100) if any(k * n_frames / 100 <= d < (k + 1) * n_frames / 100 for d, _ in mapping)]
-    floor_slope = (float(np.polyfit([k * n_frames / 100 for k, _ in floors], [r for _, r in floors], 1)[0]) * 1024.0
-                   if len(floors) > 10 else None)
+    done_rss = np.array(mapping, float).reshape(-1, 2)
+    pct = (done_rss[:, 0] * 100 // n_frames).astype(int)
+    floors = np.array([(k * n_frames / 100, done_rss[pct == k, 1].min()) for k in range(10, 100) if (pct == k).any()])
+    floor_slope = float(np.polyfit(floors[:, 0], floors[:, 1], 1)[0]) * 1024.0 if len(floors) > 10 else None
     tenths = [[r for d, r in mapping if k * n_frames / 10 <= d < (k + 1) * n_frames / 10] for k in range(10)]
     timing = summary.get("timing_ms", {})
     return {"overrides": overrides, "frames": summary["frames_in"], "registered": summary["registered"],

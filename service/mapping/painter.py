@@ -17,7 +17,7 @@ cost of the worker) is mostly wasted. The :class:`Painter` paints
 A whole paint is spread over the frames that follow it (``band_px``; the ``overwrite`` blend):
 its footprint in horizontal bands of tile height, the first at once (the end ahead of the
 camera: its new ground) and one more each time the segment is painted (the rest at once before
-the next whole paint, or when the segment ends).
+the next whole paint, or when the segment ends; a segment's first frame at once).
 The frames in between look for new ground as before: where they find it under the keyframe,
 its band paints over it later, so the keyframe ends on top as if painted at once (to the warp's
 rounding), and no frame pays a whole keyframe's warp (16 ms for a 1080p frame on one
@@ -101,6 +101,7 @@ class PaintStats:
     moved_frames: int = 0  # kept frames moved by corrections
     lost_frames: int = 0  # kept images that could not be read back
     sync_writes: int = 0
+    skipped_previews: int = 0  # checkpoint previews left to the next one (the background thread was behind)
 
     def summary(self) -> dict:
         return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
@@ -264,7 +265,7 @@ class Painter:
         if whole and self.band_px > 0 and mosaic.blend == "overwrite" and not self.whole_frames \
                 and seg.last_painted is not None:  # (a segment's first frame: at once, its map is never empty)
             rects = self._band_rects(img, pose_m)
-            if seg.last_painted is not None and ((pose - seg.last_painted) @ self._corners)[1].mean() > 0:
+            if ((pose - seg.last_painted) @ self._corners)[1].mean() > 0:
                 rects.reverse()  # moving down the map: its new ground is at the bottom, painted first
             seg.bands = _Bands(img, pose_m, mask_m, None, deque(rects))
             touched |= self._band(mosaic, seg)
@@ -307,11 +308,11 @@ class Painter:
         edges = [y0, *inner, y1]
         return [(x0, a, x1 - x0, c - a) for a, c in zip(edges, edges[1:])]
 
-    def _bands(self, mosaic: TiledMosaic | None, seg: _Segment, every: bool) -> set[TileKey]:
+    def _bands(self, mosaic: TiledMosaic, seg: _Segment, every: bool) -> set[TileKey]:
         """Paint the next band of the segment's last whole paint (``every``: all that are left).
         Returns the tiles they changed."""
         touched: set[TileKey] = set()
-        while seg.bands is not None and mosaic is not None:
+        while seg.bands is not None:
             touched |= self._band(mosaic, seg)
             self.stats.bands += 1
             if not every:
@@ -516,8 +517,13 @@ class Painter:
         """A small PNG of map ``segment`` (at most ``max_px``), from thumbnails refreshed only where
         the map changed since the last preview (the worker takes those tiles; thumbnails,
         resize and encoding in the background thread);
-        False when the map is empty. A write that fails there (disk full, read-only) goes to
-        ``on_error`` (else it is logged), never to the re-render thread."""
+        False when the map is empty, or when that thread is behind (its queue full: the preview
+        waits for the next checkpoint rather than being made in the worker: 110 ms once on the
+        long flight). A write that fails there (disk full, read-only) goes to ``on_error`` (else
+        it is logged), never to the re-render thread."""
+        if self.rerenderer is not None and self.rerenderer.backlogged:
+            self.stats.skipped_previews += 1
+            return False
 
         def later(task: Callable[[], None]) -> None:
             def guarded() -> None:

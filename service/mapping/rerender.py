@@ -191,6 +191,12 @@ class Rerenderer:
         return done
 
     @property
+    def backlogged(self) -> bool:
+        """Its queue of tasks is full: :meth:`later` would run the next one in the caller's thread."""
+        with self._cond:
+            return len(self._writes) >= self.max_pending_writes
+
+    @property
     def busy(self) -> bool:
         """Jobs queued or being rendered."""
         with self._cond:
