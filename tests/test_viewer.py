@@ -242,6 +242,27 @@ def _event(frame: Frame, pose: np.ndarray | None, mosaic, segment: int = 0, touc
                       0.9 if pose is not None else 0.05, segment, touched=frozenset(touched), tiles=mosaic, **kw)
 
 
+def test_tiles_changed_after_the_last_frame_reach_the_recording(tmp_path):
+    """What the run paints after its last frame (the last keyframe's bands, the final
+    re-render) is sent at close: the recording's latest version of every tile is the map's."""
+    rrd = tmp_path / "end.rrd"
+    viewer = Viewer("save", str(rrd), ViewerConfig(tile_hz=1000.0, jpeg_quality=95))
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    tex = _texture()
+    for i in range(4):
+        frame = Frame(i, float(i), tex[:H, :W].copy(), "tex")
+        viewer.on_frame(_event(frame, _pose(i), mosaic, 0, mosaic.add(frame.image, _pose(i))))
+    late = mosaic.add(255 - tex[:H, :W], _pose(1))  # after the last frame: no event tells the viewer
+    viewer.close()
+    chunks = _chunks(rrd)
+    for tx, ty in late:
+        blob = _rows(chunks[f"/map/tiles/0/{ty}_{tx}"], "EncodedImage:blob")[-1]
+        logged = cv2.imdecode(np.frombuffer(bytes(blob[0]), np.uint8), cv2.IMREAD_COLOR)
+        image, alpha = mosaic.tile_image((tx, ty))
+        inner = cv2.erode(alpha, np.ones((9, 9), np.uint8)) > 0
+        assert inner.sum() > 0 and np.abs(logged.astype(int) - image.astype(int))[inner].mean() < 3.0, (tx, ty)
+
+
 def test_stuck_viewer_drops_oldest_viewer_data_and_keeps_events(tmp_path):
     rrd = tmp_path / "stuck.rrd"
     viewer = Viewer("save", str(rrd), ViewerConfig(queue_size=4))

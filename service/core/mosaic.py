@@ -583,6 +583,11 @@ class TiledMosaic:
             self.max_tiles_in_memory = cap
         self._frame_cache.clear()
 
+    @property
+    def stamp(self) -> int:
+        """The stamp of the latest change of any tile (see :meth:`tile_stamps`)."""
+        return self._stamp
+
     def tile_stamps(self) -> dict[TileKey, int]:
         """``{key: stamp}`` of every tile: a stamp grows whenever the tile's pixels change, so a
         writer that remembers the stamps it saved knows which tiles changed since (incremental

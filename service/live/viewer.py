@@ -409,7 +409,8 @@ class Viewer:
     Notes
     -----
     Call :meth:`close` after the pipeline's ``run()`` returned: it sends the tiles still
-    pending (reading them from the finished mosaic), drains the queue and closes the
+    pending and those the run changed after its last frame (the last keyframe's bands, the
+    final re-render; read from the finished mosaic), drains the queue and closes the
     recording cleanly (``disconnect``), so a ``.rrd`` gets its footer.
     """
 
@@ -437,6 +438,7 @@ class Viewer:
         self._closed = False
         # worker-side state (touched only by on_frame, and by close() after the run)
         self._tiles: TileReader | None = None  # the current segment's map (read after the run too)
+        self._stamp: int | None = None  # its change stamp at the last frame (tile_stamps, when it has them)
         self._dropped_capture = 0
         self._t0: float | None = None
         self._segment: int | None = None
@@ -676,6 +678,7 @@ class Viewer:
             item.pose = np.array(event.pose, dtype=float)
         if event.tiles is not None:
             self._tiles = event.tiles
+            self._stamp = getattr(event.tiles, "stamp", None)
         cx, cy = frame_centre(w, h)
         for pose in posed:
             x, y = np.asarray(pose, float) @ (cx, cy, 1.0)
@@ -898,6 +901,9 @@ class Viewer:
                           dropped_capture=self._dropped_capture,
                           events=self._carry_events, clear_segments=self._carry_clear, health=False)
             try:
+                if self._tiles is not None and self._stamp is not None:  # changed after the last frame:
+                    self._dirty.update(key for key, stamp in self._tiles.tile_stamps().items()  # the map's end
+                                       if stamp > self._stamp)
                 if self._dirty:
                     final.tiles = self._take_tiles(self._tiles, last.segment, None)
                 if self._path:
