@@ -162,7 +162,7 @@ class Rerenderer:
         """Run ``task`` in the background thread, before any further re-render strip (in the
         caller's thread when ``max_pending_writes`` tasks are already waiting)."""
         with self._cond:
-            if len(self._writes) < self.max_pending_writes and not self._closing:
+            if self._takes_tasks():
                 self._writes.append(task)
                 self._cond.notify()
                 return
@@ -192,9 +192,14 @@ class Rerenderer:
 
     @property
     def backlogged(self) -> bool:
-        """Its queue of tasks is full: :meth:`later` would run the next one in the caller's thread."""
+        """Its queue of tasks is full (or it is closing): :meth:`later` would run the next one in
+        the caller's thread."""
         with self._cond:
-            return len(self._writes) >= self.max_pending_writes
+            return not self._takes_tasks()
+
+    def _takes_tasks(self) -> bool:
+        """Room for one more task of :meth:`later` (with ``self._cond`` held)."""
+        return len(self._writes) < self.max_pending_writes and not self._closing
 
     @property
     def busy(self) -> bool:
