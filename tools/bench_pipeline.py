@@ -469,11 +469,11 @@ def memory_run(n_frames: int, overrides: list[str]) -> dict:
     mapping = [(done, rss) for _, rss, done in sampler.samples if done < n_frames]
     at = {f"rss_at_{pct}_mb": next((rss for _, rss, done in sampler.samples if done >= n_frames * pct / 100),
                                    None) for pct in (10, 50, 100)}
-    late = np.array([(d, r) for d, r in mapping if d >= n_frames / 10], float)
+    done_rss = np.array(mapping, float).reshape(-1, 2)  # (frames done, RSS MB) while mapping
+    late = done_rss[done_rss[:, 0] >= n_frames / 10]
     slope = float(np.polyfit(late[:, 0], late[:, 1], 1)[0]) * 1024.0 if len(late) > 10 else None  # KB/frame
     # the lowest RSS of each 1 % of the flight: right after a heap trim (what the run holds, without
     # the free heap pages of the last second); its slope after the first 10 %
-    done_rss = np.array(mapping, float).reshape(-1, 2)
     pct = (done_rss[:, 0] * 100 // n_frames).astype(int)
     floors = np.array([(k * n_frames / 100, done_rss[pct == k, 1].min()) for k in range(10, 100) if (pct == k).any()])
     floor_slope = float(np.polyfit(floors[:, 0], floors[:, 1], 1)[0]) * 1024.0 if len(floors) > 10 else None
