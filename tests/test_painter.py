@@ -95,6 +95,41 @@ def test_uncovered_reads_no_spilled_tile(blend):
     assert capped.uncovered(frames[0][1], (160, 120)) == []
 
 
+
+@pytest.mark.parametrize("change", ["put_tiles", "set_tile", "clear_tiles", "lost"])
+def test_uncovered_sees_a_covered_tile_replaced_by_less_ground(change):
+    """A tile found all covered is not looked at again by uncovered() until it is replaced,
+    emptied or lost: then its missing ground is new again, as for a map never asked before."""
+    img, M = texture(120, 160, 3), pose(0, 0, 0)[:2]
+    key = (1, 1)  # map pixels 32..63: inside the frame's footprint; its left half stays covered
+    left = np.zeros((32, 32), np.uint8)
+    left[:, :16] = 255
+
+    def changed(asked_before: bool) -> TiledMosaic:
+        store = MemoryTileStore()
+        m = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=64), store=store)
+        m.add(img, M)
+        if asked_before:
+            assert m.uncovered(M, (160, 120)) == []
+        if change == "put_tiles":
+            half = TiledMosaic(MosaicConfig(tile_size=32))
+            half.set_tile(key, np.full((32, 32, 3), 90, np.uint8), left)
+            m.put_tiles(half.take_tiles())
+        elif change == "set_tile":
+            m.set_tile(key, np.full((32, 32, 3), 90, np.uint8), left)
+        else:
+            if change == "lost":
+                m.spill()
+                store.discard(key)  # the cache lost it: the next load finds it empty
+            else:
+                m.clear_tiles([key])
+            m.add(np.full((40, 24, 3), 90, np.uint8), pose(0, 28, 28)[:2])  # paints the left half again
+        return m
+
+    for asked_before in (False, True):
+        rects = changed(asked_before).uncovered(M, (160, 120))
+        assert any(x < 64 and x + w > 48 and y < 64 and y + h > 32 for x, y, w, h in rects)  # the right half
+
 def test_a_strip_of_a_large_frame_is_downscaled_alone():
     """New ground of a frame finer than the map: only the strip's part of the frame is resized,
     and the map is the same as with the whole frame resized."""

@@ -123,6 +123,10 @@ class TiledMosaic:
         # where a spilled tile is covered, looked at every _COVER_STEP px (packed bits): uncovered()
         # reads no tile from the store
         self._coverage: dict[TileKey, np.ndarray] = {}
+        # tiles whose every pixel uncovered() looks at (every _COVER_STEP px) is covered: it skips
+        # them (no read, no OpenCV call); coverage only grows, except where a tile is replaced,
+        # emptied or lost (each of those forgets the tile here)
+        self._full: set[TileKey] = set()
         self._clean: set[TileKey] = set()  # in memory and equal to the store's copy
         self._lent: set[TileKey] = set()  # in memory, arrays lent out (tile_image_later): copy before a change
         self._frame_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
@@ -325,6 +329,9 @@ class TiledMosaic:
                 mx0, mx1 = max(tx * ts, gx0), min((tx + 1) * ts, gx1)  # multiples of step
                 my0, my1 = max(ty * ts, gy0), min((ty + 1) * ts, gy1)
                 sub = todo[(my0 - gy0) // step:(my1 - gy0) // step, (mx0 - gx0) // step:(mx1 - gx0) // step]
+                if step == _COVER_STEP and key in self._full:
+                    sub[...] = 0
+                    continue
                 if key in self._coverage and step == _COVER_STEP:  # spilled: its summary, no read
                     n = ts // step
                     seen = np.unpackbits(self._coverage[key], count=n * n).reshape(n, n)[
@@ -333,7 +340,12 @@ class TiledMosaic:
                     tile = self._load(key)
                     cover = tile["cover"] if self.blend == "overwrite" else (tile["weight"] > 0).view(np.uint8)
                     seen = cover[my0 - ty * ts + o:my1 - ty * ts:step, mx0 - tx * ts + o:mx1 - tx * ts:step]
-                cv2.bitwise_and(sub, cv2.compare(seen, 0, cv2.CMP_EQ), dst=sub)
+                new = cv2.compare(seen, 0, cv2.CMP_EQ)
+                if step == _COVER_STEP and my1 - my0 == ts and mx1 - mx0 == ts and not cv2.countNonZero(new):
+                    self._full.add(key)  # the whole tile looked at, all covered
+                    sub[...] = 0
+                    continue
+                cv2.bitwise_and(sub, new, dst=sub)
         n = block // step
         grid = todo.reshape(H // block, n, W // step).max(axis=1).reshape(H // block, W // block, n).max(axis=2)
         runs: list[list[int]] = []  # [row, first column, end column, rows] of merged squares
@@ -510,6 +522,7 @@ class TiledMosaic:
             self._coverage.pop(key, None)
             if tile is None:
                 self.lost_tiles += 1  # the store lost it: start it empty
+                self._full.discard(key)
             else:
                 self._clean.add(key)
         if tile is None:
@@ -569,7 +582,10 @@ class TiledMosaic:
         """Keep where tile ``key``, going to the store, is covered (see ``_coverage``)."""
         cover = tile["cover"] if self.blend == "overwrite" else tile["weight"]
         o = _COVER_STEP // 2
-        self._coverage[key] = np.packbits(cover[o::_COVER_STEP, o::_COVER_STEP] != 0, axis=None)
+        seen = cover[o::_COVER_STEP, o::_COVER_STEP] != 0
+        self._coverage[key] = np.packbits(seen, axis=None)
+        if seen.all():
+            self._full.add(key)
 
     def spill(self) -> None:
         """Move every tile in memory to the store (a map that no longer grows), and drop cached
@@ -662,6 +678,7 @@ class TiledMosaic:
             raise InputError(f"tile {key} has {img.shape[2]} channels, the map {self.channels}")
         covered = np.asarray(alpha).reshape(ts, ts) != 0
         tile = self._load(key, write=True)
+        self._full.discard(key)
         if self.blend == "overwrite":
             tile["color"][...] = np.where(covered[..., None], img, 0)
             tile["cover"][...] = np.where(covered, np.uint8(255), np.uint8(0))
@@ -701,6 +718,7 @@ class TiledMosaic:
             self._lent.discard(key)
             self._spilled.discard(key)
             self._coverage.pop(key, None)
+            self._full.discard(key)
             self._clean.discard(key)
             self._stamps.pop(key, None)
             self._extent.pop(key, None)
@@ -741,6 +759,7 @@ class TiledMosaic:
                 continue
             self._extent[key] = (key[0] * ts + x, key[1] * ts + y, key[0] * ts + x + w, key[1] * ts + y + h)
             self._clean.discard(key)
+            self._full.discard(key)
             self._stamp += 1
             self._stamps[key] = self._stamp
             self._lent.discard(key)  # new arrays (those lent out stay as they were)
