@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 
 import cv2
 import numpy as np
@@ -17,7 +18,7 @@ from photomap.config import MosaicConfig, load_config
 from photomap.core.mosaic import TiledMosaic
 from photomap.io.keyframestore import KeyframeStore
 from photomap.io.tilestore import MemoryTileStore
-from photomap.mapping.loopclosure import PoseTable
+from photomap.mapping.loopclosure import LoopCloser, PoseTable
 from photomap.mapping.painter import Painter, resize_factors
 from photomap.mapping.pipeline import MappingPipeline
 from photomap.mapping.rerender import KeptFrame, Rerenderer, tile_rects
@@ -485,6 +486,46 @@ def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path):
     assert blind_covered > 0.9 * covered  # the joined segment's ground is in the main map
     assert blind_residual <= residual + 1.0
 
+
+
+class LiveListSource(ListSource):
+    """The frames as a camera gives them (a live run: background threads not in lockstep)."""
+
+    live = True
+
+
+def test_live_join_search_runs_off_the_worker(tmp_path, monkeypatch):
+    """Live, a new segment's search for a join (registrations with features, keyframe images
+    read back from disk: 100-400 ms at 1080p) runs in the loop thread, never in the worker; the
+    segment still joins the first and the map holds both, true to the ground."""
+    from test_drift import LOOPS, closed_flight, map_residual
+
+    terrain = load_terrain("aukerman", zoom=3)
+    seq = closed_flight(terrain, valid_mask(terrain), 0.1 / 3, 1.0, "figure8", 4)
+    blind = list(seq.frames)
+    for k in range(60, 75):
+        blind[k] = np.full_like(blind[k], 128)
+    searched = []
+    place = LoopCloser._place_join
+
+    def spy(self, *args, **kwargs):
+        searched.append(threading.current_thread().name)
+        return place(self, *args, **kwargs)
+
+    monkeypatch.setattr(LoopCloser, "_place_join", spy)
+    runs = {}
+    for name, frames in (("whole", seq.frames), ("blind", blind)):
+        out = tmp_path / name
+        summary = MappingPipeline(LiveListSource(frames), load_config(overrides=LOOPS + ["mapping.max_lost_frames=5"]),
+                                  out).run()
+        png = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+        runs[name] = summary, int((png[..., 3] == 255).sum()), map_residual(out, seq, terrain, lambda x, y: x == x)[0]
+    (_, covered, residual), (blind_run, blind_covered, blind_residual) = runs["whole"], runs["blind"]
+    assert searched and all(name.startswith("photomap-loops") for name in searched), searched
+    assert [j["into"] for j in blind_run["joins"]] == [0]
+    assert [m["segment"] for m in blind_run["mosaics"]] == [0]
+    assert blind_covered > 0.9 * covered  # the joined segment's ground is in the main map
+    assert blind_residual <= residual + 1.0
 
 @pytest.mark.parametrize("exposure,down", [("none", True), ("gain", True), ("gain", False)])
 def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure, down):

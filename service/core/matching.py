@@ -116,6 +116,14 @@ class PairMatcher:
         h, w = registrar.shape
         self.centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
 
+    def twin(self, registrar: Registrar) -> PairMatcher:
+        """A matcher with the same settings, ``registrar`` and a feature detector of its own (for
+        another thread: neither is shared)."""
+        f = self.features
+        return PairMatcher(registrar, min_confidence=self.min_confidence, trust_confidence=self.trust_confidence,
+                           verify=self.verify, second_opinion="none" if f is None else f.kind,
+                           second_opinion_px=640 if f is None else f.working_size)
+
     def view(self, small: np.ndarray, image: np.ndarray | None = None) -> View:
         """A frame at the working resolution (and the input image it came from, for features)."""
         prepared = self.registrar.prepare(small)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["place_signature", "place_similarity"]
+__all__ = ["place_signature", "place_similarities"]
 
 
 def place_signature(gray: np.ndarray, size: int = 128, angles: int = 64, radii: int = 24,
@@ -47,14 +47,19 @@ def place_signature(gray: np.ndarray, size: int = 128, angles: int = 64, radii: 
     return spec / norm if norm > 0 else spec
 
 
-def place_similarity(a: np.ndarray, b: np.ndarray, max_ring_shift: int = 2) -> float:
-    """Cosine similarity of two signatures, the best over ring shifts up to ``max_ring_shift``
-    (a scale change of the frame shifts its spectrum along the log-radius axis)."""
-    best = -1.0
+def place_similarities(a: np.ndarray, others: np.ndarray, max_ring_shift: int = 2) -> np.ndarray:
+    """Cosine similarity of signature ``a`` with each of ``others`` (stacked: ``(n, radii,
+    coefficients)``), the best over ring shifts up to ``max_ring_shift`` (a scale change of the
+    frame shifts its spectrum along the log-radius axis); float64 ``(n,)``, -1 against an
+    all-zero signature."""
+    others = np.asarray(others, np.float32).reshape(-1, *a.shape)
+    best = np.full(len(others), -1.0)
     n = a.shape[0]
     for s in range(-max_ring_shift, max_ring_shift + 1):
-        x, y = (a[s:], b[:n - s]) if s >= 0 else (a[:n + s], b[-s:])
-        nx, ny = float(np.linalg.norm(x)), float(np.linalg.norm(y))
-        if nx > 0 and ny > 0:
-            best = max(best, float((x * y).sum()) / (nx * ny))
+        x, y = (a[s:], others[:, :n - s]) if s >= 0 else (a[:n + s], others[:, -s:])
+        nx = float(np.linalg.norm(x))
+        ny = np.sqrt(np.einsum("kij,kij->k", y, y, dtype=np.float64))
+        dot = np.einsum("ij,kij->k", x, y, dtype=np.float64)
+        ok = (ny > 0) & (nx > 0)
+        np.maximum(best, np.where(ok, dot / np.where(ok, nx * ny, 1.0), -1.0), out=best)
     return best

@@ -18,7 +18,10 @@ nearest by GPS when the keyframes carry a fix, else the most similar by their pl
 (:mod:`photomap.core.places`, translation and rotation invariant, as iFMI's magnitude spectra
 are). A confident match joins the two segments into one map frame (a ``join`` edge of one pose
 graph); the loop closer returns a :class:`Join` that the pipeline applies to its trajectory, maps
-and tracker.
+and tracker. Live, that search (a few registrations with features, keyframe images read back:
+100-400 ms at 1080p) runs in the loop registrations' thread, one keyframe at a time, and its join
+comes with a later frame; a replay searches in the worker, so that its map does not depend on the
+machine's speed.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Iterator, Mapping
+from typing import Callable, Iterator, Mapping
 
 import cv2
 import numpy as np
@@ -37,7 +40,7 @@ from photomap.config import MappingConfig, PosegraphConfig
 from photomap.core.matching import PairMatcher
 from photomap.core.ifmi import Registrar
 from photomap.core.keyframes import KeyframeGraph, KeyframePriors, LoopMeasurement
-from photomap.core.places import place_signature, place_similarity
+from photomap.core.places import place_signature, place_similarities
 from photomap.core.tracking import TrackStep
 from photomap.geo.georef import enu_from_latlon
 from photomap.geometry import scaling, to_h
@@ -227,6 +230,13 @@ class LoopCloser:
         self._loop_registrar = (Registrar(self.registrar.shape, self.registrar.params)
                                 if self._loop_executor is not None else None)
         self._loop_jobs: deque[tuple[int, int, Future]] = deque()  # (keyframe, frame submitted, measurements)
+        # live: a new keyframe's search for a join to another segment (a few registrations with
+        # features and keyframe images read from disk: 100-400 ms at 1080p) runs in that thread
+        # too, one at a time, with a matcher of its own; a replay searches in the worker (the
+        # map does not depend on the machine's speed)
+        self._join_matcher = (matcher.twin(self._loop_registrar)
+                              if self._loop_executor is not None and lockstep_frames is None else None)
+        self._join_job: tuple[int, Future] | None = None  # (keyframe, its placement against another segment)
         # replay: a background solve (a keyframe's loop registrations) is applied exactly
         # lockstep_frames (loop_lockstep_frames) frames after it started, waiting for it if
         # needed, so that the map does not depend on the machine's speed
@@ -281,14 +291,18 @@ class LoopCloser:
             self.relative.setdefault(step.segment, RelativePoses()).add(index, step.reference, step.relative)
         if step.pose is None or not step.keyframe:
             self._collect_loops()
-            return self._polled()
+            return self._collected_join() + self._polled()
         priors = self._priors(sample)
         self._keep(index, step.segment, small, image, priors)
         graph = self._graph(step.segment)
         edge = (step.reference, step.relative, step.confidence) if step.reference is not None else None
         graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge, priors)
         updates: list[Update] = []
-        join = self._try_join(index, step.segment, small, image)
+        if self._join_matcher is None:
+            join = self._try_join(index, step.segment, small, image)
+        else:
+            join = None
+            self._search_join(index, step.segment, small, image)
         if join is not None:
             updates.append(join)
             graph = self.graphs[join.into]
@@ -301,7 +315,7 @@ class LoopCloser:
                 self._loop_jobs.append((index, index, self._loop_executor.submit(
                     graph.measure_loops, small, candidates, self._loop_registrar, self._first.wait)))
         self._collect_loops()
-        return updates + self._polled(keyframe=True)
+        return updates + self._collected_join() + self._polled(keyframe=True)
 
     def _added(self, segment: int, added: int) -> None:
         if added:
@@ -355,45 +369,82 @@ class LoopCloser:
         if here is not None and all(k in self._position for k in others):
             key = {k: np.hypot(self._position[k][0] - here[0], self._position[k][1] - here[1]) for k in others}
             return sorted(others, key=key.get)[:self.join_candidates]
-        sig = self._signature[index]
-        key = {k: -place_similarity(sig, self._signature[k]) for k in others}
-        return sorted(others, key=key.get)[:self.join_candidates]
+        similar = place_similarities(self._signature[index], np.stack([self._signature[k] for k in others]))
+        return [others[i] for i in np.argsort(-similar, kind="stable")[:self.join_candidates]]
 
     def _try_join(self, index: int, segment: int, small: np.ndarray, image: np.ndarray) -> Join | None:
-        """Place keyframe ``index`` of ``segment`` against other segments' keyframes; join the
-        first placement the images confirm (the overlap check, or the features' second opinion)."""
+        """Place keyframe ``index`` of ``segment`` against other segments' keyframes and join the
+        first placement the images confirm, here and now."""
         candidates = self._join_candidates(index, segment)
-        if not candidates:
-            return None
-        view = self.matcher.view(small, image)
+        placed = self._place_join(self.matcher, small, image, candidates) if candidates else None
+        return None if placed is None else self._join(index, *placed)
+
+    def _search_join(self, index: int, segment: int, small: np.ndarray, image: np.ndarray) -> None:
+        """:meth:`_try_join` in the loop thread (its result joins at a later frame:
+        :meth:`_collected_join`); not while an earlier keyframe's search runs."""
+        if self._join_job is not None:
+            return
+        candidates = self._join_candidates(index, segment)
+        if candidates:
+            self._join_job = (index, self._loop_executor.submit(
+                self._place_join, self._join_matcher, small, image, candidates, self._first.wait))
+
+    def _collected_join(self, wait: bool = False) -> list[Join]:
+        """The join found by a finished search of the loop thread (``wait``: wait for it)."""
+        if self._join_job is None or not (wait or self._join_job[1].done()):
+            return []
+        index, future = self._join_job
+        self._join_job = None
+        try:
+            placed = future.result()
+        except Exception as exc:  # e.g. an old keyframe's image lost: no join from this keyframe
+            log.warning("join search of keyframe %d skipped: %s: %s", index, type(exc).__name__, exc)
+            return []
+        join = None if placed is None else self._join(index, *placed)
+        return [] if join is None else [join]
+
+    def _place_join(self, matcher: PairMatcher, small: np.ndarray, image: np.ndarray, candidates: list[int],
+                    pause: Callable[[], None] | None = None) -> tuple[int, np.ndarray, float] | None:
+        """The first of the keyframes ``candidates`` that the new keyframe (``small``, ``image``)
+        is placed against and the images confirm (the overlap check, or the features' second
+        opinion): (that keyframe, 3x3 input px of the new keyframe -> of it, confidence), or
+        None. Reads only the keyframe store (any thread)."""
+        view = matcher.view(small, image)
         for match in candidates:
+            if pause is not None:
+                pause()
             old = self.store.image(match)  # as the painter kept it: maybe at the map's (lower) resolution
             if old is not None and old.shape[:2] != image.shape[:2]:
                 # the features' placement assumes both images at one scale: the input frame's
                 old = cv2.resize(old, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_LINEAR)
-            placed = self.matcher.match(self.matcher.view(self.store.small(match), old), view, always_check=True)
-            if not placed.accepted:
-                continue
-            reg = placed
-            into = self._segment_of[match]
-            measured = self._from_small @ to_h(reg.matrix) @ self._to_small  # input px: index -> match
-            old = self.graphs[into].pose_of(match)
-            new = self.graphs[segment].pose_of(index)
-            transform = old @ measured @ np.linalg.inv(new)
-            self.graphs[into].absorb(self.graphs.pop(segment), transform,
-                                     (match, index, measured, reg.confidence))
-            self.relative.setdefault(into, RelativePoses()).update(self.relative.pop(segment, RelativePoses()))
-            for k, s in self._segment_of.items():
-                if s == segment:
-                    self._segment_of[k] = into
-            self._wanted = {into if s == segment else s for s in self._wanted}
-            self._merged_into[segment] = into
-            join = Join(segment, into, transform, index, match, float(reg.confidence))
-            self.joins.append(join)
-            log.info("segment %d joined segment %d: keyframe %d matches keyframe %d (confidence %.2f)",
-                     segment, into, index, match, reg.confidence)
-            return join
+            placed = matcher.match(matcher.view(self.store.small(match), old), view, always_check=True)
+            if placed.accepted:
+                return match, self._from_small @ to_h(placed.matrix) @ self._to_small, float(placed.confidence)
         return None
+
+    def _join(self, index: int, match: int, measured: np.ndarray, confidence: float) -> Join | None:
+        """Join the segment of keyframe ``index`` to that of keyframe ``match`` (``measured``: 3x3
+        input px of ``index`` -> of ``match``); None when they are one segment by now, or one of
+        them was forgotten."""
+        segment, into = self._segment_of.get(index), self._segment_of.get(match)
+        if segment is None or into is None or segment == into or segment not in self.graphs \
+                or into not in self.graphs:
+            return None
+        old = self.graphs[into].pose_of(match)
+        new = self.graphs[segment].pose_of(index)
+        transform = old @ measured @ np.linalg.inv(new)
+        self.graphs[into].absorb(self.graphs.pop(segment), transform, (match, index, measured, confidence))
+        self.relative.setdefault(into, RelativePoses()).update(self.relative.pop(segment, RelativePoses()))
+        for k, s in self._segment_of.items():
+            if s == segment:
+                self._segment_of[k] = into
+        self._wanted = {into if s == segment else s for s in self._wanted}
+        self._merged_into[segment] = into
+        join = Join(segment, into, transform, index, match, confidence)
+        self.joins.append(join)
+        log.info("segment %d joined segment %d: keyframe %d matches keyframe %d (confidence %.2f)",
+                 segment, into, index, match, confidence)
+        return join
 
     def _start(self, now: bool = False) -> Correction | None:
         """Optimise a segment that needs it: in the background (None), or here and now. Live, a
@@ -466,14 +517,15 @@ class LoopCloser:
             self._position.pop(k, None)
             self.store.discard(k)
 
-    def flush(self) -> list[Correction]:
-        """Finish every pending optimisation (at the end of the run); returns their corrections.
+    def flush(self) -> list[Update]:
+        """Finish every pending join search and optimisation (at the end of the run); returns the
+        join and the corrections.
 
         With ``settle_on_priors``, segments whose keyframes carry telemetry priors (GPS, heading,
         altitude) are optimised once more with them, loop closed or not, so that a weak chain
         (stills) agrees with the GPS track and the altitude.
         """
-        out = []
+        out: list[Update] = list(self._collected_join(wait=True))
         if self.settle_on_priors:
             self._wanted |= {s for s, g in self.graphs.items() if len(g.keyframes) >= 2 and g.graph.has_priors}
         self._collect_loops(wait=True)

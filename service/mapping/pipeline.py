@@ -930,8 +930,15 @@ class MappingPipeline:
         (``photomap recover``), else the checkpoint is removed."""
         t0 = time.perf_counter()
         if self.loops is not None:
-            for correction in self.loops.flush():
-                self._apply(correction)
+            for update in self.loops.flush():
+                if isinstance(update, Join):
+                    self._join(update)
+                    message = (f"map segment {update.segment} joined segment {update.into} "
+                               f"(confidence {update.confidence:.2f})")
+                    log.info(message)
+                    self.stats.events.append(message)
+                else:
+                    self._apply(update)
         if self._painter is not None:
             try:
                 for segment in list(self.mosaics):  # every segment got its last frame
