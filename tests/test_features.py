@@ -20,6 +20,7 @@ from photomap.config import Config
 from photomap.core.features import (FeatureMatcher, FeatureRegistration, decide, features_confirmed,
                                     needs_second_opinion, register_features, rescale_matrix, verify_overlap)
 from photomap.core.ifmi import Prior, Registrar, Registration
+from photomap.core.matching import PairMatcher
 from photomap.geometry import similarity_matrix
 from photomap.sim.flight import build_pyramid, render_pair
 from photomap.sim.terrain import load_terrain, valid_mask
@@ -117,6 +118,24 @@ def test_featureless_frames_give_no_result():
     with pytest.raises(ValueError):
         FeatureMatcher("sift").prepare(np.zeros((8, 8), np.uint8))
 
+
+
+def test_a_uniform_frame_is_rejected_without_asking_the_features(terrain):
+    """Black video (a lens cap, a lost link): the matcher rejects it at once; a frame of other
+    ground that iFMI cannot place is given to the features (the second opinion is what costs:
+    50-150 ms a pair at 1080p)."""
+    a, b, _ = pair(terrain, 10.0, 1.0, (760.0, 0.0))  # textured, no overlap
+    matcher = PairMatcher(Registrar((240, 320)), second_opinion="orb")
+
+    def view(gray):
+        return matcher.view(cv2.resize(gray, (320, 240), interpolation=cv2.INTER_AREA), gray)
+
+    ref, black, other = view(a), view(np.zeros_like(a)), view(b)
+    got = matcher.match(ref, black)
+    assert not got.accepted and got.how == "rejected"
+    assert ref.features is None and black.features is None  # no features asked
+    assert not matcher.match(ref, other).accepted
+    assert ref.features is not None and other.features is not None
 
 # --------------------------------------------------------------------------- overlap check
 
