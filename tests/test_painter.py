@@ -527,6 +527,39 @@ def test_live_join_search_runs_off_the_worker(tmp_path, monkeypatch):
     assert blind_covered > 0.9 * covered  # the joined segment's ground is in the main map
     assert blind_residual <= residual + 1.0
 
+
+def test_a_map_the_camera_left_goes_to_the_tile_store_a_few_tiles_a_frame(tmp_path):
+    """With a tile cap, a map whose segment the camera left (blind frames: a new segment) moves
+    its tiles to the store over the next frames, a few each (all at once stalled the worker for
+    200 ms at 1080p), until none is left in memory; the maps are those of a run without a cap."""
+    from photomap.mapping.pipeline import _SPILL_TILES_PER_FRAME
+    from test_drift import LOOPS, closed_flight
+
+    terrain = load_terrain("aukerman", zoom=3)
+    seq = closed_flight(terrain, valid_mask(terrain), 0.1 / 3, 1.0, "figure8", 4)
+    blind = list(seq.frames)
+    for k in range(60, 75):
+        blind[k] = np.full_like(blind[k], 128)
+    base = LOOPS + ["mapping.max_lost_frames=5", "mosaic.tile_size=64", "mapping.loop_closure=false"]
+    held = []  # per frame: tiles in memory of the maps other than the current one
+
+    def sink(event):
+        held.append(sum(m.tiles_in_memory for seg, m in pipe.mosaics.items() if seg != event.segment))
+
+    pipe = MappingPipeline(ListSource(blind), load_config(overrides=base + ["mosaic.max_tiles_in_memory=40"]),
+                           tmp_path / "capped", sinks=[sink])
+    capped = pipe.run()
+    free = MappingPipeline(ListSource(blind), load_config(overrides=base), tmp_path / "free").run()
+    assert max(held) > _SPILL_TILES_PER_FRAME  # the left map held more than a frame's share
+    assert all(b - a <= _SPILL_TILES_PER_FRAME for a, b in zip(held[1:], held[:-1]))  # a few a frame
+    assert held[-1] == 0
+    assert [m["segment"] for m in capped["mosaics"]] == [m["segment"] for m in free["mosaics"]]
+    for m in capped["mosaics"]:
+        got = cv2.imread(str(tmp_path / "capped" / m["file"]), cv2.IMREAD_UNCHANGED)
+        want = cv2.imread(str(tmp_path / "free" / m["file"]), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(got, want)
+
+
 @pytest.mark.parametrize("exposure,down", [("none", True), ("gain", True), ("gain", False)])
 def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure, down):
     """``band_px``: a whole paint warps the band of tile rows ahead of the camera, and each later

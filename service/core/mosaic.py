@@ -587,17 +587,20 @@ class TiledMosaic:
         if seen.all():
             self._full.add(key)
 
-    def spill(self) -> None:
-        """Move every tile in memory to the store (a map that no longer grows), and drop cached
-        frame masks. No effect without a store."""
+    def spill(self, max_tiles: int | None = None) -> int:
+        """Move the tiles in memory to the store, least recently used first, at most ``max_tiles``
+        of them (None: all; a map that no longer grows), and drop cached frame masks. Returns
+        how many tiles stay in memory. No effect without a store."""
         if self._store is None:
-            return
-        cap, self.max_tiles_in_memory = self.max_tiles_in_memory, 0
+            return len(self._tiles)
+        keep = 0 if max_tiles is None else max(0, len(self._tiles) - max(0, int(max_tiles)))
+        cap, self.max_tiles_in_memory = self.max_tiles_in_memory, keep
         try:
             self._make_room(0)
         finally:
             self.max_tiles_in_memory = cap
         self._frame_cache.clear()
+        return len(self._tiles)
 
     @property
     def stamp(self) -> int:

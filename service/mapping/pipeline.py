@@ -79,6 +79,9 @@ _LOCKSTEP_FRAMES = 30
 _WRITER_SHARE = 0.1  # a checkpoint's files (whose rows grow with the flight) take at most this share of the time
 _WRITER_REST_AFTER_S = 0.05  # ... once the trajectory takes longer than this to write
 _LOOP_LOCKSTEP_FRAMES = 8  # ... and a new keyframe's loop registrations (a few ms each) join its graph
+# tiles of a map the camera left moved to the tile store per frame (all at once: 256 tiles took the
+# worker 200 ms, waiting for the tile writer)
+_SPILL_TILES_PER_FRAME = 8
 
 
 @dataclass
@@ -276,6 +279,7 @@ class MappingPipeline:
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
         self._segment_start: dict[int, int] = {}  # segment -> position in the rows where it started
         self._kept: set[int] = set()  # segments known to hold more than one posed frame
+        self._spilling: set[int] = set()  # segments left by the camera whose tiles go to the store
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
 
@@ -455,7 +459,16 @@ class MappingPipeline:
                     continue
                 self._kept.add(seg)
             if self.cfg.mosaic.max_tiles_in_memory is not None:
-                self.mosaics[seg].spill()
+                self._spilling.add(seg)  # a few tiles a frame: _spill_retired
+
+    def _spill_retired(self) -> None:
+        """Move a few tiles of the maps the camera left to the tile store (only the current map
+        holds tiles in memory once they are all gone)."""
+        for seg in sorted(self._spilling):
+            mosaic = self.mosaics.get(seg)
+            if mosaic is None or seg == self._segment or not mosaic.spill(_SPILL_TILES_PER_FRAME):
+                self._spilling.discard(seg)  # joined, dropped, current again, or done
+            return  # one map a frame
 
     def _drop_segment(self, seg: int, glued: list[RowView]) -> None:
         for row in glued:
@@ -587,6 +600,7 @@ class MappingPipeline:
             timing.add("loop_closure", time.perf_counter() - t3)
         t4 = time.perf_counter()
         touched |= self._painter.pump(self.mosaics, frame=frame.index).get(step.segment, set())  # re-rendered
+        self._spill_retired()
         timing.add("map_upkeep", time.perf_counter() - t4)
         self.stats.worker_s += time.perf_counter() - t0
         if self.sinks:
