@@ -237,6 +237,8 @@ class LoopCloser:
         self._join_matcher = (matcher.twin(self._loop_registrar)
                               if self._loop_executor is not None and lockstep_frames is None else None)
         self._join_job: tuple[int, Future] | None = None  # (keyframe, its placement against another segment)
+        # the newest keyframe that came while a search ran: searched next (index, small, image)
+        self._join_next: tuple[int, np.ndarray, np.ndarray] | None = None
         # replay: a background solve (a keyframe's loop registrations) is applied exactly
         # lockstep_frames (loop_lockstep_frames) frames after it started, waiting for it if
         # needed, so that the map does not depend on the machine's speed
@@ -381,8 +383,10 @@ class LoopCloser:
 
     def _search_join(self, index: int, segment: int, small: np.ndarray, image: np.ndarray) -> None:
         """:meth:`_try_join` in the loop thread (its result joins at a later frame:
-        :meth:`_collected_join`); not while an earlier keyframe's search runs."""
+        :meth:`_collected_join`); while an earlier keyframe's search runs, this keyframe waits
+        for it (replacing one that waited: the newest is the likeliest to join)."""
         if self._join_job is not None:
+            self._join_next = (index, small, image)
             return
         candidates = self._join_candidates(index, segment)
         if candidates:
@@ -399,8 +403,11 @@ class LoopCloser:
             placed = future.result()
         except Exception as exc:  # e.g. an old keyframe's image lost: no join from this keyframe
             log.warning("join search of keyframe %d skipped: %s: %s", index, type(exc).__name__, exc)
-            return []
+            placed = None
         join = None if placed is None else self._join(index, *placed)
+        waiting, self._join_next = self._join_next, None
+        if waiting is not None and waiting[0] in self._segment_of:  # (its segment, after this join)
+            self._search_join(waiting[0], self._segment_of[waiting[0]], waiting[1], waiting[2])
         return [] if join is None else [join]
 
     def _place_join(self, matcher: PairMatcher, small: np.ndarray, image: np.ndarray, candidates: list[int],
@@ -525,7 +532,9 @@ class LoopCloser:
         altitude) are optimised once more with them, loop closed or not, so that a weak chain
         (stills) agrees with the GPS track and the altitude.
         """
-        out: list[Update] = list(self._collected_join(wait=True))
+        out: list[Update] = []
+        while self._join_job is not None:
+            out.extend(self._collected_join(wait=True))
         if self.settle_on_priors:
             self._wanted |= {s for s, g in self.graphs.items() if len(g.keyframes) >= 2 and g.graph.has_priors}
         self._collect_loops(wait=True)
