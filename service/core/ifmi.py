@@ -177,6 +177,11 @@ class PreparedFrame:
     # refinement data built on first use (pyramid, smoothed images, template): see Registrar._refine
     _cache: dict = field(default_factory=dict, repr=False)
 
+    @property
+    def blank(self) -> bool:
+        """Nothing to register: a uniform frame (black video, a lens cap)."""
+        return self.energy <= _EPS
+
 
 @dataclass(frozen=True, eq=False)
 class _Grid:
@@ -911,7 +916,7 @@ class Registrar:
         """
         pa = a if isinstance(a, PreparedFrame) else self.prepare(a)
         pb = b if isinstance(b, PreparedFrame) else self.prepare(b)
-        if pa.energy <= _EPS or pb.energy <= _EPS:
+        if pa.blank or pb.blank:
             return Registration(matrix=similarity_matrix(0.0, 1.0), confidence=0.0)
 
         # The prior-free work on this pair (correlation surfaces, refinements) is kept until

@@ -29,9 +29,6 @@ from photomap.geometry import pose_angle_deg, pose_scale, to_h
 __all__ = ["View", "Match", "Expectation", "PairMatcher"]
 
 
-_NO_CONTENT = 1e-12  # grey-level variance of a frame with nothing to place (as the registrar's)
-
-
 @dataclass(eq=False)
 class View:
     """A frame as the matcher sees it: its iFMI spectra (working resolution) and, for the feature
@@ -149,8 +146,7 @@ class PairMatcher:
         if not self.verify:
             ok = reg.confidence >= self.min_confidence
             return Match(reg.matrix, reg.confidence, "ifmi", ok, nan, "confident" if ok else "rejected", reg)
-        if min(reference.prepared.energy, moving.prepared.energy) <= _NO_CONTENT:
-            # a uniform frame (black video, a lens cap): no placement, and nothing for the features
+        if reference.prepared.blank or moving.prepared.blank:  # no placement, nothing for the features
             return Match(reg.matrix, reg.confidence, "ifmi", False, nan, "rejected", reg)
         if not always_check:
             if expected is not None and reg.confidence >= self.min_confidence \
