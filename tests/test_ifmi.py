@@ -252,6 +252,19 @@ def test_percentile_matches_numpy():
             assert _percentile(x, q) == pytest.approx(float(np.percentile(x, q)), rel=1e-6, abs=1e-7)
 
 
+def test_gram_matrix_in_chunks_matches_the_full_product():
+    from photomap.core.ifmi import _GRAM_CHUNK, _gram
+
+    rng = np.random.default_rng(5)
+    for n in (1, 100, _GRAM_CHUNK, _GRAM_CHUNK + 1, 3 * _GRAM_CHUNK - 7):
+        a = rng.standard_normal((6, n)).astype(np.float32)
+        b = a * rng.random(n).astype(np.float32)
+        want = a.astype(np.float64) @ b.astype(np.float64).T
+        got = _gram(a, b)
+        assert got.dtype == np.float64 and got.shape == (6, 6)
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * math.sqrt(n))
+
+
 @pytest.fixture(scope="module")
 def sand() -> np.ndarray:
     """The simulator's procedural sand (smooth, low contrast), grey."""

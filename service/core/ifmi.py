@@ -35,11 +35,13 @@ new frame costs 3 forward and at most 3 inverse real FFTs; the refinement's data
 built on first use and cached in it too.
 
 Speed (issue 12): the FFTs are OpenCV's (``cv2.dft`` in its packed CCS layout, about twice as fast
-as ``scipy.fft`` here), everything is float32 but the few sums that need more, and nothing calls a
-BLAS product on large arrays (``@``/``dot`` on the refinement's samples ran multithreaded OpenBLAS,
-whose threads spin: next to any busy process a 3 ms registration took 30-100 ms). Only OpenCV and
-``np.einsum`` (single-threaded) touch the large arrays, so a Registrar costs the same in any
-process, whatever its BLAS thread settings.
+as ``scipy.fft`` here), everything is float32 but the few sums that need more, and no BLAS product
+is large enough for BLAS threads (``@``/``dot`` on all of the refinement's samples ran multithreaded
+OpenBLAS, whose threads spin: next to any busy process a 3 ms registration took 30-100 ms). The
+large arrays go through OpenCV and ``np.einsum`` (single-threaded), the refinement's 6x6
+Gauss-Newton matrix through BLAS products of at most ``_GRAM_CHUNK`` samples (below OpenBLAS's
+size for threads; 7x faster than ``np.einsum``), so a Registrar costs the same in any process,
+whatever its BLAS thread settings.
 """
 
 from __future__ import annotations
@@ -66,6 +68,7 @@ _REFINE_KEEP = 0.25  # grid samples kept: gradient energy above this fraction of
 #                      half of them on textured ground, ~97 % of the energy, which is what the
 #                      estimate's precision needs; 0.5 keeps ~40 % and loses ~15 % of the precision)
 _REFINE_MIN_KEEP = 4096  # ... but at least this many (all of a smaller grid: noisy ground needs them)
+_GRAM_CHUNK = 7000  # samples per BLAS product of the refinement (6 x 6 x 7000 < 65536 * 4)
 _REFINE_MARGIN = 2.0  # samples used must map this far inside b (level pixels); see _refine
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 _EXPECTED_PEAK = 0.35  # a peak at the expected shift wins over higher ones at this fraction of the best
@@ -191,9 +194,8 @@ class _Grid:
     stride: int  # level pixels between samples
     size: tuple[int, int]  # (rows, cols) of samples
     center: tuple[float, float]  # the frame centre in level pixels
-    window: np.ndarray  # (rows, cols) apodization weight of each sample
-    xyw: np.ndarray  # (3, N) float32 sample x, y and window, row-major over the grid
-    flat: np.ndarray  # (N,) index of each sample in the raveled level image
+    window: np.ndarray  # (rows, cols) float32 apodization weight of each sample
+    points: np.ndarray  # (N, 2) float32 sample x, y (level pixels), row-major over the grid
 
 
 @dataclass(frozen=True, eq=False)
@@ -231,6 +233,19 @@ def _fit_offset(lm: float, l0: float, lp: float) -> float:
     if den >= -_EPS:
         return 0.0
     return min(max(0.5 * (lm - lp) / den, -0.5), 0.5)
+
+
+def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b.T`` (float64) of two (k, n) float32 arrays with k small, in products of at most
+    ``_GRAM_CHUNK`` columns: each below OpenBLAS's size for threads (m n k <= 65536 * 4), so
+    that it runs on the caller's thread whatever the BLAS thread setting."""
+    n = a.shape[1]
+    if n <= _GRAM_CHUNK:
+        return (a @ b.T).astype(np.float64)
+    out = np.zeros((a.shape[0], b.shape[0]))
+    for i in range(0, n, _GRAM_CHUNK):
+        out += a[:, i:i + _GRAM_CHUNK] @ b[:, i:i + _GRAM_CHUNK].T
+    return out
 
 
 def _percentile(x: np.ndarray, q: float) -> float:
@@ -732,8 +747,7 @@ class Registrar:
             yy, xx = np.meshgrid(ys, xs, indexing="ij")
             window = np.ascontiguousarray(self.window[ys * f][:, xs * f])
             grid = _Grid(level, stride, (len(ys), len(xs)), (self.center[0] / f, self.center[1] / f),
-                         window, np.stack([xx.ravel(), yy.ravel(), window.ravel()]).astype(np.float32),
-                         (yy * w + xx).ravel())
+                         window, np.stack([xx.ravel(), yy.ravel()], axis=-1).astype(np.float32))
             self._grids[level] = grid
         return grid
 
@@ -758,40 +772,49 @@ class Registrar:
             img = self._smooth(frame, grid.level)
             st = grid.stride
             rh, rw = grid.size
-            pad = cv2.copyMakeBorder(img, 1, 1, 1, 1, cv2.BORDER_REFLECT_101)
-
-            def at(dy: int, dx: int) -> np.ndarray:
-                return pad[1 + dy::st, 1 + dx::st][:rh, :rw]
-
-            grad = np.empty((2, rh, rw), np.float32)  # twice the gradient (central differences)
-            np.subtract(at(0, 1), at(0, -1), out=grad[0])
-            np.subtract(at(1, 0), at(-1, 0), out=grad[1])
-            energy = grad[0] * grad[0]
-            energy += grad[1] * grad[1]
+            # at each grid sample: twice the gradient (central differences; 0 on the image's
+            # border, as with a reflected border) and the level image itself
+            at = np.empty((3, rh, rw), np.float32)
+            at[2] = img[::st, ::st]
+            inner_x = (img.shape[1] - 2) // st  # grid columns 1 .. inner_x have both neighbours
+            inner_y = (img.shape[0] - 2) // st
+            at[0, :, 0] = 0.0
+            at[0, :, inner_x + 1:] = 0.0
+            np.subtract(img[::st, st + 1::st][:, :inner_x], img[::st, st - 1::st][:, :inner_x],
+                        out=at[0, :, 1:inner_x + 1])
+            at[1, 0] = 0.0
+            at[1, inner_y + 1:] = 0.0
+            np.subtract(img[st + 1::st, ::st][:inner_y], img[st - 1::st, ::st][:inner_y],
+                        out=at[1, 1:inner_y + 1])
+            energy = at[0] * at[0]
+            energy += at[1] * at[1]
             energy *= grid.window
             if energy.size <= _REFINE_MIN_KEEP:
                 keep = np.arange(energy.size)
             else:
                 # above a fraction of the mean energy, lowered until enough are kept
-                level = np.float32(_REFINE_KEEP * float(energy.mean()))
+                level = np.float32(_REFINE_KEEP * cv2.mean(energy)[0])
                 mask = energy > level
                 while int(np.count_nonzero(mask)) < _REFINE_MIN_KEEP and level > 0:
                     level = level * np.float32(0.5) if level > 1e-6 * energy.max() else np.float32(0)
                     mask = energy > level
                 keep = np.flatnonzero(mask)
-            x, y, window = np.take(grid.xyw, keep, axis=1)
-            xc, yc = x - np.float32(grid.center[0]), y - np.float32(grid.center[1])
+            points = np.take(grid.points, keep, axis=0)
+            window = np.take(grid.window, keep)
+            xc = points[:, 0] - np.float32(grid.center[0])
+            yc = points[:, 1] - np.float32(grid.center[1])
             sd = np.empty((6, keep.size), np.float32)
-            np.multiply(np.take(grad.reshape(2, -1), keep, axis=1), 0.5, out=sd[:2])
+            np.take(at.reshape(3, -1), keep, axis=1, out=sd[:3])
+            sd[5] = sd[2]
+            sd[:2] *= np.float32(0.5)
             np.multiply(xc, sd[0], out=sd[2])
             sd[2] += yc * sd[1]
             np.multiply(xc, sd[1], out=sd[3])
             sd[3] -= yc * sd[0]
             sd[4] = 1.0
-            sd[5] = img.ravel()[grid.flat[keep]]
             if keep.size:
-                sd[5] -= np.float32(sd[5].mean())
-            tpl = _Template(grid, np.stack([x, y], axis=-1)[None], window, sd)
+                sd[5] -= np.float32(cv2.mean(sd[5])[0])
+            tpl = _Template(grid, points[None], window, sd)
             frame._cache["template"] = tpl
         return tpl
 
@@ -801,8 +824,8 @@ class Registrar:
         ``m`` maps b -> a; returns the refined matrix, or None when it does not converge. It runs
         on ``a.refine_level`` of both frames' pyramids, with the informative samples of a grid on
         ``a`` (the template) and ``b`` interpolated at their warped positions. Only small,
-        single-threaded reductions (``np.einsum``, OpenCV; no BLAS products, whose threads would
-        spin against any busy neighbour process).
+        single-threaded reductions (``np.einsum``, OpenCV, and BLAS products too small for BLAS
+        threads, whose spinning would stall against any busy neighbour process: :func:`_gram`).
         """
         h, w = self.shape
         tpl = self._template(a)
@@ -841,19 +864,16 @@ class Registrar:
                 if wsum < 0.05 * float(tpl.window.sum()):
                     return None
                 wsd = tpl.sd * wgt
-                # Gauss-Newton matrix (upper triangle, 6 reductions) and template moments
-                hess = np.empty((6, 6))
-                for j in range(6):
-                    hess[j, j:] = np.einsum("ki,i->k", tpl.sd[j:], wsd[j])
-                hess = np.triu(hess) + np.triu(hess, 1).T
+                # Gauss-Newton matrix and template moments
+                hess = _gram(tpl.sd, wsd)
                 mt = hess[4, 5] / wsum  # rows 4 and 5: ones and the centred template
                 vt = hess[5, 5] / wsum - mt * mt
                 if vt <= _EPS:
                     return None
-                try:
-                    solve = np.linalg.inv(hess)[:4]
-                except np.linalg.LinAlgError:
+                invertible, inverse = cv2.invert(hess, flags=cv2.DECOMP_LU)
+                if not invertible:
                     return None
+                solve = inverse[:4]
                 # see below: sums of the residual = gain * (proj - mw * ones) - centred template
                 ones, tmpl = hess[:, 4], hess[:, 5] - mt * hess[:, 4]
                 solve_ones = np.einsum("jk,k->j", solve, ones).tolist()
@@ -899,8 +919,8 @@ class Registrar:
         # reject a refinement that wandered far from the iFMI estimate (it diverged), unless it
         # converged to a better fit and stayed within 10 % of the frame size (iFMI can be off by
         # a few degrees on featureless ground, which moves the corners by more than 3 %)
-        corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-        moved_px = float(np.abs(np.einsum("ij,jk->ik", out - start, corners)).max())
+        moved_px = max(abs(d[0] * x + d[1] * y + d[2]) for d in (out - start).tolist()
+                       for x in (0, w - 1) for y in (0, h - 1))
         converged_better = fit_end > fit_start and moved_px <= 0.1 * max(h, w)
         if moved_px > max(3.0, 0.03 * max(h, w)) and not converged_better:
             return None
