@@ -235,6 +235,33 @@ def test_trajectory_csv_bad_input(tmp_path):
         read_trajectory_csv(bad)
 
 
+def test_long_trajectories_are_written_piece_by_piece_and_atomically(tmp_path, monkeypatch):
+    import photomap.io.trajectory_files as tf
+
+    rng = np.random.default_rng(4)
+    rows = [PoseRow(i, i / 30.0, sim(float(rng.uniform(-180, 180)), 1.0, *rng.uniform(-500, 500, 2))[:2],
+                    float(rng.uniform(0, 1)), "registered", 0, {"method": "ifmi"} if i % 3 else {})
+            for i in range(3 * tf._CHUNK_ROWS + 5)]
+    csv_path, tum_path = tmp_path / "trajectory.csv", tmp_path / "trajectory.tum"
+    write_trajectory_csv(csv_path, rows, frame_size=(W, H))
+    write_tum(tum_path, rows, frame_size=(W, H))
+    monkeypatch.setattr(tf, "_CHUNK_ROWS", 10 ** 9)  # the whole file at once: the same text
+    assert csv_path.read_text() == tf.format_trajectory_csv(rows, (W, H))
+    assert tum_path.read_text() == tf.format_tum(rows, (W, H))
+    back = read_trajectory_csv(csv_path)
+    assert [r.frame for r in back] == [r.frame for r in rows]
+    assert all(np.array_equal(a.M, b.M) for a, b in zip(rows, back))
+    assert len(tum_path.read_text().splitlines()) == len(rows) + 1
+    # a bad row in a later piece: the previous file stays whole, no temporary file is left
+    monkeypatch.setattr(tf, "_CHUNK_ROWS", 64)
+    before = csv_path.read_bytes()
+    rows[1000] = PoseRow(1000, 1000 / 30.0, None, 0.0, "glued", 0)
+    with pytest.raises(ValueError, match="status 'glued'"):
+        write_trajectory_csv(csv_path, rows, frame_size=(W, H))
+    assert csv_path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["trajectory.csv", "trajectory.tum"]
+
+
 def test_tum_is_valid_for_evo(tmp_path):
     rows = sample_rows()
     rows.append(PoseRow(7, 0.6, sim(2.0)[:2], 0.9, "registered", 1))  # t does not increase

@@ -18,7 +18,7 @@ import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import IO, Any, Iterable, Sequence
 
 import numpy as np
 
@@ -39,25 +39,34 @@ _GROUNDTRUTH_REQUIRED = ("frame", "t", *H_COLUMNS)
 
 # --- atomic writes ------------------------------------------------------------------------
 
-def atomic_write_bytes(path: str | Path, data: bytes, *, sync: bool = True) -> None:
-    """Write ``data`` to ``path`` atomically (temporary file in the same folder, ``os.replace``).
-    ``sync``: fsync before the rename (durable after power loss; without it a kill still never
-    leaves a partial file under ``path``)."""
+@contextlib.contextmanager
+def atomic_file(path: str | Path, mode: str = "wb", *, sync: bool = True) -> Iterator[IO]:
+    """A new file (``mode`` "wb", or "w": UTF-8 text, newlines as written) that replaces ``path``
+    when the block ends without an error (a temporary file in the same folder, ``os.replace``;
+    after an error it is removed and ``path`` is untouched). ``sync``: fsync before the rename
+    (durable after power loss; without it a kill still never leaves a partial file under
+    ``path``). Large outputs are written piece by piece: no copy of the whole file in memory."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
+        with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8", "newline": ""})) as f:
+            yield f
             if sync:
                 f.flush()
                 os.fsync(f.fileno())
-        mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
-        os.chmod(tmp, mode)
+        mode_bits = path.stat().st_mode & 0o777 if path.exists() else 0o644
+        os.chmod(tmp, mode_bits)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def atomic_write_bytes(path: str | Path, data: bytes, *, sync: bool = True) -> None:
+    """Write ``data`` to ``path`` atomically (:func:`atomic_file`)."""
+    with atomic_file(path, "wb", sync=sync) as f:
+        f.write(data)
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -113,8 +122,11 @@ def _fmt_extra(v: Any) -> str:
     return str(v)
 
 
-def format_trajectory_csv(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None) -> str:
-    """The text of ``trajectory.csv`` (see :func:`write_trajectory_csv`)."""
+_CHUNK_ROWS = 2048  # rows formatted at a time: a long flight's file is never all in memory
+
+
+def _trajectory_csv_chunks(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None) -> Iterator[str]:
+    """The text of ``trajectory.csv``, a header then ``_CHUNK_ROWS`` rows at a time."""
     rows = list(rows) if isinstance(rows, Iterator) else rows  # iterated twice
     centre = frame_centre(*frame_size) if frame_size is not None else None
     extra_cols: list[str] = []
@@ -123,7 +135,7 @@ def format_trajectory_csv(rows: Iterable[PoseRow], frame_size: tuple[int, int] |
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow([*TRAJECTORY_COLUMNS, *extra_cols])
-    for r in rows:
+    for n, r in enumerate(rows, 1):
         if r.status not in STATUSES:
             raise ValueError(f"frame {r.frame}: status {r.status!r} is not one of {STATUSES}")
         if r.M is None:
@@ -137,7 +149,16 @@ def format_trajectory_csv(rows: Iterable[PoseRow], frame_size: tuple[int, int] |
         extras = [_fmt_extra(r.extra.get(k)) for k in extra_cols]
         w.writerow([int(r.frame), _fmt(r.t, ".6f"), *derived, _fmt(r.confidence, ".6g"),
                     r.status, *m, int(r.segment), *extras])
-    return buf.getvalue()
+        if n % _CHUNK_ROWS == 0:
+            yield buf.getvalue()
+            buf.seek(0)
+            buf.truncate()
+    yield buf.getvalue()
+
+
+def format_trajectory_csv(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None) -> str:
+    """The text of ``trajectory.csv`` (see :func:`write_trajectory_csv`)."""
+    return "".join(_trajectory_csv_chunks(rows, frame_size))
 
 
 def write_trajectory_csv(path: str | Path, rows: Iterable[PoseRow],
@@ -155,7 +176,9 @@ def write_trajectory_csv(path: str | Path, rows: Iterable[PoseRow],
         Input frame size in pixels; ``x, y`` are then ``M`` applied to ``((w-1)/2, (h-1)/2)``.
         Without it every posed row must carry ``xy``.
     """
-    atomic_write_text(path, format_trajectory_csv(rows, frame_size))
+    with atomic_file(path, "w") as f:
+        for chunk in _trajectory_csv_chunks(rows, frame_size):
+            f.write(chunk)
 
 
 def _open_csv(path: str | Path, what: str) -> tuple[list[str], list[tuple[int, dict]]]:
@@ -238,14 +261,14 @@ def largest_segment(rows: Iterable[PoseRow]) -> int | None:
     return min(counts, key=lambda s: (-counts[s], s)) if counts else None
 
 
-def format_tum(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None,
-               segment: int | None = None) -> str:
-    """The text of ``trajectory.tum`` (see :func:`write_tum`)."""
+def _tum_chunks(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None,
+                segment: int | None) -> Iterator[str]:
+    """The text of ``trajectory.tum``, a header then ``_CHUNK_ROWS`` lines at a time."""
     rows = list(rows) if isinstance(rows, Iterator) else rows  # iterated twice
     seg = largest_segment(rows) if segment is None else segment
     centre = frame_centre(*frame_size) if frame_size is not None else None
     lines = [f"# t x y z qx qy qz qw | photomap segment {seg}: map pixels, x right, y down, "
-             "z = 0, yaw about z = angle_deg (scale dropped)"]
+             "z = 0, yaw about z = angle_deg (scale dropped)\n"]
     last_t = -math.inf
     for r in rows:
         if not r.glued or r.segment != seg:
@@ -257,8 +280,17 @@ def format_tum(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = Non
         x, y = _centre_xy(r, centre)
         half = math.radians(pose_angle_deg(np.asarray(r.M, dtype=float))) / 2.0
         lines.append(f"{r.t:.6f} {x:.6f} {y:.6f} 0.0 0.0 0.0 {math.sin(half):.9f} "
-                     f"{math.cos(half):.9f}")
-    return "\n".join(lines) + "\n"
+                     f"{math.cos(half):.9f}\n")
+        if len(lines) >= _CHUNK_ROWS:
+            yield "".join(lines)
+            lines = []
+    yield "".join(lines)
+
+
+def format_tum(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None,
+               segment: int | None = None) -> str:
+    """The text of ``trajectory.tum`` (see :func:`write_tum`)."""
+    return "".join(_tum_chunks(rows, frame_size, segment))
 
 
 def write_tum(path: str | Path, rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None,
@@ -280,7 +312,9 @@ def write_tum(path: str | Path, rows: Iterable[PoseRow], frame_size: tuple[int, 
     frame_size : (width, height), optional
         As for :func:`write_trajectory_csv`.
     """
-    atomic_write_text(path, format_tum(rows, frame_size, segment))
+    with atomic_file(path, "w") as f:
+        for chunk in _tum_chunks(rows, frame_size, segment):
+            f.write(chunk)
 
 
 # --- groundtruth.csv ----------------------------------------------------------------------
