@@ -314,3 +314,35 @@ def test_bad_input_is_refused():
         g.set_poses(np.stack([np.eye(3)] * 3))
     with pytest.raises(ValueError, match="unique"):
         interpolate_corrections([1, 1], np.stack([np.eye(3)] * 2), [0])
+
+
+def test_sparse_spd_solve_matches_spsolve_and_falls_back_when_singular():
+    import warnings
+
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    from photomap.core.posegraph import _solve_spd
+
+    rng = np.random.default_rng(11)
+    n, k = 300, 4  # a chain of nodes with loop edges, 4 parameters a node (as the pose graph)
+    pairs = [(i, i + 1) for i in range(n - 1)] + [tuple(sorted(rng.choice(n, 2, replace=False))) for _ in range(200)]
+    rows, cols, vals = [], [], []
+    for i, j in pairs:  # J^T J of one relative-pose residual block per edge
+        jac = np.zeros((k, n * k))
+        jac[:, i * k:(i + 1) * k] = rng.standard_normal((k, k))
+        jac[:, j * k:(j + 1) * k] = rng.standard_normal((k, k))
+        block = scipy.sparse.coo_matrix(jac)
+        rows.append(block.row + len(rows) * k)
+        cols.append(block.col)
+        vals.append(block.data)
+    jac = scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))))
+    a = (jac.T @ jac + scipy.sparse.eye(n * k)).tocsc()
+    b = rng.standard_normal(n * k)
+    x = _solve_spd(a, b)
+    np.testing.assert_allclose(x, scipy.sparse.linalg.spsolve(a, b), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(a @ x, b, atol=1e-9)
+    singular = scipy.sparse.csc_matrix(np.diag([1.0, 0.0, 2.0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # spsolve's "exactly singular"
+        assert np.isnan(_solve_spd(singular, np.ones(3))).all()
