@@ -546,7 +546,7 @@ def _solve_spd(a: scipy.sparse.csc_matrix, b: np.ndarray) -> np.ndarray:
 
     SuperLU in symmetric mode: a minimum-degree ordering of ``a`` itself, no pivoting (which would
     undo it). COLAMD orders for ``a^T a`` instead: on pose graphs with many loops its factors
-    were 1.6-2x larger (memory of every solve, growing faster than the graph over a long flight).
+    were 1.5-2x larger (memory of every solve, growing faster than the graph over a long flight).
     A system SuperLU finds singular falls back to :func:`scipy.sparse.linalg.spsolve` (NaN
     where singular, as before)."""
     try:
