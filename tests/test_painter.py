@@ -313,6 +313,37 @@ def test_tiles_painted_during_a_rerender_keep_their_pixels_until_redone(tmp_path
     painter.close()
 
 
+@pytest.mark.parametrize("border", [0, 1, 3])
+def test_a_rerender_paints_each_tile_from_the_newest_frame_covering_it_whole_on(tmp_path, border):
+    """Three passes over the same ground (turned, shifted, one frame masked): a re-render that
+    skips the frames under the newest one covering a tile whole is pixel for pixel the one that
+    paints them all (overwrite map), and paints far fewer frames."""
+    params = MosaicConfig(tile_size=32, border=border)
+    store = KeyframeStore(tmp_path / "kf")
+    rerenderer = Rerenderer(store, params, strip_tiles=1)  # one tile a strip: the same warps both ways
+    rng = np.random.default_rng(border)
+    frames = []
+    for i in range(18):
+        along = 40.0 * (i % 6) + rng.uniform(-6, 6)
+        p = pose(rng.uniform(-25, 25), 20.0 + along, 15.0 + rng.uniform(-8, 8), rng.uniform(0.9, 1.1))
+        mask = None
+        if i == 14:  # valid only in part: hides nothing
+            mask = np.ones((120, 160), bool)
+            mask[30:70, 50:110] = False
+        rerenderer.save(i, texture(120, 160, 40 + i), mask)
+        frames.append(KeptFrame(i, p, (160, 120), full=mask is None))
+    rerenderer.wait()
+    keys = sorted(render_from_store(store, frames, params).tiles())
+    culled = [rerenderer._render(0, 0, tuple(frames), [key]) for key in keys]
+    every = [rerenderer._render(0, 0, tuple(frames), [key], cull=False) for key in keys]
+    for key, a, b in zip(keys, culled, every):
+        for name in ("color", "cover"):
+            np.testing.assert_array_equal(a.tiles[key][name], b.tiles[key][name], err_msg=str(key))
+    painted, all_painted = sum(s.frames for s in culled), sum(s.frames for s in every)
+    assert painted < 0.6 * all_painted
+    rerenderer.close()
+
+
 def test_kept_images_are_decoded_once_for_all_strips_and_anew_when_kept_again(tmp_path):
     """A correction re-renders strip after strip from the same kept frames: each kept image is
     read back (decoded) once, within the cache's budget; a frame kept again is read anew."""

@@ -116,9 +116,10 @@ class _Kept:
     to_kept: np.ndarray  # 3x3 input px -> px of the kept image (at the map's resolution)
     size: tuple[int, int]  # (w, h) of the kept image
     gain: np.ndarray | None = None  # the exposure gain it was painted with (None: none)
+    full: bool = False  # kept without a mask (valid everywhere)
 
     def frame(self) -> KeptFrame:
-        return KeptFrame(self.index, self.pose @ np.linalg.inv(self.to_kept), self.size, self.gain)
+        return KeptFrame(self.index, self.pose @ np.linalg.inv(self.to_kept), self.size, self.gain, self.full)
 
 
 @dataclass
@@ -277,7 +278,7 @@ class Painter:
             self.stats.new_ground += 1
         if keyframe:  # with the exposure gain it got (maps with mosaic.exposure), for an equal re-render
             self._keep(seg, _Kept(index, pose.copy(), to_kept, (img.shape[1], img.shape[0]),
-                                  getattr(mosaic, "last_gain", None)), img, mask_m)
+                                  getattr(mosaic, "last_gain", None), mask_m is None), img, mask_m)
         kept = keyframe and self.keep  # a kept tail needs no image: end_segment has nothing to paint
         seg.tail = _Tail(index, None if kept else image, pose, None if kept else mask, kept)
         seg.last_painted = pose

@@ -37,13 +37,16 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class KeptFrame:
     """A frame kept for re-rendering: its index, its pose (3x3, pixels of the kept image -> map
-    pixels), the kept image's size ``(w, h)`` and the exposure gain it was painted with (None:
-    none; with ``mosaic.exposure`` the re-render applies the same gain rather than fitting one)."""
+    pixels), the kept image's size ``(w, h)``, the exposure gain it was painted with (None:
+    none; with ``mosaic.exposure`` the re-render applies the same gain rather than fitting one)
+    and whether the kept image is valid everywhere (kept without a mask: in an overwrite map it
+    hides the older frames of the tiles it covers whole)."""
 
     index: int
     pose: np.ndarray
     size: tuple[int, int]
     gain: np.ndarray | None = None
+    full: bool = False
 
     def bbox(self) -> tuple[int, int, int, int]:
         """Map pixels its interpolation can reach: ``(x0, y0, x1, y1)``, exclusive."""
@@ -73,6 +76,35 @@ class Strip:
     tiles: dict[TileKey, Tile | None]
     frames: int  # frames painted into it
     render_s: float
+
+
+def hidden_before(frames: Sequence[KeptFrame], keys: Sequence[TileKey], tile_size: int, border: int
+                  ) -> np.ndarray:
+    """For each tile of ``keys``, the position in ``frames`` (in painting order, the newest on
+    top) of the newest ``full`` frame that covers the whole tile, 0 if none: in an overwrite map
+    (every pixel a frame covers is replaced) the frames before it change nothing there. int
+    ``(len(keys),)``.
+
+    Covered means every map pixel of the tile interpolates from valid pixels of the frame: the
+    tile's corner pixels (the affine image of a rectangle is convex) land in the frame's valid
+    rectangle (``border`` pixels in from its edges, see :meth:`TiledMosaic.add`), one pixel in
+    from it for the interpolation's second sample and one more for the warp's fixed-point
+    coordinates."""
+    last = np.zeros(len(keys), int)
+    full = [i for i, f in enumerate(frames) if f.full]
+    if not full or not len(keys):
+        return last
+    k = np.asarray(keys, float) * tile_size
+    hi = tile_size - 1.0
+    corners = np.stack([k, k + (hi, 0.0), k + (0.0, hi), k + hi], axis=1)  # (tiles, 4, 2) map px
+    pose = np.array([frames[i].pose for i in full], float)
+    inv = np.linalg.inv(pose)  # map px -> kept image px
+    src = np.einsum("nij,tcj->ntci", inv[:, :2, :2], corners) + inv[:, None, None, :2, 2]  # (n, tiles, 4, 2)
+    size = np.array([frames[i].size for i in full], float)[:, None, None, :]  # (w, h)
+    lo = border + 2.0
+    covers = ((src >= lo) & (src <= size - 1.0 - lo)).all(axis=(2, 3))  # (n, tiles)
+    newest = len(full) - 1 - np.argmax(covers[::-1], axis=0)
+    return np.where(covers.any(axis=0), np.asarray(full)[newest], 0)
 
 
 def tile_rects(keys: Sequence[TileKey], tile_size: int) -> list[tuple[int, int, int, int]]:
@@ -296,7 +328,12 @@ class Rerenderer:
                 self._cache_bytes -= self._nbytes(self._cache.popitem(last=False)[1])
         return found
 
-    def _render(self, job: int, segment: int, frames: tuple[KeptFrame, ...], keys: list[TileKey]) -> Strip:
+    def _render(self, job: int, segment: int, frames: tuple[KeptFrame, ...], keys: list[TileKey],
+                cull: bool = True) -> Strip:
+        """Render ``keys`` from ``frames`` (oldest first) into a scratch map; ``cull``: each tile
+        only from the newest frame that covers it whole on (:func:`hidden_before`: the same
+        pixels in an overwrite map; a correction late in a flight that went over the same ground
+        again and again re-renders each tile from the few frames on top, not from every pass)."""
         t = time.perf_counter()
         ts = self.params.tile_size
         rects = tile_rects(keys, ts)
@@ -304,24 +341,38 @@ class Rerenderer:
         sy0 = min(k[1] for k in keys) * ts
         sx1 = (max(k[0] for k in keys) + 1) * ts
         sy1 = (max(k[1] for k in keys) + 1) * ts
+        boxes = reach(np.array([f.pose for f in frames], float).reshape(-1, 3, 3),
+                      np.array([f.size for f in frames], float).reshape(-1, 2))
+        near = np.flatnonzero((boxes[:, 2] > sx0) & (boxes[:, 0] < sx1) & (boxes[:, 3] > sy0) & (boxes[:, 1] < sy1))
+        # a tile takes the frames from the newest one that covers it whole (overwrite maps)
+        # (a frame with no gain under mosaic.exposure would fit one against what is under it)
+        cull = cull and self.params.blend == "overwrite" and (
+            self.params.exposure == "none" or all(frames[i].gain is not None for i in near.tolist()))
+        start = (hidden_before([frames[i] for i in near], keys, ts, self.params.border) if cull
+                 else np.zeros(len(keys), int))
         scratch = TiledMosaic(self.params)
         painted = 0
-        for frame in frames:
-            x0, y0, x1, y1 = frame.bbox()
-            if x1 <= sx0 or x0 >= sx1 or y1 <= sy0 or y0 >= sy1:
-                continue
-            clip = [r for r in rects if x0 < r[0] + r[2] and r[0] < x1 and y0 < r[1] + r[3] and r[1] < y1]
+        for pos, i in enumerate(near.tolist()):
+            frame = frames[i]
+            x0, y0, x1, y1 = boxes[i].tolist()
+            mine = [key for key, s in zip(keys, start.tolist()) if s <= pos] if cull else keys
+            clip = [r for r in (rects if len(mine) == len(keys) else tile_rects(mine, ts))
+                    if x0 < r[0] + r[2] and r[0] < x1 and y0 < r[1] + r[3] and r[1] < y1]
             if not clip:
                 continue
             self.first.wait()
             image, mask = self._image(frame.index)
             if image is None:
+                if cull and start.any():  # a frame that hides others is lost: render them all
+                    return self._render(job, segment, frames, keys, cull=False)
                 continue
             try:
                 extra = {} if frame.gain is None else {"gain": frame.gain}
                 scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
                 painted += 1
             except PhotomapError as exc:
+                if cull and start.any():
+                    return self._render(job, segment, frames, keys, cull=False)
                 log.debug("frame %d not re-rendered: %s", frame.index, exc)
         tiles = scratch.take_tiles()
         return Strip(job, segment, {key: tiles.get(key) for key in keys}, painted, time.perf_counter() - t)
