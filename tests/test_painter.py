@@ -341,6 +341,16 @@ def test_a_rerender_paints_each_tile_from_the_newest_frame_covering_it_whole_on(
             np.testing.assert_array_equal(a.tiles[key][name], b.tiles[key][name], err_msg=str(key))
     painted, all_painted = sum(s.frames for s in culled), sum(s.frames for s in every)
     assert painted < 0.6 * all_painted
+    # a kept image lost from the disk: what it hid shows again, as in a render of every frame
+    for i in (15, 16, 17):
+        store.discard(i)
+        rerenderer._forget_decoded(i)
+    for key in keys:
+        a = rerenderer._render(0, 0, tuple(frames), [key]).tiles[key]
+        b = rerenderer._render(0, 0, tuple(frames), [key], cull=False).tiles[key]
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_array_equal(a["color"], b["color"], err_msg=str(key))
     rerenderer.close()
 
 

@@ -90,10 +90,9 @@ def hidden_before(frames: Sequence[KeptFrame], keys: Sequence[TileKey], tile_siz
     rectangle (``border`` pixels in from its edges, see :meth:`TiledMosaic.add`), one pixel in
     from it for the interpolation's second sample and one more for the warp's fixed-point
     coordinates."""
-    last = np.zeros(len(keys), int)
     full = [i for i, f in enumerate(frames) if f.full]
     if not full or not len(keys):
-        return last
+        return np.zeros(len(keys), int)
     k = np.asarray(keys, float) * tile_size
     hi = tile_size - 1.0
     corners = np.stack([k, k + (hi, 0.0), k + (0.0, hi), k + hi], axis=1)  # (tiles, 4, 2) map px
