@@ -394,7 +394,7 @@ class Painter:
     # ------------------------------------------------------------------ corrections
     def _dirty(self, seg: _Segment, entries: list[_Kept], poses: np.ndarray) -> None:
         """Mark for re-rendering the tiles kept frames ``entries`` reach at ``poses`` ((n, 3, 3),
-        input px -> map px), all at once (as each one's :meth:`KeptFrame.bbox`)."""
+        input px -> map px), all at once (:func:`~photomap.mapping.rerender.reach`)."""
         to_kept = np.array([e.to_kept for e in entries])
         box = reach(poses @ np.linalg.inv(to_kept), np.array([e.size for e in entries]))
         ts = self.tile_size

@@ -48,11 +48,6 @@ class KeptFrame:
     gain: np.ndarray | None = None
     full: bool = False
 
-    def bbox(self) -> tuple[int, int, int, int]:
-        """Map pixels its interpolation can reach: ``(x0, y0, x1, y1)``, exclusive."""
-        x0, y0, x1, y1 = reach(self.pose[None], np.array([self.size]))[0].tolist()
-        return x0, y0, x1, y1
-
 
 def reach(poses: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     """Map pixels the interpolation of images of ``sizes`` ((n, 2): w, h) at ``poses`` ((n, 3, 3),
@@ -349,6 +344,7 @@ class Rerenderer:
             self.params.exposure == "none" or all(frames[i].gain is not None for i in near.tolist()))
         start = (hidden_before([frames[i] for i in near], keys, ts, self.params.border) if cull
                  else np.zeros(len(keys), int))
+        redo = cull and bool(start.any())  # a frame that hides others not painted: render them all
         scratch = TiledMosaic(self.params)
         painted = 0
         for pos, i in enumerate(near.tolist()):
@@ -362,7 +358,7 @@ class Rerenderer:
             self.first.wait()
             image, mask = self._image(frame.index)
             if image is None:
-                if cull and start.any():  # a frame that hides others is lost: render them all
+                if redo:
                     return self._render(job, segment, frames, keys, cull=False)
                 continue
             try:
@@ -370,7 +366,7 @@ class Rerenderer:
                 scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
                 painted += 1
             except PhotomapError as exc:
-                if cull and start.any():
+                if redo:
                     return self._render(job, segment, frames, keys, cull=False)
                 log.debug("frame %d not re-rendered: %s", frame.index, exc)
         tiles = scratch.take_tiles()
