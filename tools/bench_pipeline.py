@@ -600,8 +600,7 @@ def targets_table(conds: list[Condition], live: dict | None, memory: dict | None
                      f"{live['frames_in']} of {live['read']} mapped, {live['dropped']} dropped",
                      live["dropped"] <= 0.02 * max(1, live["read"])))
     if memory:
-        runs = memory.get("runs") or [{"peak_mb": memory["peak_mb"],
-                                       "stall_ms": max(memory["stall_ms"].values(), default=0.0)}]
+        runs = memory["runs"]  # (median_run)
         of = f" (worst of {len(runs)} runs)" if len(runs) > 1 else ""
         peak = max(x["peak_mb"] for x in runs)
         rows.append((f"{memory['frames']}-frame 1080p flight, peak RSS", f"< {TARGET_RSS_MB:.0f} MB",
