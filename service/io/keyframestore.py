@@ -9,6 +9,8 @@ indices may be written from different threads.
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 
 import cv2
@@ -23,12 +25,15 @@ class KeyframeStore:
     def __init__(self, folder: str | Path, jpeg_quality: int = 92) -> None:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
+        self._dir = str(self.folder)  # file names as str: pathlib would intern each one it parses
         self._jpeg = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
         self._unsaved: dict[int, np.ndarray] = {}  # working images the disk refused (disk full)
         self.failures = 0
 
-    def _path(self, index: int, kind: str) -> Path:
-        return self.folder / f"kf{index:07d}.{kind}"
+    def _path(self, index: int, kind: str) -> str:
+        """``kind``: "png", "jpg" or "mask" (``kf{index:07d}_mask.png``)."""
+        name = f"kf{index:07d}_mask.png" if kind == "mask" else f"kf{index:07d}.{kind}"
+        return os.path.join(self._dir, name)
 
     def put(self, index: int, small: np.ndarray, image: np.ndarray | None = None) -> None:
         """Keep keyframe ``index``: ``small`` (working resolution, grey or BGR) and, if given,
@@ -49,16 +54,16 @@ class KeyframeStore:
         if not self._write(self._path(index, "jpg"), ".jpg", image, self._jpeg):
             self.failures += 1
             return
-        mask_path = self.folder / f"kf{index:07d}_mask.png"
+        mask_path = self._path(index, "mask")
         if mask is not None:
             if not self._write(mask_path, ".png", np.where(np.asarray(mask) != 0, np.uint8(255), np.uint8(0))):
-                self._path(index, "jpg").unlink(missing_ok=True)  # no image rather than one without its mask
+                _unlink(self._path(index, "jpg"))  # no image rather than one without its mask
                 self.failures += 1
         else:
-            mask_path.unlink(missing_ok=True)
+            _unlink(mask_path)
 
     @staticmethod
-    def _write(path: Path, ext: str, image: np.ndarray, params: list[int] | None = None) -> bool:
+    def _write(path: str, ext: str, image: np.ndarray, params: list[int] | None = None) -> bool:
         """Encode in memory, then write (a temporary file renamed): a full disk is an OSError
         here (False), not libpng's message on stderr; a partial file is removed."""
         try:
@@ -77,23 +82,27 @@ class KeyframeStore:
         """The grey working-resolution image of keyframe ``index``; FileNotFoundError if lost."""
         if index in self._unsaved:
             return self._unsaved[index]
-        img = cv2.imread(str(self._path(index, "png")), cv2.IMREAD_GRAYSCALE)
+        img = cv2.imread(self._path(index, "png"), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise FileNotFoundError(self._path(index, "png"))
         return img
 
     def image(self, index: int) -> np.ndarray | None:
         """The image of frame ``index`` kept by :meth:`put_image` (BGR), or None if it cannot be read."""
-        return cv2.imread(str(self._path(index, "jpg")), cv2.IMREAD_COLOR)
+        return cv2.imread(self._path(index, "jpg"), cv2.IMREAD_COLOR)
 
     def mask(self, index: int) -> np.ndarray | None:
         """Where the image of frame ``index`` is valid (uint8, 255 valid), or None: all of it."""
-        path = self.folder / f"kf{index:07d}_mask.png"
-        return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+        path = self._path(index, "mask")
+        return cv2.imread(path, cv2.IMREAD_GRAYSCALE) if os.path.isfile(path) else None
 
     def discard(self, index: int) -> None:
         """Forget keyframe ``index`` (its files too)."""
         self._unsaved.pop(index, None)
-        for kind in ("png", "jpg"):
-            self._path(index, kind).unlink(missing_ok=True)
-        (self.folder / f"kf{index:07d}_mask.png").unlink(missing_ok=True)
+        for kind in ("png", "jpg", "mask"):
+            _unlink(self._path(index, kind))
+
+
+def _unlink(path: str) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(path)

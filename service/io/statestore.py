@@ -119,6 +119,7 @@ class MapState:
 
     def __init__(self, folder: str | Path, *, max_snapshot_bytes: int = 16 << 20) -> None:
         self.folder = Path(folder)
+        self._dir = str(self.folder)
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -162,8 +163,10 @@ class MapState:
                         taken_s=time.perf_counter() - t0)
 
     # ------------------------------------------------------------------ writer side
-    def _tile_path(self, seg: int, key: TileKey, gen: int) -> Path:
-        return self.folder / f"seg{seg}" / f"{key[0]}_{key[1]}_g{gen}.png"
+    def _tile_path(self, seg: int, key: TileKey, gen: int) -> str:
+        # a str, not a Path: pathlib interns every name it parses (the interpreter's table of
+        # interned strings would grow with the tiles written)
+        return os.path.join(self._dir, f"seg{seg}", f"{key[0]}_{key[1]}_g{gen}.png")
 
     def write(self, snap: Snapshot) -> dict:
         """Write checkpoint ``generation + 1`` from ``snap``; returns its manifest.
@@ -173,7 +176,7 @@ class MapState:
         """
         t0 = time.perf_counter()
         gen = self.generation + 1
-        new_files: list[tuple[Path, Path]] = []  # (temporary, tile file)
+        new_files: list[tuple[str, str]] = []  # (temporary, tile file)
         nbytes = 0
         fresh = {(seg, key): st for seg, key, st, _ in snap.tiles}
         try:
@@ -188,8 +191,10 @@ class MapState:
                 if not ok:
                     raise OSError(f"PNG encoding of tile {key} failed")
                 path = self._tile_path(seg, key, gen)
-                path.parent.mkdir(exist_ok=True)
-                tmp = path.with_name(f".{path.name}.tmp")  # a kill leaves no partial file under a tile's name
+                folder, name = os.path.split(path)
+                with contextlib.suppress(FileExistsError):
+                    os.mkdir(folder)
+                tmp = os.path.join(folder, f".{name}.tmp")  # a kill leaves no partial file under a tile's name
                 new_files.append((tmp, path))
                 _write_file(tmp, buf)
                 nbytes += len(buf)
@@ -197,7 +202,7 @@ class MapState:
                 _fsync_file(tmp)
             for tmp, path in new_files:
                 os.replace(tmp, path)  # a new name: no manifest names it before it is synced
-            for folder in {path.parent for _, path in new_files}:
+            for folder in {os.path.dirname(path) for _, path in new_files}:
                 _fsync_dir(folder)
             written: dict[int, dict[TileKey, _Written]] = {}
             for seg, current in snap.stamps.items():
@@ -221,7 +226,7 @@ class MapState:
         except (OSError, PhotomapError) as exc:
             for path in (p for pair in new_files for p in pair):
                 with contextlib.suppress(OSError):
-                    path.unlink()
+                    os.unlink(path)
             reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
             raise CheckpointError(f"checkpoint {gen} not written to {self.folder}: {reason}") from None
         superseded = []
@@ -235,7 +240,7 @@ class MapState:
         self.generation = gen
         for path in superseded:  # the new manifest is durable: these are no longer named
             with contextlib.suppress(OSError):
-                path.unlink()
+                os.unlink(path)
         for seg in gone:
             shutil.rmtree(self.folder / f"seg{seg}", ignore_errors=True)
         self.bytes_written += nbytes
@@ -249,13 +254,13 @@ class MapState:
         shutil.rmtree(self.folder, ignore_errors=True)
 
 
-def _write_file(path: Path, data) -> None:
+def _write_file(path: str, data) -> None:
     """Write ``data`` to the new file ``path`` (no fsync: see :func:`_fsync_file`)."""
     with open(path, "wb") as f:
         f.write(data)
 
 
-def _fsync_file(path: Path) -> None:
+def _fsync_file(path: str) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -263,7 +268,7 @@ def _fsync_file(path: Path) -> None:
         os.close(fd)
 
 
-def _fsync_dir(folder: Path) -> None:
+def _fsync_dir(folder: str | Path) -> None:
     """Make renames in ``folder`` durable (no-op where directories cannot be opened)."""
     try:
         fd = os.open(folder, os.O_RDONLY)

@@ -14,6 +14,7 @@ tile, e.g. ``{"color": uint8 (ts, ts, C), "cover": uint8 (ts, ts)}``). A store k
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -84,21 +85,25 @@ class DiskTileStore:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise PhotomapError(f"cannot create tile cache folder {folder}: {exc.strerror}") from None
+        self._dir = str(self.folder)
 
-    def _path(self, key: TileKey) -> Path:
-        return self.folder / f"tile_{int(key[0])}_{int(key[1])}.npz"
+    def _path(self, key: TileKey) -> str:
+        # a str, not a Path: pathlib interns every name it parses, and the interpreter's table of
+        # interned strings grows (a step of MBs at a moment of the flight) with the names it has seen
+        return os.path.join(self._dir, f"tile_{int(key[0])}_{int(key[1])}.npz")
 
     def put(self, key: TileKey, arrays: Mapping[str, np.ndarray]) -> None:
         path = self._path(key)
         tmp = None
         try:
-            fd, tmp = tempfile.mkstemp(dir=self.folder, prefix=".tile_", suffix=".tmp")
+            fd, tmp = tempfile.mkstemp(dir=self._dir, prefix=".tile_", suffix=".tmp")
             with os.fdopen(fd, "wb") as f:
                 np.savez(f, **arrays)
             os.replace(tmp, path)
         except OSError as exc:
             if tmp is not None:
-                Path(tmp).unlink(missing_ok=True)
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
             raise PhotomapError(f"cannot write tile cache file {path}: {exc.strerror}") from None
 
     def get(self, key: TileKey) -> TileArrays | None:
@@ -120,7 +125,8 @@ class DiskTileStore:
         return out
 
     def discard(self, key: TileKey) -> None:
-        self._path(key).unlink(missing_ok=True)
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self._path(key))
 
     def close(self) -> None:
         """Remove the folder if this store created it as a temporary folder."""

@@ -46,15 +46,16 @@ def atomic_file(path: str | Path, mode: str = "wb", *, sync: bool = True) -> Ite
     after an error it is removed and ``path`` is untouched). ``sync``: fsync before the rename
     (durable after power loss; without it a kill still never leaves a partial file under
     ``path``). Large outputs are written piece by piece: no copy of the whole file in memory."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    path = os.fspath(path)  # not a Path: pathlib interns every name it parses
+    folder, name = os.path.split(path)
+    fd, tmp = tempfile.mkstemp(dir=folder or ".", prefix=f".{name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8", "newline": ""})) as f:
             yield f
             if sync:
                 f.flush()
                 os.fsync(f.fileno())
-        mode_bits = path.stat().st_mode & 0o777 if path.exists() else 0o644
+        mode_bits = os.stat(path).st_mode & 0o777 if os.path.exists(path) else 0o644
         os.chmod(tmp, mode_bits)
         os.replace(tmp, path)
     except BaseException:
