@@ -511,32 +511,30 @@ class _Problem:
         key = x.tobytes()
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1], self._cache[2]
-        res, rows, cols, vals = [], [], [], []
-        row0 = 0
+        # the Jacobian assembled as CSR directly: the k rows of a block share its columns (no
+        # COO triplets, no conversion; int32 column indices)
+        res, counts, cols, vals = [], [], [], []
         for blk in self.blocks(x).values():
             nb, k = blk.r.shape
             if not nb:
                 continue
             s = (blk.r ** 2).sum(axis=1)
             g, dg = _robust_weight(s / self.f2, self.loss)
-            rt = blk.r * g[:, None]
+            res.append((blk.r * g[:, None]).ravel())
             # d(g r)/dx = g J + r (2 g'(u) / f^2) (r^T J)
             jt = blk.jac * g[:, None, None] + blk.r[:, :, None] * (
                 (2.0 * dg / self.f2)[:, None] * np.einsum("bk,bkm->bm", blk.r, blk.jac))[:, None, :]
-            m = blk.cols.shape[1]
-            rr = np.broadcast_to((row0 + np.arange(nb * k).reshape(nb, k))[:, :, None], (nb, k, m))
-            cc = np.broadcast_to(blk.cols[:, None, :], (nb, k, m))
-            keep = cc >= 0
-            rows.append(rr[keep])
-            cols.append(cc[keep])
+            keep = np.broadcast_to((blk.cols >= 0)[:, None, :], jt.shape)
+            counts.append(np.repeat(np.count_nonzero(blk.cols >= 0, axis=1), k))
+            cols.append(np.broadcast_to(blk.cols.astype(np.int32)[:, None, :], jt.shape)[keep])
             vals.append(jt[keep])
-            res.append(rt.ravel())
-            row0 += nb * k
         f = np.concatenate(res) if res else np.zeros(0)
+        indptr = np.zeros(len(f) + 1, np.int32)
+        if counts:
+            np.cumsum(np.concatenate(counts), out=indptr[1:])
         jac = scipy.sparse.csr_matrix(
-            (np.concatenate(vals) if vals else [], (np.concatenate(rows) if rows else [],
-                                                     np.concatenate(cols) if cols else [])),
-            shape=(row0, self.num_params))
+            (np.concatenate(vals) if vals else np.zeros(0), np.concatenate(cols) if cols else np.zeros(0, np.int32),
+             indptr), shape=(len(f), self.num_params))
         self._cache = (key, f, jac)
         return f, jac
 
