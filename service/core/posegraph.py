@@ -524,8 +524,9 @@ class _Problem:
             # d(g r)/dx = g J + r (2 g'(u) / f^2) (r^T J)
             jt = blk.jac * g[:, None, None] + blk.r[:, :, None] * (
                 (2.0 * dg / self.f2)[:, None] * np.einsum("bk,bkm->bm", blk.r, blk.jac))[:, None, :]
-            keep = np.broadcast_to((blk.cols >= 0)[:, None, :], jt.shape)
-            counts.append(np.repeat(np.count_nonzero(blk.cols >= 0, axis=1), k))
+            valid = blk.cols >= 0
+            keep = np.broadcast_to(valid[:, None, :], jt.shape)
+            counts.append(np.repeat(np.count_nonzero(valid, axis=1), k))
             cols.append(np.broadcast_to(blk.cols.astype(np.int32)[:, None, :], jt.shape)[keep])
             vals.append(jt[keep])
         f = np.concatenate(res) if res else np.zeros(0)
