@@ -21,11 +21,12 @@ def test_part_is_the_innermost_frame_of_the_repository():
 
 
 def test_table_ranks_parts_by_their_change_after_the_first_tenth():
-    parts = {"a": np.array([0.0, 10.0, 10.0]), "b": np.array([50.0, 1.0, 9.0]), "c": np.array([5.0, 5.0, 5.0])}
+    parts = {"a": np.array([0.0, 10.0, 10.0]), "b": np.array([50.0, 1.0, 9.0]), "c": np.array([5.0, 5.0, 5.0]),
+             "d (mmap)": np.array([0.0, 0.0, 32.0])}
     lines = table(parts, np.array([100.0, 110.0, 120.0]), top=2)
-    assert lines[0] == "| tenth | `b` | `a` | all parts | RSS |"
-    assert lines[2] == "| 1 | 50.0 | 0.0 | 55.0 | 100.0 |"
-    assert lines[4] == "| 3 | 9.0 | 10.0 | 24.0 | 120.0 |"
+    assert lines[0] == "| tenth | `d (mmap)` | `b` | all but mmap | all mmap | RSS |"
+    assert lines[2] == "| 1 | 0.0 | 50.0 | 55.0 | 0.0 | 100.0 |"
+    assert lines[4] == "| 3 | 32.0 | 9.0 | 24.0 | 32.0 | 120.0 |"
 
 
 def test_live_memory_of_a_part_between_marks(tmp_path):

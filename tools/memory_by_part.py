@@ -6,9 +6,10 @@ the onboard tile cap) in this process under ``memray.Tracker`` and attributes ev
 still alive to the innermost frame of this repository's code on its Python stack (``core/mosaic.py
 _new_tile``; allocations of code outside it go to the nearest repository frame, those with none to
 ``(no repository frame)``); memory mapped directly (``mmap``: e.g. OpenBLAS's per-thread buffers,
-mostly never touched) is listed apart. Printed: for each tenth of the flight the mean live MB of the
-``--top`` parts (ranked by their largest change from the second tenth to the last), all parts'
-sum and the process RSS (memray's own samples). Live data that is flat while RSS rises is memory
+mostly never touched; the interpreter's arenas for small objects) is listed apart. Printed: for
+each tenth of the flight the mean live MB of the ``--top`` parts (ranked by their largest change
+from the second tenth to the last), the sums of all parts but those mapped and of those mapped,
+and the process RSS (memray's own samples). Live data that is flat while RSS rises is memory
 the allocator holds, not the run.
 
     python -m tools.memory_by_part [--frames N] [--top K] [--keep FILE]
@@ -38,6 +39,7 @@ from tools.bench_pipeline import LONG_OVERRIDES, SimulatedSource  # noqa: E402
 
 MB = 1024.0 * 1024.0
 _ROOTS = (str(REPO / "service"), str(REPO / "tools"))
+_MAPPED = " (mmap)"
 
 
 def part_of(stack: list[tuple[str, str, int]], mapped: bool) -> str:
@@ -48,7 +50,7 @@ def part_of(stack: list[tuple[str, str, int]], mapped: bool) -> str:
         if filename.startswith(_ROOTS):
             name = f"{Path(filename).parent.name}/{Path(filename).name} {function}"
             break
-    return f"{name} (mmap)" if mapped else name
+    return name + _MAPPED if mapped else name
 
 
 def record(n_frames: int, path: Path) -> list[float]:
@@ -106,12 +108,14 @@ def table(parts: dict[str, np.ndarray], rss: np.ndarray, top: int) -> list[str]:
         return float(np.max(np.abs(v[1:] - v[1]))) if len(v) > 1 else 0.0
 
     shown = sorted(parts, key=lambda k: -change(parts[k]))[:top]
-    total = sum(parts.values())
-    lines = ["| tenth | " + " | ".join(f"`{k}`" for k in shown) + " | all parts | RSS |",
-             "|---:|" + "---:|" * (len(shown) + 2)]
+    zero = np.zeros(len(rss))
+    heap = sum((v for k, v in parts.items() if not k.endswith(_MAPPED)), zero)
+    mapped = sum((v for k, v in parts.items() if k.endswith(_MAPPED)), zero)
+    lines = ["| tenth | " + " | ".join(f"`{k}`" for k in shown) + " | all but mmap | all mmap | RSS |",
+             "|---:|" + "---:|" * (len(shown) + 3)]
     for i in range(len(rss)):
         lines.append(f"| {i + 1} | " + " | ".join(f"{parts[k][i]:.1f}" for k in shown)
-                     + f" | {total[i]:.1f} | {rss[i]:.1f} |")
+                     + f" | {heap[i]:.1f} | {mapped[i]:.1f} | {rss[i]:.1f} |")
     return lines
 
 
