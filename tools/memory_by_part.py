@@ -35,9 +35,8 @@ sys.path.insert(0, str(REPO))
 
 from photomap.config import load_config  # noqa: E402
 from photomap.mapping.pipeline import MappingPipeline  # noqa: E402
-from tools.bench_pipeline import LONG_OVERRIDES, SimulatedSource  # noqa: E402
+from tools.bench_pipeline import LONG_OVERRIDES, MB, SimulatedSource  # noqa: E402
 
-MB = 1024.0 * 1024.0
 _ROOTS = (str(REPO / "service"), str(REPO / "tools"))
 _MAPPED = " (mmap)"
 
