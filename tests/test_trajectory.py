@@ -17,7 +17,7 @@ from photomap.cli import main as cli
 from photomap.eval import evaluate
 from photomap.errors import InputError
 from photomap.core.records import GroundTruth, PoseRow
-from photomap.geometry import angle_scale, frame_centre, local_linear, umeyama
+from photomap.geometry import angle_scale, frame_centre, local_linear, pose_angle_deg, pose_scale, umeyama
 from photomap.eval.metrics import evaluate_trajectory, segment_metrics
 from photomap.io.trajectory_files import (GROUNDTRUTH_COLUMNS, TRAJECTORY_COLUMNS, read_groundtruth,
                             read_trajectory_csv, write_json, write_trajectory_csv, write_tum)
@@ -117,6 +117,14 @@ def test_umeyama_recovers_a_similarity():
     assert s == pytest.approx(0.7)
     assert s * R == pytest.approx(G[:2, :2])
     assert t == pytest.approx(G[:2, 2])
+
+
+def test_pose_angle_and_scale_of_a_similarity_and_a_mirror():
+    a, s = math.radians(-137.5), 0.8125
+    M = np.array([[s * math.cos(a), -s * math.sin(a), 12.0], [s * math.sin(a), s * math.cos(a), -3.0]])
+    assert pose_angle_deg(M) == pytest.approx(-137.5, abs=1e-12)
+    assert pose_scale(M) == pytest.approx(s, rel=1e-15)
+    assert pose_scale([[2.0, 0.0, 0.0], [0.0, -0.5, 0.0]]) == pytest.approx(1.0, rel=1e-15)  # a mirror: |det|
 
 
 def test_local_linear_of_a_homography_matches_finite_differences():
