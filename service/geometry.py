@@ -53,7 +53,7 @@ def angle_scale(H: np.ndarray, point: Sequence[float]) -> tuple[float, float]:
     """
     J = local_linear(H, point)
     angle = math.degrees(math.atan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1]))
-    return angle, math.sqrt(abs(float(np.linalg.det(J))))
+    return angle, pose_scale(J)
 
 
 def pose_angle_deg(M: np.ndarray) -> float:
@@ -112,7 +112,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True
     Returns ``(s, R, t)``; R is a proper rotation (no reflection); ``with_scale=False`` fixes s = 1.
     """
     m = similarity_fit(src, dst, scale=None if with_scale else 1.0)
-    s = math.sqrt(abs(float(np.linalg.det(m[:, :2]))))
+    s = pose_scale(m)
     return s, m[:, :2] / s, m[:, 2].copy()
 
 

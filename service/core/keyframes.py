@@ -144,7 +144,7 @@ class KeyframeGraph:
             return []
         new = self.keyframes[-1]
         centre = new.pose @ self.centre
-        scale = math.sqrt(abs(np.linalg.det(new.pose[:2, :2])))
+        scale = pose_scale(new.pose)
         limit = self.radius * self.diagonal * scale
         old = self.keyframes[:-self.min_gap]
         dist = np.array([np.hypot(*(k.pose @ self.centre - centre)[:2]) for k in old])

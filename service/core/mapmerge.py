@@ -14,12 +14,10 @@ Conventions: OpenCV pixel centres; 3x3 matrices map the *moving* map's pixels to
 
 from __future__ import annotations
 
-import math
-
 import cv2
 import numpy as np
 
-from photomap.geometry import similarity_fit
+from photomap.geometry import pose_angle_deg, pose_scale, similarity_fit
 
 
 def canvas_gray(image: np.ndarray, alpha: np.ndarray, fade_px: float = 4.0) -> np.ndarray:
@@ -126,4 +124,4 @@ def robust_similarity(src: np.ndarray, dst: np.ndarray, tol: float, *, min_inlie
 def similarity_params(S: np.ndarray) -> tuple[float, float]:
     """(angle_deg, scale) of a 2x3/3x3 similarity."""
     S = np.asarray(S, float)
-    return math.degrees(math.atan2(S[1, 0], S[0, 0])), math.sqrt(abs(float(np.linalg.det(S[:2, :2]))))
+    return pose_angle_deg(S), pose_scale(S)

@@ -53,6 +53,7 @@ import numpy as np
 from photomap.config import MosaicConfig
 from photomap.core.exposure import SequentialGain
 from photomap.errors import InputError, PhotomapError
+from photomap.geometry import pose_scale
 
 # Overlap samples per frame for the exposure gain: the footprint is sampled on a grid of map
 # pixels (multiples of a stride in x and y) with about this many points.
@@ -174,7 +175,7 @@ class TiledMosaic:
         bw, bh = x1 - x0, y1 - y0
         if bw * bh > max(self.max_footprint_px, 4 * w * h):
             raise InputError(f"frame footprint of {bw}x{bh} map pixels exceeds the limit of "
-                             f"{self.max_footprint_px} (pose scale {math.sqrt(abs(np.linalg.det(M[:, :2]))):.3g})")
+                             f"{self.max_footprint_px} (pose scale {pose_scale(M):.3g})")
         boxes = [(x0, y0, x1, y1)]
         if clip is not None:
             boxes = []

@@ -63,6 +63,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from photomap.config import PosegraphConfig
+from photomap.geometry import pose_scale
 
 __all__ = ["EDGE_KINDS", "ROBUST_LOSSES", "PoseGraph", "PoseGraphResult", "optimize", "correction",
            "interpolate_corrections", "pose_params", "pose_matrix"]
@@ -253,8 +254,8 @@ class PoseGraph:
             self.add_node(t @ pose)
         self._edges.extend((i + base, j + base, z, sig, kind) for i, j, z, sig, kind in other._edges)
         self.fixed |= {base + k for k in other.fixed}
-        self._position.extend((n + base, *(t[:2, :2] @ (x, y) + t[:2, 2]), s * math.sqrt(abs(np.linalg.det(t[:2, :2]))))
-                              for n, x, y, s in other._position)
+        st = pose_scale(t)
+        self._position.extend((n + base, *(t[:2, :2] @ (x, y) + t[:2, 2]), s * st) for n, x, y, s in other._position)
         self._gps.extend((n + base, e, nn, s) for n, e, nn, s in other._gps)
         self._heading.extend((n + base, h, s) for n, h, s in other._heading)
         self._scale.extend((n + base, a, s) for n, a, s in other._scale)

@@ -441,8 +441,8 @@ def fit_georeference(map_xy: np.ndarray, lat: Sequence[float | None], lon: Seque
         log.info("georeference: only %d of %d fixes agree within %.1f m", inliers.sum(), n, inlier_m)
         return None
     rms = float(np.sqrt((np.linalg.norm(_apply(sim, xy[inliers]) - es[inliers], axis=1) ** 2).mean()))
-    mpp = math.sqrt(abs(np.linalg.det(sim[:, :2])))
-    heading = math.degrees(math.atan2(sim[1, 0], sim[0, 0]))
+    mpp = pose_scale(sim)
+    heading = pose_angle_deg(sim)
     map_to_enu = _FLIP @ sim
 
     # UTM, linearised about the centroid of the inlier fixes

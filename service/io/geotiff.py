@@ -32,6 +32,7 @@ from threadpoolctl import threadpool_limits
 
 from photomap.errors import InputError
 from photomap.geo.georef import compose, png_to_map
+from photomap.geometry import pose_scale
 from photomap.io.mapsource import MapRaster, RenderFn
 
 log = logging.getLogger(__name__)
@@ -83,7 +84,7 @@ def resample_block(render: RenderFn, bounds: tuple[int, int, int, int], out_to_s
     """
     w, h = size
     a = np.asarray(out_to_src, float)
-    step = math.sqrt(abs(float(np.linalg.det(a[:, :2]))))
+    step = pose_scale(a)
     scale = min(1.0, 1.0 / step) if step > 0 else 1.0
     corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
     src = corners @ a[:, :2].T + a[:, 2]

@@ -35,6 +35,7 @@ import numpy as np
 
 from photomap.errors import InputError
 from photomap.geo.georef import compose, png_to_map
+from photomap.geometry import pose_scale
 from photomap.io.runfiles import RunFiles
 
 if TYPE_CHECKING:
@@ -66,7 +67,7 @@ class MapRaster:
     @property
     def metres_per_px(self) -> float:
         """Ground metres per source pixel (``sqrt |det|`` of the linear part)."""
-        return math.sqrt(abs(float(np.linalg.det(np.asarray(self.src_to_crs, float)[:, :2]))))
+        return pose_scale(self.src_to_crs)
 
 
 def mosaic_source(mosaic: "TiledMosaic") -> RenderFn:

@@ -35,6 +35,7 @@ import numpy as np
 from photomap.errors import InputError
 from photomap.core.records import PoseRow
 from photomap.geo.georef import compose, png_to_map, utm_inverse
+from photomap.geometry import pose_scale
 from photomap.io.trajectory_files import atomic_write_text
 
 FOOTPRINT_MODES = ("all", "keyframes", "spaced", "none")
@@ -95,7 +96,7 @@ def select_footprints(rows: Sequence[PoseRow], frame_size: tuple[int, int], mode
     for r in glued:
         m = _pose(r)
         c = m @ centre
-        s = math.sqrt(abs(float(np.linalg.det(m[:, :2]))))
+        s = pose_scale(m)
         if r.segment not in last or np.linalg.norm(c - last[r.segment]) >= spacing * min(w, h) * s:
             out.append(r)
             last[r.segment] = c

@@ -43,7 +43,7 @@ from photomap.core.mapmerge import canvas_gray, place_on_canvas, robust_similari
 from photomap.core.mosaic import TiledMosaic
 from photomap.errors import InputError, PhotomapError
 from photomap.geo.georef import aux_xml_text, compose, png_to_map, prj_text, world_file_text
-from photomap.geometry import to_h
+from photomap.geometry import pose_scale, to_h
 from photomap.io.geotiff import write_cog_if_available
 from photomap.io.mapsource import ImageSource, MapRaster, RenderFn, TileFolderSource, mosaic_source
 from photomap.io.runfiles import RunFiles
@@ -135,10 +135,6 @@ def _affine(t: np.ndarray) -> np.ndarray:
     return np.asarray(t, float)[:2]
 
 
-def _scale_of(t: np.ndarray) -> float:
-    return math.sqrt(abs(float(np.linalg.det(np.asarray(t, float)[:2, :2]))))
-
-
 class MapRegistrar:
     """Registers run maps to a reference map (see the module docstring).
 
@@ -174,10 +170,10 @@ class MapRegistrar:
         """iFMI of whole-map overviews. Returns (3x3 mov source px -> ref source px, peak,
         the overview scale, the reference overview's coverage, the moving one's warped onto it)."""
         n = self.overview
-        side = max(ref.bounds[2], ref.bounds[3], mov.bounds[2] * _scale_of(mov.src_to_map) / _scale_of(ref.src_to_map),
-                   mov.bounds[3] * _scale_of(mov.src_to_map) / _scale_of(ref.src_to_map))
+        rel = pose_scale(mov.src_to_map) / pose_scale(ref.src_to_map)  # ref source px per mov source px
+        side = max(ref.bounds[2], ref.bounds[3], mov.bounds[2] * rel, mov.bounds[3] * rel)
         s = min(1.0, 0.5 * n / side)
-        s_mov = min(1.0, s * _scale_of(mov.src_to_map) / _scale_of(ref.src_to_map))
+        s_mov = min(1.0, s * rel)
         ri, ra, r_to_src = _overview(ref, s)
         mi, ma, m_to_src = _overview(mov, s_mov)
         rc, ro = place_on_canvas(canvas_gray(ri, ra), n)
@@ -210,7 +206,7 @@ class MapRegistrar:
         x, y, w, h = ref.bounds
         _, ra, r_to_src = _overview(ref, scale)
         mx, my, mw, mh = mov.bounds
-        s_mov = min(1.0, scale * _scale_of(T))
+        s_mov = min(1.0, scale * pose_scale(T))
         _, ma, m_to_src = _overview(mov, s_mov)
         # mov overview px -> ref overview px
         A = np.linalg.inv(r_to_src) @ T @ m_to_src
@@ -249,7 +245,7 @@ class MapRegistrar:
         by1 = min(int(math.ceil(mc[1].max())) + 3, my + mh)
         if bx1 - bx0 < 4 or by1 - by0 < 4:
             return None
-        s_mov = min(1.0, s_eff * _scale_of(T))
+        s_mov = min(1.0, s_eff * pose_scale(T))
         mi, ma = mov.render(bx0, by0, bx1 - bx0, by1 - by0, s_mov)
         B = _render_px_to_src(bx0, by0, bx1 - bx0, by1 - by0, ma.shape[1], ma.shape[0])
         W = np.linalg.inv(B) @ Tinv @ A  # window px -> mov render px
@@ -465,7 +461,7 @@ def _write_merged(out: Path, merged: TiledMosaic, ref: RunMap, cfg: Config) -> d
         atomic_write_bytes(out / "mosaic.prj", prj_text(ref.epsg).encode())
         atomic_write_bytes(out / "mosaic.png.aux.xml", aux_xml_text(ref.epsg).encode())
         summary["georeference"] = {"crs": f"EPSG:{ref.epsg}", "map_to_crs": m2c.tolist(),
-                                   "metres_per_pixel": math.sqrt(abs(float(np.linalg.det(m2c[:, :2])))),
+                                   "metres_per_pixel": pose_scale(m2c),
                                    "world_file": "mosaic.pgw"}
         if info.get("tiles"):
             try:

@@ -49,7 +49,7 @@ import numpy as np
 
 from photomap.core.mosaic import TiledMosaic, TileKey
 from photomap.errors import PhotomapError
-from photomap.geometry import to_h
+from photomap.geometry import pose_scale, to_h
 from photomap.mapping.overview import Overview
 from photomap.mapping.rerender import KeptFrame, Rerenderer, reach
 
@@ -63,7 +63,7 @@ def resize_factors(size: tuple[int, int], pose: np.ndarray, *, below: float = 0.
     """The frame size at the map's resolution and the 3x3 matrix input pixels -> those pixels
     (``cv2.resize`` convention), or None when the map is not coarser than ``below`` times the
     frame (then warping the frame itself is as good)."""
-    s = float(np.sqrt(abs(np.linalg.det(np.asarray(pose, float)[:2, :2]))))
+    s = pose_scale(pose)
     if s >= below:
         return None
     w, h = size
@@ -345,7 +345,7 @@ class Painter:
             corners = np.array([[x, y, 1.0] for cx, cy, cw, ch in clip
                                 for x, y in ((cx, cy), (cx + cw, cy), (cx, cy + ch), (cx + cw, cy + ch))])
             uv = corners @ np.linalg.inv(pose)[:2].T
-            margin = 2.0 / float(np.sqrt(abs(np.linalg.det(pose[:2, :2])))) + 2.0  # a map pixel and then some
+            margin = 2.0 / pose_scale(pose) + 2.0  # a map pixel and then some
             u0, v0 = (max(0, int(np.floor(c - margin))) for c in uv.min(axis=0))
             u1, v1 = (int(np.ceil(c + margin)) for c in uv.max(axis=0))
             u1, v1 = min(w, u1), min(h, v1)

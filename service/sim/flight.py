@@ -31,7 +31,7 @@ import numpy as np
 
 from photomap.errors import InputError
 from photomap.geo.georef import enu_from_latlon, latlon_from_enu
-from photomap.geometry import similarity_matrix
+from photomap.geometry import pose_scale, similarity_matrix
 
 PATTERNS = ("random", "lawnmower", "figure8")
 GRAVITY = 9.80665            # m/s^2
@@ -553,7 +553,7 @@ def render_view(pyramid: list[np.ndarray], h: np.ndarray, size: tuple[int, int])
     fh, fw = size
     c = np.array([(fw - 1) / 2.0, (fh - 1) / 2.0, 1.0])
     jac = (h[:2, :2] * (h[2] @ c) - np.outer(h[:2] @ c, h[2, :2])) / (h[2] @ c) ** 2
-    scale = math.sqrt(abs(np.linalg.det(jac)))
+    scale = pose_scale(jac)
     level = min(max(0, int(math.floor(math.log2(scale)))) if scale > 1 else 0, len(pyramid) - 1)
     img = pyramid[level]
     hl = np.diag([0.5 ** level, 0.5 ** level, 1.0]) @ h
