@@ -371,6 +371,7 @@ class PosegraphConfig(_Section):
     outlier_sigma: float = _num(4.0, 0.0, None, lo_open=True)
     solver: str = _choice("lm", "lm", "trf")
     max_nfev: int = _num(100, 1, 1_000_000)
+    max_solve_nodes: int | None = _num(1000, 2, None)
     heading_sigma_deg: float = _num(5.0, 0.0, 180.0, lo_open=True)
     altitude_sigma: float = _num(0.02, 0.0, 10.0, lo_open=True)
     gps_sigma_m: float = _num(3.0, 0.0, None, lo_open=True)

@@ -194,6 +194,48 @@ def test_locked_node_stays_put(truth):
     assert ate(r.poses, fixed_truth) < 3.0
 
 
+def test_a_windowed_solve_moves_only_the_newest_nodes_and_matches_the_full_solve(truth):
+    from photomap.core.keyframes import KeyframeGraph
+
+    g, _ = chained_graph(truth[:120], loops=False)  # a drifting chain: its own optimum
+    g.add_edge(90, 115, relative(truth, 90, 115), confidence=0.8, kind="loop")
+    wrong = g.add_edge(100, 118, about_centre(10.0, 1.05, (50.0, 20.0)), confidence=0.95, kind="loop")
+    params = PosegraphConfig()
+    initial = g.initial_poses()
+    full, full_dropped = KeyframeGraph.solve(g.copy(), params)
+    win, win_dropped = KeyframeGraph.solve(g.copy(), params, newest=40)
+    assert full_dropped == win_dropped == [wrong]  # an edge index of the whole graph
+    np.testing.assert_array_equal(win[:80], initial[:80])  # older than the window: untouched
+    assert np.abs(centres(win[80:]) - centres(initial[80:])).max() > 5.0  # the loop pulled the window
+    # the loop lies inside the window, the chain before it is a rigid branch: the same optimum
+    np.testing.assert_allclose(centres(win), centres(full), atol=1e-3)
+    # a graph no larger than the window is solved whole
+    same, _ = KeyframeGraph.solve(g.copy(), params, newest=120)
+    np.testing.assert_allclose(same, full, atol=1e-9)
+
+
+def test_window_holds_the_newest_nodes_by_the_older_ones_they_reach(truth):
+    g, _ = chained_graph(truth[:120], loops=False)
+    g.add_edge(10, 110, relative(truth, 10, 110), confidence=0.8, kind="loop")  # reaches far back
+    g.add_edge(20, 30, relative(truth, 20, 30), confidence=0.8, kind="loop")  # among old nodes
+    g.add_gps_prior(5, (0.0, 0.0), 3.0)
+    g.add_gps_prior(100, (10.0, 0.0), 3.0)
+    sub, nodes, edges = g.window(40)
+    np.testing.assert_array_equal(nodes, [10, 79] + list(range(80, 120)))
+    assert sub.fixed == {0, 1}  # the older nodes come along locked
+    pairs = g.edge_pairs
+    np.testing.assert_array_equal(sub.edge_pairs, np.searchsorted(nodes, pairs[edges]))
+    assert sorted(map(tuple, pairs[edges].tolist())) == sorted([(k, k + 1) for k in range(79, 119)] + [(10, 110)])
+    assert [p[0] for p in sub._gps] == [int(np.searchsorted(nodes, 100))]  # node 5 is not in it
+    np.testing.assert_array_equal(sub.initial_poses(), g.initial_poses()[nodes])
+    # solved: the locked node keeps its pose, and the window is bent onto it (the chain drifted)
+    r = optimize(sub)
+    np.testing.assert_array_equal(r.poses[:2], sub.initial_poses()[:2])
+    loop = int(np.flatnonzero((pairs[edges] == (10, 110)).all(axis=1))[0])
+    before = optimize(sub, PosegraphConfig(max_nfev=1)).edge_norms[loop]
+    assert before > 20 and r.edge_norms[loop] < 1.0
+
+
 # --------------------------------------------------------------------------- priors
 
 def test_gps_priors_in_metres_pull_a_drifting_chain_back(truth):

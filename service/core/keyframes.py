@@ -220,19 +220,27 @@ class KeyframeGraph:
         return self.graph.copy()
 
     @staticmethod
-    def solve(graph: PoseGraph, params: PosegraphConfig,
-              callback: Callable[[], object] | None = None) -> tuple[np.ndarray, list[int]]:
+    def solve(graph: PoseGraph, params: PosegraphConfig, callback: Callable[[], object] | None = None,
+              newest: int | None = None) -> tuple[np.ndarray, list[int]]:
         """Optimise ``graph`` (a snapshot); returns its poses and the loop edges it dropped.
 
         A loop closure that the robust solution flags as an outlier is dropped and the graph
         solved again without it. ``callback``: as in :func:`~photomap.core.posegraph.optimize`.
+        ``newest``: move only the newest this many keyframes (:meth:`PoseGraph.window`; the
+        others keep their poses); None: all.
         """
-        result = optimize(graph, params, callback=callback)
-        dropped = [int(k) for k in result.outliers if graph.edge_kinds[k] == "loop"]
+        sub, nodes, edges = (graph, None, None) if newest is None or graph.num_nodes <= newest \
+            else graph.window(newest)
+        result = optimize(sub, params, callback=callback)
+        dropped = [int(k) for k in result.outliers if sub.edge_kinds[k] == "loop"]
         if dropped:
-            graph.drop_edges(dropped)
-            result = optimize(graph, params, callback=callback)
-        return result.poses, dropped
+            sub.drop_edges(dropped)
+            result = optimize(sub, params, callback=callback)
+        if nodes is None:
+            return result.poses, dropped
+        poses = graph.initial_poses()
+        poses[nodes] = result.poses
+        return poses, [int(edges[k]) for k in dropped]
 
     def apply(self, poses: np.ndarray, dropped: list[int]) -> dict[int, np.ndarray]:
         """Take a solution of a snapshot; returns the 3x3 correction of every keyframe.

@@ -261,6 +261,35 @@ class PoseGraph:
         self._scale.extend((n + base, a, s) for n, a, s in other._scale)
         return base
 
+    def window(self, newest: int) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+        """The graph of the ``newest`` nodes (the last added), held by the older nodes they have
+        edges to, which come along locked; returns ``(subgraph, nodes, edges)``: the subgraph's
+        node ``k`` is node ``nodes[k]`` here, its edge ``e`` edge ``edges[e]``.
+
+        Optimising it moves only the newest nodes: a solve's size stays bounded however long the
+        graph grows (its factorisation needs ~8 KB per free node), and the older part of the map
+        is the fixed reference the newest part is fitted to. Edges between two older nodes are
+        left out; priors come along with their nodes.
+        """
+        n = len(self._nodes)
+        first = max(0, n - max(1, int(newest)))
+        pairs = self.edge_pairs
+        touching = np.flatnonzero((pairs >= first).any(axis=1))
+        held = np.unique(pairs[touching][pairs[touching] < first])
+        nodes = np.concatenate([held, np.arange(first, n)])
+        index = np.full(n, -1, dtype=np.int64)
+        index[nodes] = np.arange(len(nodes))
+        sub = copy.copy(self)
+        sub._nodes = [self._nodes[k] for k in nodes.tolist()]
+        sub._edges = [(int(index[i]), int(index[j]), z, sig, kind)
+                      for i, j, z, sig, kind in (self._edges[e] for e in touching.tolist())]
+        sub.fixed = set(range(len(held))) | {int(index[k]) for k in self.fixed if k >= first}
+        sub._position = [(int(index[k]), *rest) for k, *rest in self._position if index[k] >= 0]
+        sub._gps = [(int(index[k]), *rest) for k, *rest in self._gps if index[k] >= 0]
+        sub._heading = [(int(index[k]), *rest) for k, *rest in self._heading if index[k] >= 0]
+        sub._scale = [(int(index[k]), *rest) for k, *rest in self._scale if index[k] >= 0]
+        return sub, nodes, touching
+
     def fix(self, node: int) -> None:
         """Lock a node: its pose is not optimised."""
         self.fixed.add(self._node(node))

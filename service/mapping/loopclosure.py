@@ -248,6 +248,7 @@ class LoopCloser:
         self._started_frame = 0  # ... when the running solve started
         self._last_start = -float("inf")  # monotonic s (live)
         self._deferred = False  # the last frame left a finished solve to this one
+        self._flushing = False  # the run has ended: solves move every keyframe
         self._wanted: set[int] = set()  # segments with loop edges not optimised yet
 
     def _graph(self, segment: int) -> KeyframeGraph:
@@ -465,10 +466,12 @@ class LoopCloser:
         segment = min(self._wanted)
         self._wanted.discard(segment)
         graph = self.graphs[segment]
+        newest = None if self._flushing else self.graph_params.max_solve_nodes  # the last solve: all
         if self._executor is None:
-            return self._finish(segment, *KeyframeGraph.solve(graph.snapshot(), self.graph_params))
+            return self._finish(segment, *KeyframeGraph.solve(graph.snapshot(), self.graph_params,
+                                                              newest=newest))
         self._running = (segment, self._executor.submit(KeyframeGraph.solve, graph.snapshot(),
-                                                        self.graph_params, self._first.wait))
+                                                        self.graph_params, self._first.wait, newest))
         self._started_frame = self._frame
         return None
 
@@ -526,7 +529,8 @@ class LoopCloser:
 
     def flush(self) -> list[Update]:
         """Finish every pending join search and optimisation (at the end of the run); returns the
-        join and the corrections.
+        join and the corrections. The solves started here move every keyframe (while mapping,
+        at most ``max_solve_nodes``, the newest), once more for a graph that is larger.
 
         With ``settle_on_priors``, segments whose keyframes carry telemetry priors (GPS, heading,
         altitude) are optimised once more with them, loop closed or not, so that a weak chain
@@ -538,6 +542,11 @@ class LoopCloser:
         if self.settle_on_priors:
             self._wanted |= {s for s, g in self.graphs.items() if len(g.keyframes) >= 2 and g.graph.has_priors}
         self._collect_loops(wait=True)
+        # solves while mapping moved only the newest keyframes of a long graph: once more, all
+        newest = self.graph_params.max_solve_nodes
+        self._wanted |= {s for s, g in self.graphs.items() if newest is not None and g.loops
+                         and g.graph.num_nodes > newest}
+        self._flushing = True
         while self._running is not None or self._wanted:
             correction = self.poll(wait=True) if self._running is not None else self._start(now=True)
             if correction is not None:
