@@ -74,6 +74,24 @@ def test_loop_closure_on_a_figure_eight(terrains, tmp_path, kind, seed):
     assert seam <= anchored_error(tmp_path / "f2f", seq, k) + 0.05
 
 
+def test_windowed_solves_while_mapping_still_close_the_loop(terrains, tmp_path, monkeypatch):
+    """With posegraph.max_solve_nodes small, every solve while mapping moves only the newest
+    keyframes; the solve at the end moves them all: the loop still closes."""
+    from photomap.core.posegraph import PoseGraph
+
+    windows = []
+    window = PoseGraph.window
+    monkeypatch.setattr(PoseGraph, "window", lambda g, newest: windows.append(newest) or window(g, newest))
+    seq = closed_flight(*terrains["textured"], "figure8", 1)
+    k, _ = revisit(seq)
+    summary, closed = mapped(seq, LOOPS + ["mapping.optimize_in_background=false", "posegraph.max_solve_nodes=8"],
+                             tmp_path / "windowed")
+    assert summary["loop_closure"]["keyframes"] > 8 and summary["loop_closure"]["corrections"] >= 2
+    assert windows and set(windows) == {8}
+    assert closed["ate"]["pct"] < 0.05
+    assert anchored_error(tmp_path / "windowed", seq, k) < 1.0
+
+
 def test_lawnmower_keyframes_drift_less_than_frame_to_frame(terrains, tmp_path):
     seq = closed_flight(*terrains["textured"], "lawnmower", 3)
     _, chained = mapped(seq, F2F, tmp_path / "f2f")
