@@ -284,10 +284,8 @@ class PoseGraph:
         sub._edges = [(int(index[i]), int(index[j]), z, sig, kind)
                       for i, j, z, sig, kind in (self._edges[e] for e in touching.tolist())]
         sub.fixed = set(range(len(held))) | {int(index[k]) for k in self.fixed if k >= first}
-        sub._position = [(int(index[k]), *rest) for k, *rest in self._position if index[k] >= 0]
-        sub._gps = [(int(index[k]), *rest) for k, *rest in self._gps if index[k] >= 0]
-        sub._heading = [(int(index[k]), *rest) for k, *rest in self._heading if index[k] >= 0]
-        sub._scale = [(int(index[k]), *rest) for k, *rest in self._scale if index[k] >= 0]
+        for name in ("_position", "_gps", "_heading", "_scale"):  # priors: (node, ...)
+            setattr(sub, name, [(int(index[k]), *rest) for k, *rest in getattr(self, name) if index[k] >= 0])
         return sub, nodes, touching
 
     def fix(self, node: int) -> None:
