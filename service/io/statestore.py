@@ -221,7 +221,7 @@ class MapState:
                 "tiles": {str(seg): sorted([k[0], k[1], w.gen] for k, w in entries.items())
                           for seg, entries in written.items()},
             }
-            write_json(self.folder / MANIFEST, manifest)
+            write_json(self.folder / MANIFEST, manifest, indent=None)  # every keyframe's pose: large
             _fsync_dir(self.folder)
         except (OSError, PhotomapError) as exc:
             for path in (p for pair in new_files for p in pair):

@@ -90,9 +90,11 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
-def write_json(path: str | Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON, atomically (NaN/inf become ``null``; numpy is accepted)."""
-    atomic_write_text(path, json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n")
+def write_json(path: str | Path, obj: Any, *, indent: int | None = 2) -> None:
+    """Write ``obj`` as JSON, atomically (NaN/inf become ``null``; numpy is accepted); indented
+    for people to read, or compact (``indent=None``: json's C encoder, ~2x faster, ~40 % smaller)
+    for large machine-read files."""
+    atomic_write_text(path, json.dumps(_jsonable(obj), indent=indent, allow_nan=False) + "\n")
 
 
 # --- trajectory.csv -----------------------------------------------------------------------
