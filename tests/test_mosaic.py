@@ -543,3 +543,33 @@ def test_a_painted_map_reads_its_spilled_tiles_ahead(tmp_path):
     assert store.flush(10)
     m.add(img, np.array([[1.0, 0, 20.0], [0, 1, 0]]))
     assert store.prefetched >= 4
+
+
+def test_tiles_read_ahead_count_in_the_maps_tile_cap(tmp_path):
+    """``max_tiles_in_memory`` bounds the map's tiles and those its store read ahead together:
+    a tile read ahead pushes one of the map's out at its next change; the map is the same."""
+    rng = np.random.default_rng(6)
+    img = rng.integers(0, 255, (60, 80, 3), np.uint8)
+    cap = 8
+    store = WriteBehindTileStore(DiskTileStore(tmp_path), max_ready=4)
+    m = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=cap), store=store)
+    free = TiledMosaic(MosaicConfig(tile_size=32))
+    held = []
+    for k in range(10):  # out ...
+        for mosaic in (m, free):
+            mosaic.add(img, np.array([[1.0, 0, 50.0 * k], [0, 1, 0]]))
+        assert store.flush(10)
+        held.append(m.tiles_in_memory + store.tiles_read_ahead)
+    m.prefetch(np.array([[1.0, 0, 20.0], [0, 1, 0]]), (80, 60))  # ... and back
+    assert store.flush(10)
+    assert store.tiles_read_ahead == 4  # what it reads ahead is held beside the map ...
+    for k in (10, 11):  # ... until a change, which makes room for them
+        for mosaic in (m, free):
+            mosaic.add(img, np.array([[1.0, 0, 50.0 * k], [0, 1, 0]]))
+        held.append(m.tiles_in_memory + store.tiles_read_ahead)
+    assert max(held) <= cap
+    for mosaic in (m, free):
+        mosaic.add(img, np.array([[1.0, 0, 20.0], [0, 1, 0]]))
+    assert store.prefetched >= 2
+    for a, b in zip(free.render(), m.render()):
+        np.testing.assert_array_equal(a, b)

@@ -97,7 +97,7 @@ class TiledMosaic:
         the module docstring), ``exposure`` (``none``, ``gain`` or ``channel_gain``, see the module
         docstring), ``border`` (frame pixels kept out of the map), ``max_tiles_in_memory``
         (the least recently touched tiles beyond it go to ``store`` and come back when touched or
-        read; ``None``: no cap) and ``max_footprint_px`` (a frame whose map footprint, its bounding
+        read; tiles the store holds read ahead count too; ``None``: no cap) and ``max_footprint_px`` (a frame whose map footprint, its bounding
         box, exceeds this many map pixels and 4 times the frame's own pixels is refused with
         :class:`InputError`, so that a wild pose cannot exhaust memory). ``cache_dir`` is the caller's (where ``store`` keeps its files).
     store : TileStore or None
@@ -543,9 +543,17 @@ class TiledMosaic:
                 tile = self._new_tile()
         return tile
 
-    def _make_room(self, n: int) -> None:
-        """Spill least recently used tiles until ``n`` more fit under the cap."""
+    def _cap(self) -> int | None:
+        """How many tiles the map may hold now: ``max_tiles_in_memory`` less the tiles its store
+        holds read ahead for it (``store.tiles_read_ahead``, if the store reads ahead): the cap
+        bounds both."""
         cap = self.max_tiles_in_memory
+        return None if cap is None else cap - int(getattr(self._store, "tiles_read_ahead", 0))
+
+    def _make_room(self, n: int, cap: int | None = None) -> None:
+        """Spill least recently used tiles until ``n`` more fit under ``cap`` (None: the map's,
+        :meth:`_cap`)."""
+        cap = self._cap() if cap is None else cap
         while cap is not None and self._tiles and len(self._tiles) + n > cap:
             key, tile = self._tiles.popitem(last=False)
             if key not in self._clean:
@@ -595,11 +603,7 @@ class TiledMosaic:
         if self._store is None:
             return len(self._tiles)
         keep = 0 if max_tiles is None else max(0, len(self._tiles) - max(0, int(max_tiles)))
-        cap, self.max_tiles_in_memory = self.max_tiles_in_memory, keep
-        try:
-            self._make_room(0)
-        finally:
-            self.max_tiles_in_memory = cap
+        self._make_room(0, keep)
         self._frame_cache.clear()
         return len(self._tiles)
 
@@ -752,7 +756,7 @@ class TiledMosaic:
         becomes empty). No pixel is copied; with a tile cap, a tile that is not in memory goes
         straight to the store (one write, and no other tile is pushed out)."""
         ts = self.tile_size
-        cap = self.max_tiles_in_memory
+        cap = self._cap()
         for key, tile in tiles.items():
             key = (int(key[0]), int(key[1]))
             alpha = None if tile is None else (

@@ -150,7 +150,8 @@ class WriteBehindTileStore:
     tiles wait: a ``put`` beyond that waits for the thread (memory stays bounded when the disk is
     slow). A tile the store refuses (disk full) is kept in memory and served from there: a map
     never loses a tile it spilled. At most ``max_ready`` prefetched tiles wait to be taken (the
-    oldest are dropped). Thread-safe.
+    oldest are dropped; a :class:`~photomap.core.mosaic.TiledMosaic` counts them in its cap,
+    :attr:`tiles_read_ahead`). Thread-safe.
     """
 
     def __init__(self, store: TileStore, max_pending: int = 32, max_ready: int = 48) -> None:
@@ -178,6 +179,11 @@ class WriteBehindTileStore:
         with self._cv:
             self._held.pop(key, None)
             self._queue(key, None)
+
+    @property
+    def tiles_read_ahead(self) -> int:
+        """Tiles read ahead and not taken yet (a map counts them in its tile cap)."""
+        return len(self._ready)
 
     def prefetch(self, keys: list[TileKey]) -> None:
         """Read these tiles ahead, in the thread (after the writes waiting), for a later get()."""
