@@ -97,7 +97,8 @@ class TiledMosaic:
         the module docstring), ``exposure`` (``none``, ``gain`` or ``channel_gain``, see the module
         docstring), ``border`` (frame pixels kept out of the map), ``max_tiles_in_memory``
         (the least recently touched tiles beyond it go to ``store`` and come back when touched or
-        read; tiles the store holds read ahead count too; ``None``: no cap) and ``max_footprint_px`` (a frame whose map footprint, its bounding
+        read; tiles the store holds read ahead count too; ``None``: no cap) and
+        ``max_footprint_px`` (a frame whose map footprint, its bounding
         box, exceeds this many map pixels and 4 times the frame's own pixels is refused with
         :class:`InputError`, so that a wild pose cannot exhaust memory). ``cache_dir`` is the caller's (where ``store`` keeps its files).
     store : TileStore or None
