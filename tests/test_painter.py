@@ -565,16 +565,19 @@ def test_a_joined_segment_is_rerendered_into_the_map_it_joined(tmp_path, monkeyp
 def test_a_map_the_camera_left_goes_to_the_tile_store_a_few_tiles_a_frame(tmp_path):
     """With a tile cap, a map whose segment the camera left (blind frames: a new segment) moves
     its tiles to the store over the next frames, a few each (all at once stalled the worker for
-    200 ms at 1080p), until none is left in memory; the maps are those of a run without a cap."""
+    200 ms at 1080p), until none is left in memory (nor read ahead for it); the maps are those of
+    a run without a cap."""
     from photomap.mapping.pipeline import _SPILL_TILES_PER_FRAME
     from test_drift import LOOPS
 
     _, _, blind = blind_flight()
     base = LOOPS + ["mapping.max_lost_frames=5", "mosaic.tile_size=64", "mapping.loop_closure=false"]
     held = []  # per frame: tiles in memory of the maps other than the current one
+    ahead = []  # ... and tiles their stores read ahead for them
 
     def sink(event):
         held.append(sum(m.tiles_in_memory for seg, m in pipe.mosaics.items() if seg != event.segment))
+        ahead.append(sum(st.tiles_read_ahead for seg, st in pipe._tile_stores.items() if seg != event.segment))
 
     pipe = MappingPipeline(ListSource(blind), load_config(overrides=base + ["mosaic.max_tiles_in_memory=40"]),
                            tmp_path / "capped", sinks=[sink])
@@ -583,6 +586,7 @@ def test_a_map_the_camera_left_goes_to_the_tile_store_a_few_tiles_a_frame(tmp_pa
     assert max(held) > _SPILL_TILES_PER_FRAME  # the left map held more than a frame's share
     assert all(b - a <= _SPILL_TILES_PER_FRAME for a, b in zip(held[1:], held[:-1]))  # a few a frame
     assert held[-1] == 0
+    assert max(ahead) > 0 and ahead[-1] == 0  # nor tiles read ahead for them
     assert [m["segment"] for m in capped["mosaics"]] == [m["segment"] for m in free["mosaics"]]
     for m in capped["mosaics"]:
         got = cv2.imread(str(tmp_path / "capped" / m["file"]), cv2.IMREAD_UNCHANGED)

@@ -185,6 +185,12 @@ class WriteBehindTileStore:
         """Tiles read ahead and not taken yet (a map counts them in its tile cap)."""
         return len(self._ready)
 
+    def drop_read_ahead(self) -> None:
+        """Forget the tiles read ahead and those still to read (their map will not want them)."""
+        with self._cv:
+            self._ready.clear()
+            self._wanted.clear()
+
     def prefetch(self, keys: list[TileKey]) -> None:
         """Read these tiles ahead, in the thread (after the writes waiting), for a later get()."""
         with self._cv:

@@ -465,13 +465,15 @@ class MappingPipeline:
 
     def _spill_retired(self) -> None:
         """Move a few tiles of the maps the camera left to the tile store (only the current map
-        holds tiles in memory once they are all gone)."""
+        holds tiles in memory once they are all gone, its store the only ones read ahead)."""
         if not self._spilling:
             return
         seg = min(self._spilling)  # one map a frame
         mosaic = self.mosaics.get(seg)
         if mosaic is None or seg == self._segment or not mosaic.spill(_SPILL_TILES_PER_FRAME):
             self._spilling.discard(seg)  # joined, dropped, current again, or done
+            if seg != self._segment and seg in self._tile_stores:
+                self._tile_stores[seg].drop_read_ahead()  # read for frames that went elsewhere
 
     def _drop_segment(self, seg: int, glued: list[RowView]) -> None:
         for row in glued:
