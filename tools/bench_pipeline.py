@@ -106,8 +106,8 @@ LONG_FPS = 10.0
 LONG_MOTION = dict(pattern="lawnmower", speed=8.0, yaw_mode="heading", yaw_rate=30.0,
                    altitude=(55.0, 65.0), scale_rate=0.02)
 SPLIT_FRAMES, SPLIT_BLACKOUT = 3000, (400, 700)  # frames of the split flight, its black frames [a, b)
-LONG_OVERRIDES = ["mosaic.max_tiles_in_memory=256", "output.checkpoint_interval=5",  # the onboard config's
-                  "posegraph.max_solve_nodes=300"]
+# the onboard config's (config/photomap-onboard.yaml) memory and checkpoint settings
+LONG_OVERRIDES = ["mosaic.max_tiles_in_memory=256", "output.checkpoint_interval=5", "posegraph.max_solve_nodes=300"]
 SERVICE_ENV = {"MALLOC_ARENA_MAX": "2"}  # config/photomap.service
 
 
