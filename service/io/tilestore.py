@@ -154,7 +154,9 @@ class WriteBehindTileStore:
     :attr:`tiles_read_ahead`). Thread-safe.
     """
 
-    def __init__(self, store: TileStore, max_pending: int = 32, max_ready: int = 48) -> None:
+    MAX_READY = 48  # the default ``max_ready``
+
+    def __init__(self, store: TileStore, max_pending: int = 32, max_ready: int = MAX_READY) -> None:
         self.store = store
         self.max_pending = max(1, int(max_pending))
         self.max_ready = max(0, int(max_ready))

@@ -404,7 +404,7 @@ class MappingPipeline:
                 # its read-ahead counts in the map's tile cap: at most a quarter of it
                 store = self._tile_stores[segment] = WriteBehindTileStore(
                     DiskTileStore(self._cache() / f"segment{segment}"),
-                    max_ready=min(48, self.cfg.mosaic.max_tiles_in_memory // 4))
+                    max_ready=min(WriteBehindTileStore.MAX_READY, self.cfg.mosaic.max_tiles_in_memory // 4))
             self.mosaics[segment] = TiledMosaic(self.cfg.mosaic, store)
         return self.mosaics[segment]
 
