@@ -140,6 +140,10 @@ class Rerenderer:
         beyond this many bytes (at least 2 frames). A loop-closure correction re-renders its
         tiles from every kept frame over them, strip after strip: with 2 frames held, each
         strip decoded its frames' JPEGs again (0.4 ms a 320x240 frame, 10x that at 1080p).
+    release_after : float or None
+        Seconds without a job after which the decoded images are dropped (None: held to the
+        end): a correction's strips and the corrections right after it share them; between
+        loop closures the map does not hold ``cache_bytes`` it is not using.
     first : WorkerFirst or None
         The thread waits at its pause points (before each task, each kept frame of a strip)
         while the worker maps a frame; None: never.
@@ -147,7 +151,8 @@ class Rerenderer:
 
     def __init__(self, store: KeyframeStore | None, params: MosaicConfig, *, strip_tiles: int = 32,
                  max_pending_writes: int = 4, max_done: int = 1, nice: int = BACKGROUND_NICE,
-                 cache_bytes: int = 32 << 20, first: WorkerFirst | None = None) -> None:
+                 cache_bytes: int = 32 << 20, release_after: float | None = 2.0,
+                 first: WorkerFirst | None = None) -> None:
         self.store = store
         self.first = first or WorkerFirst(enabled=False)  # its pause points: each task, each frame of a strip
         self.params = replace(params, max_tiles_in_memory=None)  # a scratch map never spills
@@ -167,6 +172,8 @@ class Rerenderer:
         self._cache_lock = threading.Lock()
         self._cache_bytes = 0
         self.cache_bytes = int(cache_bytes)
+        self.release_after = release_after
+        self._last_strip = 0.0  # when the last strip was rendered (monotonic s)
         self.writes = 0  # kept images
         self.sync_writes = 0  # tasks run by the caller because the thread was behind
         self.lost_frames = 0  # kept images that could not be read back
@@ -228,6 +235,12 @@ class Rerenderer:
         return len(self._writes) < self.max_pending_writes and not self._closing
 
     @property
+    def decoded_bytes(self) -> int:
+        """Bytes of kept images (and masks) held decoded right now."""
+        with self._cache_lock:
+            return self._cache_bytes
+
+    @property
     def busy(self) -> bool:
         """Jobs queued or being rendered."""
         with self._cond:
@@ -266,7 +279,14 @@ class Rerenderer:
             with self._cond:
                 while not self._writes and not self._closing and (
                         not self._jobs or len(self._done) >= self.max_done):
-                    self._cond.wait()
+                    if self._jobs or not self._cache or self.release_after is None:
+                        self._cond.wait()
+                        continue
+                    left = self._last_strip + self.release_after - time.monotonic()
+                    if left <= 0:
+                        self._drop_decoded()
+                    else:
+                        self._cond.wait(left)
                 if self._writes:  # kept images first: a job may need them, and they hold memory
                     task = ("write", self._writes.popleft())
                 elif self._jobs and len(self._done) < self.max_done:
@@ -286,6 +306,7 @@ class Rerenderer:
                     strip = self._render(*task[1])
                     with self._cond:
                         self._done.append(strip)
+                        self._last_strip = time.monotonic()
             except BaseException as exc:  # handed to the worker by collect()
                 log.debug("re-render thread failed", exc_info=True)
                 with self._cond:
@@ -304,6 +325,11 @@ class Rerenderer:
             found = self._cache.pop(index, None)
             if found is not None:
                 self._cache_bytes -= self._nbytes(found)
+
+    def _drop_decoded(self) -> None:
+        with self._cache_lock:
+            self._cache.clear()
+            self._cache_bytes = 0
 
     def _image(self, index: int) -> tuple[np.ndarray | None, np.ndarray | None]:
         """A kept image and its mask, through a cache of ``cache_bytes`` (the strips of a
