@@ -141,9 +141,10 @@ class Rerenderer:
         tiles from every kept frame over them, strip after strip: with 2 frames held, each
         strip decoded its frames' JPEGs again (0.4 ms a 320x240 frame, 10x that at 1080p).
     release_after : float or None
-        Seconds without a job after which the decoded images are dropped (None: held to the
-        end): a correction's strips and the corrections right after it share them; between
-        loop closures the map does not hold ``cache_bytes`` it is not using.
+        Seconds after the last strip, with no job queued, after which the decoded images are
+        dropped (None: held to the end; kept images saved meanwhile do not count): a
+        correction's strips share them; between loop closures the thread does not hold
+        ``cache_bytes`` it is not using.
     first : WorkerFirst or None
         The thread waits at its pause points (before each task, each kept frame of a strip)
         while the worker maps a frame; None: never.
