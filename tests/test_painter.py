@@ -409,7 +409,7 @@ def test_decoded_kept_images_are_let_go_when_no_job_came_for_a_while(tmp_path):
     params = MosaicConfig(tile_size=64)
     store = KeyframeStore(tmp_path / "kf")
     reads = counted_reads(store)
-    rerenderer = Rerenderer(store, params, strip_tiles=1, release_after=0.2)
+    rerenderer = Rerenderer(store, params, strip_tiles=1, release_after=1.0)  # (held while the test checks)
     frames = [KeptFrame(i, pose(0, 50.0 * i, 10.0), (160, 120)) for i in range(3)]
     for f in frames:
         rerenderer.save(f.index, texture(120, 160, 20 + f.index))
