@@ -334,7 +334,7 @@ class Rerenderer:
 
     def _image(self, index: int) -> tuple[np.ndarray | None, np.ndarray | None]:
         """A kept image and its mask, through a cache of ``cache_bytes`` (the strips of a
-        correction, and the next corrections, paint the same frames)."""
+        correction paint the same frames; so does a correction within ``release_after``)."""
         with self._cache_lock:
             if index in self._cache:
                 self._cache.move_to_end(index)
