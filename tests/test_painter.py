@@ -355,10 +355,10 @@ def test_a_rerender_paints_each_tile_from_the_newest_frame_covering_it_whole_on(
     rerenderer.close()
 
 
-def rerender_all(rerenderer: Rerenderer, frames, tiles, params) -> TiledMosaic:
+def rerender_all(rerenderer: Rerenderer, frames, tiles) -> TiledMosaic:
     """Re-render ``tiles`` from ``frames`` through ``rerenderer`` and wait for every strip."""
     job = rerenderer.submit(0, frames, tiles)
-    got = TiledMosaic(params)
+    got = TiledMosaic(rerenderer.params)
     while True:
         rerenderer.wait()
         strips = rerenderer.collect()
@@ -369,34 +369,36 @@ def rerender_all(rerenderer: Rerenderer, frames, tiles, params) -> TiledMosaic:
             return got
 
 
-def counted_reads(store: KeyframeStore) -> list[int]:
-    """The frames whose kept image ``store`` reads back (decodes) from now on."""
-    reads: list[int] = []
-    image = store.image
-    store.image = lambda index: reads.append(index) or image(index)
-    return reads
-
-
-def test_kept_images_are_decoded_once_for_all_strips_and_anew_when_kept_again(tmp_path):
-    """A correction re-renders strip after strip from the same kept frames: each kept image is
-    read back (decoded) once, within the cache's budget; a frame kept again is read anew."""
+def three_kept_frames(tmp_path, release_after: float | None):
+    """A re-render thread (one tile a strip) that kept 3 frames; returns it, its store, the
+    frames, the tiles they cover and the list of the frames whose kept image the store reads
+    back (decodes) from now on."""
     params = MosaicConfig(tile_size=64)
     store = KeyframeStore(tmp_path / "kf")
-    reads = counted_reads(store)
-    rerenderer = Rerenderer(store, params, strip_tiles=1, release_after=None)
+    rerenderer = Rerenderer(store, params, strip_tiles=1, release_after=release_after)
     frames = [KeptFrame(i, pose(0, 50.0 * i, 10.0), (160, 120)) for i in range(3)]
     for f in frames:
         rerenderer.save(f.index, texture(120, 160, 20 + f.index))
     rerenderer.wait()
     tiles = set(render_from_store(store, frames, params).tiles())  # (reads the files once each)
-    reads.clear()
-    got = rerender_all(rerenderer, frames, tiles, params)
+    reads: list[int] = []
+    image = store.image
+    store.image = lambda index: reads.append(index) or image(index)
+    return rerenderer, store, frames, tiles, reads
+
+
+def test_kept_images_are_decoded_once_for_all_strips_and_anew_when_kept_again(tmp_path):
+    """A correction re-renders strip after strip from the same kept frames: each kept image is
+    read back (decoded) once, within the cache's budget; a frame kept again is read anew."""
+    rerenderer, store, frames, tiles, reads = three_kept_frames(tmp_path, release_after=None)
+    params = rerenderer.params
+    got = rerender_all(rerenderer, frames, tiles)
     assert len(tiles) > 3 and sorted(reads) == [0, 1, 2]  # 1 tile a strip: every strip, no re-reads
     assert_same_tiles(got, render_from_store(store, frames, params), tiles)
     reads.clear()
     rerenderer.save(1, texture(120, 160, 99))  # frame 1 kept again, with another image
     rerenderer.wait()
-    got = rerender_all(rerenderer, frames, tiles, params)
+    got = rerender_all(rerenderer, frames, tiles)
     assert reads == [1]
     assert_same_tiles(got, render_from_store(store, frames, params), tiles)
     rerenderer.close()
@@ -406,17 +408,8 @@ def test_decoded_kept_images_are_let_go_when_no_job_came_for_a_while(tmp_path):
     """Between loop closures the re-render thread holds no decoded image: ``release_after``
     seconds after its last strip it drops them (kept images saved meanwhile do not count as
     jobs), and the next correction reads them back, to the same tiles."""
-    params = MosaicConfig(tile_size=64)
-    store = KeyframeStore(tmp_path / "kf")
-    reads = counted_reads(store)
-    rerenderer = Rerenderer(store, params, strip_tiles=1, release_after=1.0)  # (held while the test checks)
-    frames = [KeptFrame(i, pose(0, 50.0 * i, 10.0), (160, 120)) for i in range(3)]
-    for f in frames:
-        rerenderer.save(f.index, texture(120, 160, 20 + f.index))
-    rerenderer.wait()
-    tiles = set(render_from_store(store, frames, params).tiles())
-    reads.clear()
-    first = rerender_all(rerenderer, frames, tiles, params)
+    rerenderer, _, frames, tiles, reads = three_kept_frames(tmp_path, release_after=1.0)  # (held while checked)
+    first = rerender_all(rerenderer, frames, tiles)
     assert sorted(reads) == [0, 1, 2] and rerenderer.decoded_bytes == 3 * 120 * 160 * 3
     rerenderer.save(3, texture(120, 160, 23))  # a kept image is no job: the clock runs on
     deadline = time.monotonic() + 20.0
@@ -424,7 +417,7 @@ def test_decoded_kept_images_are_let_go_when_no_job_came_for_a_while(tmp_path):
         time.sleep(0.02)
     assert rerenderer.decoded_bytes == 0
     reads.clear()
-    again = rerender_all(rerenderer, frames, tiles, params)
+    again = rerender_all(rerenderer, frames, tiles)
     assert sorted(reads) == [0, 1, 2]
     for key in tiles:
         np.testing.assert_array_equal(again.tile_image(key)[0], first.tile_image(key)[0])
