@@ -253,16 +253,18 @@ def test_percentile_matches_numpy():
 
 
 def test_gram_matrix_in_chunks_matches_the_full_product():
-    from photomap.core.ifmi import _GRAM_CHUNK, _gram
+    from photomap.core.ifmi import _BLAS_ONE_THREAD, _gram
 
     rng = np.random.default_rng(5)
-    for n in (1, 100, _GRAM_CHUNK, _GRAM_CHUNK + 1, 3 * _GRAM_CHUNK - 7):
-        a = rng.standard_normal((6, n)).astype(np.float32)
-        b = a * rng.random(n).astype(np.float32)
-        want = a.astype(np.float64) @ b.astype(np.float64).T
-        got = _gram(a, b)
-        assert got.dtype == np.float64 and got.shape == (6, 6)
-        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * math.sqrt(n))
+    for rows in (6, 2):
+        chunk = _BLAS_ONE_THREAD // (6 * rows)
+        for n in (1, 100, chunk, chunk + 1, 3 * chunk - 7):
+            a = rng.standard_normal((6, n)).astype(np.float32)
+            b = a[:rows] * rng.random(n).astype(np.float32)
+            want = a.astype(np.float64) @ b.astype(np.float64).T
+            got = _gram(a, b)
+            assert got.dtype == np.float64 and got.shape == (6, rows)
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * math.sqrt(n))
 
 
 @pytest.fixture(scope="module")

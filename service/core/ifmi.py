@@ -38,10 +38,11 @@ Speed (issue 12): the FFTs are OpenCV's (``cv2.dft`` in its packed CCS layout, a
 as ``scipy.fft`` here), everything is float32 but the few sums that need more, and no BLAS product
 is large enough for BLAS threads (``@``/``dot`` on all of the refinement's samples ran multithreaded
 OpenBLAS, whose threads spin: next to any busy process a 3 ms registration took 30-100 ms). The
-large arrays go through OpenCV and ``np.einsum`` (single-threaded), the refinement's 6x6
-Gauss-Newton matrix through BLAS products of at most ``_GRAM_CHUNK`` samples (below OpenBLAS's
-size for threads; 7x faster than ``np.einsum``), so a Registrar costs the same in any process,
-whatever its BLAS thread settings.
+large arrays go through OpenCV and ``np.einsum`` (single-threaded), the refinement's products
+over its samples (its 6x6 Gauss-Newton matrix, and in each iteration the 6 sums against the
+warped image and its square) through matrix products of at most ``_BLAS_ONE_THREAD`` multiply-adds
+each (OpenBLAS's size for threads; 3-7x faster than ``np.einsum``), so a Registrar costs the same
+in any process, whatever its BLAS thread settings.
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ _REFINE_KEEP = 0.25  # grid samples kept: gradient energy above this fraction of
 #                      half of them on textured ground, ~97 % of the energy, which is what the
 #                      estimate's precision needs; 0.5 keeps ~40 % and loses ~15 % of the precision)
 _REFINE_MIN_KEEP = 4096  # ... but at least this many (all of a smaller grid: noisy ground needs them)
-_GRAM_CHUNK = 7000  # samples per BLAS product of the refinement (6 x 6 x 7000 < 65536 * 4)
+_BLAS_ONE_THREAD = 65536 * 4  # OpenBLAS runs a matrix product with m n k up to this on the caller's thread
 _REFINE_MARGIN = 2.0  # samples used must map this far inside b (level pixels); see _refine
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 _EXPECTED_PEAK = 0.35  # a peak at the expected shift wins over higher ones at this fraction of the best
@@ -209,6 +210,7 @@ class _Template:
     grid: _Grid
     points: np.ndarray  # (1, K, 2) float32 sample positions (x, y), level pixels
     window: np.ndarray  # (K,) apodization weight
+    window_sum: float  # their sum
     sd: np.ndarray  # (6, K) steepest-descent images: d/d(tx, ty, scale, rotation), offset, gain
     #                 (the last row is the centred template itself)
 
@@ -236,15 +238,16 @@ def _fit_offset(lm: float, l0: float, lp: float) -> float:
 
 
 def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b.T`` (float64) of two (k, n) float32 arrays with k small, in products of at most
-    ``_GRAM_CHUNK`` columns: each below OpenBLAS's size for threads (m n k <= 65536 * 4), so
-    that it runs on the caller's thread whatever the BLAS thread setting."""
+    """``a @ b.T`` (float64) of a (k, n) and an (l, n) float32 array with k and l small, in
+    products of at most ``_BLAS_ONE_THREAD`` multiply-adds: each below OpenBLAS's size for
+    threads, so that it runs on the caller's thread whatever the BLAS thread setting."""
     n = a.shape[1]
-    if n <= _GRAM_CHUNK:
+    chunk = max(1, _BLAS_ONE_THREAD // (a.shape[0] * b.shape[0]))
+    if n <= chunk:
         return (a @ b.T).astype(np.float64)
     out = np.zeros((a.shape[0], b.shape[0]))
-    for i in range(0, n, _GRAM_CHUNK):
-        out += a[:, i:i + _GRAM_CHUNK] @ b[:, i:i + _GRAM_CHUNK].T
+    for i in range(0, n, chunk):
+        out += a[:, i:i + chunk] @ b[:, i:i + chunk].T
     return out
 
 
@@ -814,7 +817,7 @@ class Registrar:
             sd[4] = 1.0
             if keep.size:
                 sd[5] -= np.float32(cv2.mean(sd[5])[0])
-            tpl = _Template(grid, points[None], window, sd)
+            tpl = _Template(grid, points[None], window, float(window.sum()), sd)
             frame._cache["template"] = tpl
         return tpl
 
@@ -823,9 +826,9 @@ class Registrar:
 
         ``m`` maps b -> a; returns the refined matrix, or None when it does not converge. It runs
         on ``a.refine_level`` of both frames' pyramids, with the informative samples of a grid on
-        ``a`` (the template) and ``b`` interpolated at their warped positions. Only small,
-        single-threaded reductions (``np.einsum``, OpenCV, and BLAS products too small for BLAS
-        threads, whose spinning would stall against any busy neighbour process: :func:`_gram`).
+        ``a`` (the template) and ``b`` interpolated at their warped positions. Only
+        single-threaded reductions (OpenCV, and BLAS products too small for BLAS threads, whose
+        spinning would stall against any busy neighbour process: :func:`_gram`).
         """
         h, w = self.shape
         tpl = self._template(a)
@@ -845,6 +848,7 @@ class Registrar:
         start = np.array([[m00, m01, m02 * f], [m10, m11, m12 * f]])
         moved = math.inf  # level pixels the samples moved since their mask was built
         fit_start = fit_end = -math.inf  # weighted correlation of b with the template
+        samples = np.empty((2, tpl.sd.shape[1]), np.float32)  # b at the samples (centred roughly), squared
         for it in range(self.refine_iterations):
             # where the template's samples fall in b: the inverse of the matrix
             det = m00 * m11 - m01 * m10
@@ -860,12 +864,12 @@ class Registrar:
                 # mask, Hessian and template moments stay valid) while the warp moves them less
                 inside = cv2.inRange(where, (lo, lo), (wb_ - 1 - lo, hb - 1 - lo)).ravel()
                 wgt = cv2.multiply(tpl.window, inside, scale=1.0 / 255.0, dtype=cv2.CV_32F).ravel()
-                wsum = float(wgt.sum())
-                if wsum < 0.05 * float(tpl.window.sum()):
-                    return None
                 wsd = tpl.sd * wgt
                 # Gauss-Newton matrix and template moments
                 hess = _gram(tpl.sd, wsd)
+                wsum = float(hess[4, 4])  # row 4: ones
+                if wsum < 0.05 * tpl.window_sum:
+                    return None
                 mt = hess[4, 5] / wsum  # rows 4 and 5: ones and the centred template
                 vt = hess[5, 5] / wsum - mt * mt
                 if vt <= _EPS:
@@ -876,10 +880,8 @@ class Registrar:
                 solve = inverse[:4]
                 # see below: sums of the residual = gain * (proj - mw * ones) - centred template
                 ones, tmpl = hess[:, 4], hess[:, 5] - mt * hess[:, 4]
-                solve_ones = np.einsum("jk,k->j", solve, ones).tolist()
-                solve_tmpl = np.einsum("jk,k->j", solve, tmpl).tolist()
+                solve_ones, solve_tmpl = (solve @ ones).tolist(), (solve @ tmpl).tolist()
                 ones5, tmpl5 = float(ones[5]), float(tmpl[5])
-                wb = np.empty_like(wgt)
                 moved = 0.0
             # Brightness gain/offset of the warped image against the template from their moments,
             # corrected to first order by the solve together with the warp (the overlap's mean and
@@ -887,11 +889,12 @@ class Registrar:
             # update is a small fraction of the error on featureless ground). With the residual
             # e = g (u - mw) - (t - mt), every sum over the samples comes from one pass:
             # sum w sd_j e = g (sum w sd_j u - mw sum w sd_j) - (sum w sd_j t - mt sum w sd_j).
-            warped -= offset_b  # centred roughly (precision of the float32 sums)
-            proj = np.einsum("ji,i->j", wsd, warped).astype(np.float64)
-            np.multiply(wgt, warped, out=wb)
+            np.subtract(warped, offset_b, out=samples[0])  # centred roughly (precision of the float32 sums)
+            np.multiply(samples[0], samples[0], out=samples[1])
+            sums = _gram(wsd, samples)  # column 0: sum w sd_j u; row 4 of column 1: sum w u^2
+            proj = sums[:, 0]
             mw = float(proj[4]) / wsum
-            vw = float(np.einsum("i,i->", wb, warped)) / wsum - mw * mw
+            vw = float(sums[4, 1]) / wsum - mw * mw
             if vw <= _EPS:
                 return None
             gain = math.sqrt(vt / vw)
@@ -902,7 +905,7 @@ class Registrar:
                 fit_start = fit
             gm = gain * mw
             tx, ty, da, db = (gain * x - gm * o - t for x, o, t in
-                              zip(np.einsum("jk,k->j", solve, proj).tolist(), solve_ones, solve_tmpl))
+                              zip((solve @ proj).tolist(), solve_ones, solve_tmpl))
             # warp increment about the centre, x -> (1+da) x - db y + tx in centred coordinates,
             # composed in front of the matrix
             c, s_ = 1.0 + da, db
