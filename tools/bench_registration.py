@@ -336,35 +336,37 @@ def time_ifmi(shape: tuple[int, int], n: int, terrains: TerrainCache, repeats: i
     """Median ms per pair of iFMI in sequence mode, refinement on and off, quiet and busy.
 
     Each pair is the new frame's ``prepare()`` plus ``register()`` against the previous prepared
-    frame, on a textured flight of ``n`` frames passed ``repeats`` times (every pass prepares
-    its frames afresh). The two methods alternate pair by pair, so their ratio compares them
-    under the same conditions; ``busy`` runs with :func:`busy_neighbour`. Medians, not minima:
+    frame, on a textured flight of ``n`` frames passed ``repeats`` times per condition (every
+    pass prepares its frames afresh). ``busy`` runs with :func:`busy_neighbour`. The passes
+    alternate between the conditions (quiet, busy, busy, quiet, ...) and the two methods pair by
+    pair, the first of them alternating pass by pass: both ratios (busy / quiet, refined / plain)
+    compare measurements spread over the same minutes, so a shared host's drifting speed and
+    whichever method meets a frame first in the CPU's caches bias neither. Medians, not minima:
     a companion computer is never idle, and the typical pair is what the pipeline pays.
     """
     spec = SequenceSpec("timing", "aukerman", shape, 5.0, {**_CRUISE, "noise": 1.0}, "")
     flight = make_flight(spec, n, terrains, SEED + 100)
     methods = ifmi_methods(shape)
-    ms: dict[str, dict[str, float]] = {}
-    cpu: dict[str, dict[str, float]] = {}
+    samples = {c: {m.name: [] for m in methods} for c in CONDITIONS}
+    cpu_samples = {c: {m.name: [] for m in methods} for c in CONDITIONS}
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    for condition in CONDITIONS:
-        with busy_neighbour(condition == "busy"):
-            for method in methods:  # warm-up (lazy init, caches)
-                method.register(method.prepare(flight.grays[0]), method.prepare(flight.grays[1]))
-            samples: dict[str, list[float]] = {m.name: [] for m in methods}
-            cpu_samples: dict[str, list[float]] = {m.name: [] for m in methods}
-            for _ in range(repeats):
-                prev = {m.name: m.prepare(flight.grays[0]) for m in methods}
+    for k in range(repeats):
+        for condition in (CONDITIONS if k % 2 == 0 else CONDITIONS[::-1]):
+            order = methods if (k + (condition == "busy")) % 2 == 0 else methods[::-1]
+            with busy_neighbour(condition == "busy"):
+                for method in order:  # warm-up (lazy init, caches)
+                    method.register(method.prepare(flight.grays[0]), method.prepare(flight.grays[1]))
+                prev = {m.name: m.prepare(flight.grays[0]) for m in order}
                 for gray in flight.grays[1:]:
-                    for method in methods:
+                    for method in order:
                         t0, c0 = time.perf_counter(), time.thread_time()
                         cur = method.prepare(gray)
                         method.register(prev[method.name], cur)
-                        samples[method.name].append(1e3 * (time.perf_counter() - t0))
-                        cpu_samples[method.name].append(1e3 * (time.thread_time() - c0))
+                        samples[condition][method.name].append(1e3 * (time.perf_counter() - t0))
+                        cpu_samples[condition][method.name].append(1e3 * (time.thread_time() - c0))
                         prev[method.name] = cur
-        ms[condition] = {name: float(np.median(v)) for name, v in samples.items()}
-        cpu[condition] = {name: float(np.median(v)) for name, v in cpu_samples.items()}
+    ms = {c: {name: float(np.median(v)) for name, v in by.items()} for c, by in samples.items()}
+    cpu = {c: {name: float(np.median(v)) for name, v in by.items()} for c, by in cpu_samples.items()}
     return Timing(shape, ms, repeats * (len(flight.grays) - 1), load, cpu)
 
 
@@ -593,8 +595,9 @@ def render_report(flights: list[Flight], runs: list[Run], timings, cal: Calibrat
     lines += ["", "## iFMI speed by frame size (sequence mode)", "",
               "Median ms per pair on a textured 5 fps flight (the new frame's `prepare()` plus `register()`), "
               f"{samples} pairs per method and condition ({args.timing_pairs} pairs, {args.timing_repeats} passes), "
-              "iFMI and iFMI no refine alternating pair by pair. *quiet*: no process started by the tool "
-              "(*load before*: the 1-minute load average when the size's timing started; above 0 other "
+              "iFMI and iFMI no refine alternating pair by pair (which goes first alternates pass by pass), "
+              "quiet and busy passes alternating (quiet, busy, busy, quiet, ...). *quiet*: no process "
+              "started by the tool (*load before*: the 1-minute load average when the size's timing started; above 0 other "
               "processes shared the cores); *busy*: a separate process spinning on one core "
               "for the duration (`while True: pass`, started and stopped by the tool). *busy / quiet* is "
               "the cost of a busy neighbour, *refined / plain* the cost of the Gauss-Newton refinement, "
@@ -641,7 +644,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = args.out if args.out is not None else (None if args.quick else REPO / "docs" / "benchmarks.md")
     args.timing_pairs = 5 if args.quick else 40
-    args.timing_repeats = 2 if args.quick else 3
+    args.timing_repeats = 2 if args.quick else 8
     calib_count = 3 if args.quick else 20
 
     start = time.perf_counter()
