@@ -797,11 +797,10 @@ class Registrar:
             else:
                 # above a fraction of the mean energy, lowered until enough are kept
                 level = np.float32(_REFINE_KEEP * cv2.mean(energy)[0])
-                mask = energy > level
-                while int(np.count_nonzero(mask)) < _REFINE_MIN_KEEP and level > 0:
+                keep = np.flatnonzero(energy > level)
+                while keep.size < _REFINE_MIN_KEEP and level > 0:
                     level = level * np.float32(0.5) if level > 1e-6 * energy.max() else np.float32(0)
-                    mask = energy > level
-                keep = np.flatnonzero(mask)
+                    keep = np.flatnonzero(energy > level)
             points = np.take(grid.points, keep, axis=0)
             window = np.take(grid.window, keep)
             xc = points[:, 0] - np.float32(grid.center[0])
