@@ -79,7 +79,9 @@ TIMING_SHAPES = [(256, 256), (480, 480), (512, 512), (480, 640)]
 TARGET_MS = {(256, 256): 2.0, (512, 512): 6.0, (480, 640): 12.0}
 TARGET_REFINED_OVER_PLAIN = {(256, 256): 1.25, (512, 512): 1.25}  # refinement's cost, same run
 TARGET_BUSY_OVER_QUIET = 1.3  # iFMI with a neighbour spinning on one core against without
-CONDITIONS = ("quiet", "busy")
+# quiet and busy: sequence mode (each frame against the previous one); keyframes: quiet, each frame
+# against the current keyframe, held as the tracker holds it (mapping.keyframe_max_shift)
+CONDITIONS = ("quiet", "busy", "keyframes")
 
 # A multirotor video at 5 fps (every 6th frame of 30 fps): 8 m/s at 50-70 m, yaw up to 15 deg/s.
 _CRUISE = dict(pattern="random", speed=8.0, yaw_mode="random", yaw_rate=15.0, altitude=(50.0, 70.0),
@@ -332,39 +334,69 @@ class Timing:
         return self.ms[condition]["iFMI"] / self.ms[condition]["iFMI no refine"]
 
 
-def time_ifmi(shape: tuple[int, int], n: int, terrains: TerrainCache, repeats: int = 3) -> Timing:
-    """Median ms per pair of iFMI in sequence mode, refinement on and off, quiet and busy.
+def keyframe_references(flight: Flight, max_shift: float | None = None) -> list[int]:
+    """Index of the reference of each frame from 1 on, held as the tracker holds its keyframe.
 
-    Each pair is the new frame's ``prepare()`` plus ``register()`` against the previous prepared
-    frame, on a textured flight of ``n`` frames passed ``repeats`` times per condition (every
-    pass prepares its frames afresh). ``busy`` runs with :func:`busy_neighbour`. The passes
-    alternate between the conditions (quiet, busy, busy, quiet, ...) and the two methods pair by
-    pair, the first of them alternating pass by pass: both ratios (busy / quiet, refined / plain)
+    A frame becomes the next reference once its true centre lies more than ``max_shift`` frame
+    sizes (``mapping.keyframe_max_shift`` by default) from its reference, counting one more step
+    at its speed (see ``photomap.core.tracking``'s ``_next_shift``). Frame pixels: terrain pixels
+    over the truth's scale.
+    """
+    if max_shift is None:
+        max_shift = MappingConfig().keyframe_max_shift
+    t = flight.truth
+    limit = max_shift * min(flight.spec.shape)
+    refs, ref = [], 0
+    for i in range(1, len(flight.grays)):
+        refs.append(ref)
+        shift = math.hypot(t.x[i] - t.x[ref], t.y[i] - t.y[ref]) / t.scale[i]
+        step = math.hypot(t.x[i] - t.x[i - 1], t.y[i] - t.y[i - 1]) / t.scale[i]
+        if shift + step > limit:
+            ref = i
+    return refs
+
+
+def time_ifmi(shape: tuple[int, int], n: int, terrains: TerrainCache, repeats: int = 3) -> Timing:
+    """Median ms per pair of iFMI, refinement on and off, in three conditions.
+
+    Each pair is the new frame's ``prepare()`` plus ``register()``, on a textured flight of ``n``
+    frames passed ``repeats`` times per condition (every pass prepares its frames afresh).
+    *quiet* and *busy* (with :func:`busy_neighbour`): sequence mode, against the previous
+    frame, so every frame is a reference once (the refinement's template, built once per
+    reference, counts in every pair); *keyframes* (quiet): against the current keyframe, as the
+    pipeline's tracker registers (:func:`keyframe_references`). The passes alternate between the
+    conditions (quiet, busy, keyframes, keyframes, busy, quiet, ...) and the two methods pair by
+    pair, the first of them alternating pass by pass: the ratios (busy / quiet, refined / plain)
     compare measurements spread over the same minutes, so a shared host's drifting speed and
-    whichever method meets a frame first in the CPU's caches bias neither. Medians, not minima:
-    a companion computer is never idle, and the typical pair is what the pipeline pays.
+    whichever method meets a frame first in the CPU's caches bias none of them. Medians, not
+    minima: a companion computer is never idle, and the typical pair is what the pipeline pays.
     """
     spec = SequenceSpec("timing", "aukerman", shape, 5.0, {**_CRUISE, "noise": 1.0}, "")
     flight = make_flight(spec, n, terrains, SEED + 100)
+    keyframe_refs = keyframe_references(flight)
     methods = ifmi_methods(shape)
     samples = {c: {m.name: [] for m in methods} for c in CONDITIONS}
     cpu_samples = {c: {m.name: [] for m in methods} for c in CONDITIONS}
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     for k in range(repeats):
-        for condition in (CONDITIONS if k % 2 == 0 else CONDITIONS[::-1]):
-            order = methods if (k + (condition == "busy")) % 2 == 0 else methods[::-1]
+        for c in (range(len(CONDITIONS)) if k % 2 == 0 else reversed(range(len(CONDITIONS)))):
+            condition = CONDITIONS[c]
+            order = methods if (k + c) % 2 == 0 else methods[::-1]
             with busy_neighbour(condition == "busy"):
                 for method in order:  # warm-up (lazy init, caches)
                     method.register(method.prepare(flight.grays[0]), method.prepare(flight.grays[1]))
-                prev = {m.name: m.prepare(flight.grays[0]) for m in order}
-                for gray in flight.grays[1:]:
+                ref = {m.name: m.prepare(flight.grays[0]) for m in order}
+                for i, gray in enumerate(flight.grays[1:], start=1):
+                    # the next frame's reference: this one, or (keyframes) the current keyframe
+                    becomes_ref = condition != "keyframes" or i == len(keyframe_refs) or keyframe_refs[i] == i
                     for method in order:
                         t0, c0 = time.perf_counter(), time.thread_time()
                         cur = method.prepare(gray)
-                        method.register(prev[method.name], cur)
+                        method.register(ref[method.name], cur)
                         samples[condition][method.name].append(1e3 * (time.perf_counter() - t0))
                         cpu_samples[condition][method.name].append(1e3 * (time.thread_time() - c0))
-                        prev[method.name] = cur
+                        if becomes_ref:
+                            ref[method.name] = cur
     ms = {c: {name: float(np.median(v)) for name, v in by.items()} for c, by in samples.items()}
     cpu = {c: {name: float(np.median(v)) for name, v in by.items()} for c, by in cpu_samples.items()}
     return Timing(shape, ms, repeats * (len(flight.grays) - 1), load, cpu)
@@ -496,8 +528,9 @@ def accuracy_table(runs: list[Run]) -> list[str]:
 
 def timing_table(timings: dict[tuple[int, int], Timing]) -> list[str]:
     out = ["| frame (w x h) | iFMI quiet | iFMI busy | busy / quiet | no refine quiet | no refine busy "
-           "| busy / quiet | refined / plain quiet | refined / plain busy | target ms (quiet) | paper C/C++ ms "
-           "| paper / iFMI | load before |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+           "| busy / quiet | refined / plain quiet | refined / plain busy | refined / plain keyframes "
+           "| target ms (quiet) | paper C/C++ ms | paper / iFMI | load before |",
+           "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for shape, t in timings.items():
         paper = PAPER_MS.get(shape)
         target = TARGET_MS.get(shape)
@@ -506,7 +539,8 @@ def timing_table(timings: dict[tuple[int, int], Timing]) -> list[str]:
         out.append(f"| {shape[1]}x{shape[0]} | {quiet['iFMI']:.2f} | {busy['iFMI']:.2f} | {t.ratio_busy('iFMI'):.2f} "
                    f"| {quiet['iFMI no refine']:.2f} | {busy['iFMI no refine']:.2f} "
                    f"| {t.ratio_busy('iFMI no refine'):.2f} | {t.ratio_refined('quiet'):.2f} "
-                   f"| {t.ratio_refined('busy'):.2f} | {'<= %g' % target if target else '-'} "
+                   f"| {t.ratio_refined('busy'):.2f} | {t.ratio_refined('keyframes'):.2f} "
+                   f"| {'<= %g' % target if target else '-'} "
                    f"| {'%g' % paper if paper else '-'} | {ratio} | {_fmt(t.load, 2)} |")
     return out
 
@@ -592,15 +626,20 @@ def render_report(flights: list[Flight], runs: list[Run], timings, cal: Calibrat
               "new frame's per-frame work.", "",
               "## Accuracy, speed and drift", ""] + accuracy_table(runs)
     samples = next(iter(timings.values())).samples if timings else 0
-    lines += ["", "## iFMI speed by frame size (sequence mode)", "",
+    lines += ["", "## iFMI speed by frame size", "",
               "Median ms per pair on a textured 5 fps flight (the new frame's `prepare()` plus `register()`), "
               f"{samples} pairs per method and condition ({args.timing_pairs} pairs, {args.timing_repeats} passes), "
               "iFMI and iFMI no refine alternating pair by pair (which goes first alternates pass by pass), "
-              "quiet and busy passes alternating (quiet, busy, busy, quiet, ...). *quiet*: no process "
-              "started by the tool (*load before*: the 1-minute load average when the size's timing started; above 0 other "
-              "processes shared the cores); *busy*: a separate process spinning on one core "
-              "for the duration (`while True: pass`, started and stopped by the tool). *busy / quiet* is "
-              "the cost of a busy neighbour, *refined / plain* the cost of the Gauss-Newton refinement, "
+              "the passes of the conditions alternating (quiet, busy, keyframes, keyframes, busy, quiet, ...). "
+              "*quiet* and *busy*: sequence mode, each frame against the previous one, so that each pair "
+              "also pays the refinement's template of its reference (the worst case for the refinement); "
+              "*quiet*: no process started by the tool (*load before*: the 1-minute load average when the "
+              "size's timing started; above 0 other processes shared the cores); *busy*: a separate process "
+              "spinning on one core for the duration (`while True: pass`, started and stopped by the tool); "
+              "*keyframes*: quiet, each frame against the current keyframe, a new one once the flight moved "
+              "`mapping.keyframe_max_shift` frame sizes from it, as the pipeline's tracker registers (a "
+              "template serves every frame registered against its keyframe: about 20 here). *busy / quiet* "
+              "is the cost of a busy neighbour, *refined / plain* the cost of the Gauss-Newton refinement, "
               "both from the same run. "
               "Paper: Buelow & Birk, IROS 2009, C/C++ on a 1.7 GHz PC: 230 ms at 256x256, 430 ms at 480x480.", ""]
     lines += timing_table(timings)
@@ -662,12 +701,12 @@ def main(argv: list[str] | None = None) -> int:
                 runs.append(run)
         timings = {}
         for shape in TIMING_SHAPES:
-            log.info("timing iFMI at %dx%d, quiet and with a busy neighbour", shape[1], shape[0])
+            log.info("timing iFMI at %dx%d, quiet, with a busy neighbour and against keyframes", shape[1], shape[0])
             timings[shape] = time_ifmi(shape, args.timing_pairs + 1, terrains, args.timing_repeats)
             t = timings[shape]
-            log.info("  ms/pair refined %.2f quiet, %.2f busy (x%.2f); refined / plain %.2f quiet, %.2f busy",
-                     t.ms["quiet"]["iFMI"], t.ms["busy"]["iFMI"], t.ratio_busy("iFMI"),
-                     t.ratio_refined("quiet"), t.ratio_refined("busy"))
+            log.info("  ms/pair refined %.2f quiet, %.2f busy (x%.2f); refined / plain %.2f quiet, %.2f busy, "
+                     "%.2f keyframes", t.ms["quiet"]["iFMI"], t.ms["busy"]["iFMI"], t.ratio_busy("iFMI"),
+                     t.ratio_refined("quiet"), t.ratio_refined("busy"), t.ratio_refined("keyframes"))
         log.info("confidence calibration")
         cal = calibrate(runs, terrains, calib_count, MappingConfig().min_confidence)
     except InputError as exc:
