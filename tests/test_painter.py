@@ -832,3 +832,38 @@ def test_a_doubled_factor_shrinks_the_thumbnails_in_the_background(tmp_path):
     covered = (preview[..., 3] == 255) & (want[..., 3] == 255)
     assert covered.mean() > 0.2
     assert np.abs(preview.astype(int) - want.astype(int))[covered].max() <= 2  # a shrink of a shrink rounds twice
+
+
+def test_a_replay_records_how_long_the_worker_waited_for_the_rerender(tmp_path, monkeypatch):
+    """In lockstep (a replay) a job that is due waits for the busy re-render thread, and the
+    painter says how long (``max_wait_ms``); live it never waits."""
+    import time
+
+    from photomap.mapping import rerender
+
+    render = rerender.Rerenderer._render
+
+    def slow_render(self, *args, **kwargs):
+        time.sleep(0.3)
+        return render(self, *args, **kwargs)
+
+    monkeypatch.setattr(rerender.Rerenderer, "_render", slow_render)
+    params = MosaicConfig(tile_size=64)
+    poses = {i: pose(4 * i, 60.0 * i, 10.0 * i) for i in range(4)}
+    moved = {i: pose(4 * i, 60.0 * i + 3.0 * i, 10.0 * i) for i in range(4)}
+    for lockstep in (2, None):
+        painter = Painter((160, 120), 64, rerenderer=Rerenderer(KeyframeStore(tmp_path / f"kf{lockstep}"), params),
+                          interval_s=0.0, lockstep_frames=lockstep)
+        live = TiledMosaic(params)
+        for i, p in poses.items():
+            painter.paint(live, 0, i, texture(120, 160, 10 + i), p, whole=True)
+        painter.rerenderer.wait()
+        assert painter.on_correction(0, moved) == 3
+        painter.pump({0: live}, frame=10)  # starts the job (0.3 s a strip)
+        painter.pump({0: live}, frame=12)  # lockstep: the next job is due, so the worker waits
+        assert painter.stats.rerender_jobs == 1
+        if lockstep:
+            assert painter.stats.max_wait_ms >= 100.0  # the strip's sleep, less the few ms since it began
+        else:
+            assert painter.stats.max_wait_ms == 0.0
+        painter.close()

@@ -14,7 +14,9 @@ with us. This tool measures under the same kind of conditions:
    it) for the duration, started and stopped by this tool. Reported: median fps over the repeats,
    the ratio to decode-only fps measured in the same conditions, and the per-stage times the
    pipeline records itself (``run.json`` ``timing_ms``: median ms per frame of decode, resize,
-   register, paint, loop closure, sinks, checkpoint outputs; the worker's longest frame).
+   register, paint, loop closure, sinks, checkpoint outputs; the worker's longest frame, and its
+   longest wait for the re-render thread: a replay waits for a job that is due, ``run.json``
+   ``painting`` ``max_wait_ms``).
 3. *Live*: the 1080p video fed at 30 fps through a drop-oldest queue of ``capture.queue_size``
    frames (as a camera is: :class:`PacedVideoSource`), beside the busy neighbour: frames mapped
    and dropped.
@@ -219,6 +221,13 @@ class Condition:
     def ratio(self) -> float:
         return self.fps / statistics.median(self.decode_fps)
 
+    @property
+    def longest_wait(self) -> float | None:
+        """The worker's longest wait for the re-render thread over the repeats (ms; a replay waits
+        for a job that is due, so that its map does not depend on the machine's speed)."""
+        values = [s["painting"]["max_wait_ms"] for s in self.summaries if "max_wait_ms" in s.get("painting", {})]
+        return max(values) if values else None
+
     def stage(self, name: str, key: str = "median") -> float | None:
         values = [s["timing_ms"][name][key] for s in self.summaries if name in s.get("timing_ms", {})]
         if not values:
@@ -250,13 +259,14 @@ def _ms(v: float | None) -> str:
 
 def throughput_tables(conds: list[Condition]) -> list[str]:
     lines = ["| input | condition | decode-only fps | replay fps | of decode-only | registered | "
-             "worker's longest frame ms |", "|---|---|---:|---:|---:|---:|---:|"]
+             "worker's longest frame ms | longest wait for the re-render ms |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
     for c in conds:
         s = c.summaries[-1]
         lines.append(f"| {c.size[0]}x{c.size[1]} | {'busy neighbour' if c.busy else 'quiet'}"
                      f"{', ' + c.label if c.label else ''} | {statistics.median(c.decode_fps):.0f} | "
                      f"{c.fps:.1f} | {c.ratio:.3f} | {s['registered']}/{s['frames_in']} | "
-                     f"{_ms(c.stage('frame', 'max'))} |")
+                     f"{_ms(c.stage('frame', 'max'))} | {_ms(c.longest_wait)} |")
     lines += ["", "Median ms per frame of each stage (`run.json` `timing_ms`, median over the repeats): "
               "*decode* runs in its own thread beside the worker; *resize* is the downscale to the "
               "working size; *register* the tracking (registration, pose); *paint* the map update "

@@ -98,6 +98,7 @@ class PaintStats:
     deferred_tiles: int = 0  # painted live during a re-render: re-rendered again later
     rerender_s: float = 0.0  # background thread time
     max_swap_ms: float = 0.0  # the longest swap in the worker
+    max_wait_ms: float = 0.0  # the worker's longest wait for the re-render thread (lockstep: replays)
     moved_frames: int = 0  # kept frames moved by corrections
     lost_frames: int = 0  # kept images that could not be read back
     sync_writes: int = 0
@@ -470,7 +471,9 @@ class Painter:
             now = float(frame)
             due = frame - self._last_job >= self.lockstep_frames
             if self.rerenderer.busy and due:
+                t_wait = time.perf_counter()
                 self.rerenderer.wait()  # a replay waits for the thread: the map does not depend on its speed
+                self.stats.max_wait_ms = max(self.stats.max_wait_ms, 1000.0 * (time.perf_counter() - t_wait))
         if not self._swaps and (not lockstep or due):
             for strip in self.rerenderer.collect():
                 self.stats.rerender_s += strip.render_s
