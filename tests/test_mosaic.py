@@ -545,6 +545,40 @@ def test_a_painted_map_reads_its_spilled_tiles_ahead(tmp_path):
     assert store.prefetched >= 4
 
 
+def test_read_ahead_takes_the_tiles_nearest_the_frame_and_no_more_than_it_keeps(tmp_path):
+    """A frame back over spilled ground: its store reads at most ``max_ready`` tiles, those
+    nearest the frame's centre, each once (more would push out the first before they are taken,
+    to be read again for the next frame), and the frame's paint takes them."""
+
+    class Counting(DiskTileStore):
+        def __init__(self, root):
+            super().__init__(root)
+            self.reads: list = []
+
+        def get(self, key):
+            self.reads.append(key)
+            return super().get(key)
+
+    rng = np.random.default_rng(7)
+    img = rng.integers(0, 255, (60, 80, 3), np.uint8)
+    disk = Counting(tmp_path)
+    store = WriteBehindTileStore(disk, max_ready=4)
+    m = TiledMosaic(MosaicConfig(tile_size=32, max_tiles_in_memory=6), store=store)
+    for k in range(10):  # out ...
+        m.add(img, np.array([[1.0, 0, 50.0 * k], [0, 1, 0]]))
+    assert store.flush(10)
+    disk.reads.clear()
+    back = np.array([[1.0, 0, 20.0], [0, 1, 0]])  # ... and back: x 20..99, y 0..59 (tiles 0-3, 0-1)
+    for _ in range(3):  # the next frames ask again: nothing is read twice
+        m.prefetch(back, (80, 60))
+        assert store.flush(10)
+    nearest = {(1, 0), (1, 1), (2, 0), (2, 1)}  # centre (59.5, 29.5): tiles 1-2 of x, 0-1 of y
+    assert sorted(disk.reads) == sorted(nearest)
+    assert store.tiles_read_ahead == 4
+    m.add(img, back)
+    assert store.prefetched == 4
+
+
 def test_tiles_read_ahead_count_in_the_maps_tile_cap(tmp_path):
     """``max_tiles_in_memory`` bounds the map's tiles and those its store read ahead together:
     a tile read ahead pushes one of the map's out at its next change; the map is the same."""

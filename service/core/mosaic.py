@@ -65,6 +65,9 @@ TileKey = tuple[int, int]
 Rect = tuple[int, int, int, int]
 
 _COVER_STEP = 4  # px: a spilled tile's coverage is kept at this step (uncovered()'s default)
+# frame sizes around a frame whose spilled tiles are read ahead: what the next frames paint at
+# video rates (0.5 read 20x more tiles, most dropped unused: docs/benchmarks.md, stop 30)
+_PREFETCH_MARGIN = 0.1
 Tile = dict[str, np.ndarray]
 
 
@@ -570,10 +573,11 @@ class TiledMosaic:
             self._spill_coverage(key, tile)
             self._spilled.add(key)
 
-    def prefetch(self, M: np.ndarray, size: tuple[int, int], margin: float = 0.5) -> None:
+    def prefetch(self, M: np.ndarray, size: tuple[int, int], margin: float = _PREFETCH_MARGIN) -> None:
         """Ask the store to read ahead the spilled tiles under a frame of ``size`` (w, h) at pose
         ``M`` (2x3), grown by ``margin`` of its size on each side: the next frames will likely
-        paint there (a store without ``prefetch`` ignores it)."""
+        paint there. Nearest the frame's centre first (a store keeps a bounded number read
+        ahead; a store without ``prefetch`` ignores it)."""
         prefetch = getattr(self._store, "prefetch", None)
         if prefetch is None or not self._spilled:
             return
@@ -586,7 +590,8 @@ class TiledMosaic:
         keys = [(tx, ty) for ty in range(int(ty0), int(ty1) + 1) for tx in range(int(tx0), int(tx1) + 1)
                 if (tx, ty) in self._spilled]
         if keys:
-            prefetch(keys)
+            cx, cy = corners.mean(axis=0) / ts - 0.5  # the frame's centre, in tiles (of tile corners)
+            prefetch(sorted(keys, key=lambda k: (k[0] - cx) ** 2 + (k[1] - cy) ** 2))
 
     def _spill_coverage(self, key: TileKey, tile: Tile) -> None:
         """Keep where tile ``key``, going to the store, is covered (see ``_coverage``)."""

@@ -194,9 +194,13 @@ class WriteBehindTileStore:
             self._wanted.clear()
 
     def prefetch(self, keys: list[TileKey]) -> None:
-        """Read these tiles ahead, in the thread (after the writes waiting), for a later get()."""
+        """Read these tiles ahead, in the thread (after the writes waiting), for a later get():
+        the first ``max_ready`` of them (more would push out the first ones before they are
+        taken, to be read again at the next request). The tiles of an earlier request not read
+        yet are not read any more: the map has moved on."""
         with self._cv:
-            for key in keys:
+            self._wanted.clear()
+            for key in keys[:self.max_ready]:
                 if key not in self._ready and key not in self._pending and key not in self._held:
                     self._wanted[key] = None
             if self._wanted:
