@@ -590,7 +590,8 @@ class TiledMosaic:
         keys = [(tx, ty) for ty in range(int(ty0), int(ty1) + 1) for tx in range(int(tx0), int(tx1) + 1)
                 if (tx, ty) in self._spilled]
         if keys:
-            cx, cy = corners.mean(axis=0) / ts - 0.5  # the frame's centre, in tiles (of tile corners)
+            # the frame's centre in tiles, less half a tile: its distance to a key is the tile centre's
+            cx, cy = corners.mean(axis=0) / ts - 0.5
             prefetch(sorted(keys, key=lambda k: (k[0] - cx) ** 2 + (k[1] - cy) ** 2))
 
     def _spill_coverage(self, key: TileKey, tile: Tile) -> None:
