@@ -119,7 +119,7 @@ SEQUENCES = [
 
 
 class Ifmi(Method):
-    """iFMI in sequence mode: each frame prepared once, ``register(prev_prepared, cur_prepared)``."""
+    """iFMI on prepared frames: each frame prepared once, ``register(ref_prepared, new_prepared)``."""
 
     def __init__(self, shape: tuple[int, int], name: str = "iFMI", **settings) -> None:
         self.name = name
@@ -386,10 +386,11 @@ def time_ifmi(shape: tuple[int, int], n: int, terrains: TerrainCache, repeats: i
     pipeline's tracker registers (:func:`keyframe_references`). A :class:`HostReference` load is
     timed with them: what a busy neighbour costs on this host whatever the code. The passes
     alternate between the conditions (quiet, busy, keyframes, keyframes, busy, quiet, ...) and
-    the methods pair by pair, their order reversed pass by pass: the ratios (busy / quiet, refined / plain)
-    compare measurements spread over the same minutes, so a shared host's drifting speed and
-    whichever method meets a frame first in the CPU's caches bias none of them. Medians, not
-    minima: a companion computer is never idle, and the typical pair is what the pipeline pays.
+    the methods pair by pair, their order reversed pass by pass: the ratios (busy / quiet,
+    refined / plain) compare measurements spread over the same minutes, so a shared host's
+    drifting speed and whichever method meets a frame first in the CPU's caches bias none of
+    them. Medians, not minima: a companion computer is never idle, and the typical pair is what
+    the pipeline pays.
     """
     spec = SequenceSpec("timing", "aukerman", shape, 5.0, {**_CRUISE, "noise": 1.0}, "")
     flight = make_flight(spec, n, terrains, SEED + 100)
