@@ -837,17 +837,13 @@ def test_a_doubled_factor_shrinks_the_thumbnails_in_the_background(tmp_path):
 def test_a_replay_records_how_long_the_worker_waited_for_the_rerender(tmp_path, monkeypatch):
     """In lockstep (a replay) a job that is due waits for the busy re-render thread, and the
     painter says how long (``max_wait_ms``); live it never waits."""
-    import time
-
-    from photomap.mapping import rerender
-
-    render = rerender.Rerenderer._render
+    render = Rerenderer._render
 
     def slow_render(self, *args, **kwargs):
         time.sleep(0.3)
         return render(self, *args, **kwargs)
 
-    monkeypatch.setattr(rerender.Rerenderer, "_render", slow_render)
+    monkeypatch.setattr(Rerenderer, "_render", slow_render)
     params = MosaicConfig(tile_size=64)
     poses = {i: pose(4 * i, 60.0 * i, 10.0 * i) for i in range(4)}
     moved = {i: pose(4 * i, 60.0 * i + 3.0 * i, 10.0 * i) for i in range(4)}
