@@ -59,8 +59,8 @@ REPO = Path(__file__).resolve().parents[1]
 SEED = 7
 DEFAULT_INTRO = """# Registration benchmarks
 
-How iFMI (`service/ifmi.py`) compares with other registration methods a user could pick, on
-simulated flights with exact ground truth (`service/flight.py`), and how fast it is on this kind of
+How iFMI (`service/core/ifmi.py`) compares with other registration methods a user could pick, on
+simulated flights with exact ground truth (`service/sim/flight.py`), and how fast it is on this kind of
 machine. The registration section is written by `tools/bench_registration.py`; rerun it after a
 change to the registration (about 10 minutes on 2 cores):
 
@@ -637,7 +637,7 @@ def render_report(flights: list[Flight], runs: list[Run], timings, cal: Calibrat
         "|---|---:|---|---|"]
     for f in flights:
         lines.append(f"| {f.spec.name} | {len(f.grays)} | {f.spec.description} | {motion_summary(f)} |")
-    lines += ["", "Methods: **iFMI** (`service/ifmi.py` with the shipped `registration` config, sequence mode: "
+    lines += ["", "Methods: **iFMI** (`service/core/ifmi.py` with the shipped `registration` config, sequence mode: "
               "every frame prepared once), **iFMI no refine** (the same with `refine_iterations = 0`), "
               "**imreg_dft** (`imreg_dft.similarity`, defaults), **ORB+RANSAC** (1000 ORB features, "
               "cross-checked Hamming matches), **SIFT+RANSAC** (OpenCV defaults, ratio test 0.75), both with "
