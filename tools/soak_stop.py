@@ -321,10 +321,12 @@ def main(argv: list[str] | None = None) -> int:
     results = soak(material, work, args.runs, args.seed, jobs=args.jobs, timeout=args.timeout,
                    kinds=tuple(args.kinds.split(",")), span=args.span)
     print(report(results))
-    print(f"wall time {time.monotonic() - started:.0f} s; failed runs kept in {work}")
-    if not args.work and not any(r.problems for r in results):
+    failed = any(r.problems for r in results)
+    kept = f"; failed runs kept in {work}" if failed else f"; material kept in {work}" if args.work else ""
+    print(f"wall time {time.monotonic() - started:.0f} s{kept}")
+    if not args.work and not failed:
         shutil.rmtree(work, ignore_errors=True)
-    return 1 if any(r.problems for r in results) else 0
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
