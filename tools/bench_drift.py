@@ -82,8 +82,9 @@ def run(frames: int, seeds: list[int], size=(320, 240)) -> list[dict]:
 
 
 def table(rows: list[dict], frames: int, seeds: list[int]) -> str:
-    lines = [f"## Drift (`tools/bench_drift.py --frames {frames}`, seeds {seeds})", "",
-             f"Machine: {platform.processor() or platform.machine()}, Python {platform.python_version()}; "
+    lines = ["## Drift", "",
+             f"Written by `python -m tools.bench_drift --frames {frames}` (seeds {seeds}) on "
+             f"{platform.processor() or platform.machine()}, Python {platform.python_version()}, "
              f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. 320x240 video at 10 fps, 6 m/s, "
              "heading-following yaw, 25-35 m, lossless video (FFV1: the wheel's mp4v encoder "
              "wipes the featureless ground's texture at its low fixed bitrate, and every 12th frame, its "

@@ -219,8 +219,9 @@ def main() -> None:
     rows = brighton(args.out, args.data, args.trajectory)
     if args.frames:
         rows += simulated(args.out, args.frames)
-    text = [f"## Exposure compensation (`tools/bench_exposure.py --frames {args.frames}`)", "",
-            "Grey levels. *step*: the exposure step at the seams of the overwrite map, on the same ground "
+    text = ["## Exposure compensation", "",
+            f"Written by `python -m tools.bench_exposure --frames {args.frames} --md docs/benchmarks.md` on "
+            f"{datetime.date.today().isoformat()} ({platform.machine()}). Grey levels. *step*: the exposure step at the seams of the overwrite map, on the same ground "
             "(both frames of each pair meeting at a seam, times their gains, within 8 px of the seam: "
             "texture-free), luminance / mean of the channels; *side seams*: the same for frames >= 50 apart "
             "(survey strips side by side); *map step*: the luminance step across the seams of the map itself "

@@ -108,7 +108,7 @@ def main() -> None:
     body = table(results)
     print(body)
     if args.out:
-        text = (f"## Hard cases (simulated)\n\n`python -m tools.bench_hardcases --out docs/benchmarks.md` "
+        text = (f"## Hard cases (simulated)\n\nWritten by `python -m tools.bench_hardcases --out docs/benchmarks.md` "
                 f"({datetime.date.today().isoformat()}, {platform.machine()}, default config; the "
                 f"cases and their commands: docs/hard-cases.md). Target (issue 10): one segment each, "
                 f"ATE <= 0.5 % of the path. *placed by*: what placed the registered frames "

@@ -222,12 +222,12 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(lines))
     if args.out:
         from tools.report import replace_section
-        body = [f"Measured {datetime.date.today()} with `python tools/bench_memory.py` on a busy 2-core machine "
+        body = [f"Written by `python -m tools.bench_memory` on {datetime.date.today()}, a busy 2-core machine "
                 f"(other jobs running; timings are indicative). RSS sampled every 50 ms (psutil), each case "
                 f"in a fresh interpreter; *growth*: median RSS over 80-100 % of the frames minus the median "
                 f"over 10-30 %, per frame between them. Checkpoint: worker = copying the tiles changed since the last "
                 f"checkpoint, writer = PNG encoding + fsync + manifest in the background thread.", "", *lines]
-        replace_section(Path(args.out), "memory", "\n".join(["### Memory whatever the input", "", *body]))
+        replace_section(Path(args.out), "memory", "\n".join(["## Memory whatever the input", "", *body]))
     return 0
 
 

@@ -15,7 +15,7 @@ placement with :func:`photomap.core.features.verify_overlap`, and reports:
 - the linking policies (iFMI alone, iFMI + check, iFMI + check + features) on all pairs;
 - the resolution sweep for the features and ms per call (ratios to iFMI in the same run).
 
-    PHOTOMAP_DATA=/work/shared/data python tools/bench_pairs.py [--quick] [--out docs/benchmarks.md]
+    python -m tools.bench_pairs [--quick] [--out docs/pairs.md]   (PHOTOMAP_DATA: the real sets, default ../shared/data)
         [--figures DIR]
 
 Truth. Simulated pairs: the exact homography between the two rendered views. Real pairs: a
@@ -985,10 +985,10 @@ def render_report(meta: dict, evs: list[Evaluated], sweep_res: dict | None, sear
     real_groups = {name: [ev for ev in evs if ev.pair.group == name] for name in meta}
     sim = [ev for ev in evs if ev.pair.kind == "sim"]
     lines = ["## Pairs: feature second opinion and overlap check", "",
-             "Written by `tools/bench_pairs.py` (about 20 minutes on 2 busy cores):", "",
-             "    PHOTOMAP_DATA=/work/shared/data python tools/bench_pairs.py --out docs/benchmarks.md", "",
+             "Written by `python -m tools.bench_pairs` (about 20 minutes on 2 busy cores; `PHOTOMAP_DATA` "
+             "names the folder of the real sets, default `../shared/data`).", "",
              "### Machine", ""] + machine_info() + [
-        f"- run: `python tools/bench_pairs.py{' --quick' if args.quick else ''}` (seed {SEED}), "
+        f"- run: `python -m tools.bench_pairs{' --quick' if args.quick else ''}` (seed {SEED}), "
         f"{elapsed / 60:.1f} min", "",
         "### Data and truth", ""]
     for name, m in meta.items():
@@ -1082,11 +1082,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="fewer simulated pairs, no sweep or threshold search "
                     "(a smoke test); prints only unless --out is given")
     ap.add_argument("--out", type=Path, default=None, help="markdown report to update (default "
-                    "docs/benchmarks.md; none with --quick)")
+                    "docs/pairs.md, whose summary docs/benchmarks.md quotes; none with --quick)")
     ap.add_argument("--figures", type=Path, default=None, help="folder for checkerboard overlays of the real truths")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
-    out = args.out if args.out is not None else (None if args.quick else REPO / "docs" / "benchmarks.md")
+    out = args.out if args.out is not None else (None if args.quick else REPO / "docs" / "pairs.md")
     start = time.perf_counter()
     rng = np.random.default_rng(SEED)
     pairs, meta = [], {}

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import csv
 import datetime
-import json
 import math
 import os
 import platform
@@ -182,13 +181,12 @@ def main() -> None:
         sets = "\n".join(f"- **{s.name}** (`{s.folder}`): {s.note}." for s in SETS.values() if s.name in args.sets)
         thumbs = "\n".join(f"![{r['set']} {r['mode']}]({Path(r['thumbnail']).relative_to('docs').as_posix()})"
                            for r in results if r["thumbnail"])
-        text = (f"## Real data\n\n`python -m tools.bench_realdata --out docs/benchmarks.md` "
+        text = (f"## Real data\n\nWritten by `python -m tools.bench_realdata --out docs/benchmarks.md` "
                 f"({datetime.date.today().isoformat()}, {platform.machine()}, default config). "
                 f"*vision*: no telemetry; *gps*: the stills' positions (and DJI gimbal yaw) as a geo.txt "
                 f"(`--geo`). Overlapping pairs: consecutive stills closer than the set's threshold by "
                 f"GPS. GPS fit RMS: frame centres of the largest map against GPS after the best similarity.\n\n"
-                f"{sets}\n\n{body}\n\n{thumbs}\n\n"
-                f"<details><summary>raw</summary>\n\n```json\n{json.dumps(results, indent=1)}\n```\n</details>\n")
+                f"{sets}\n\n{body}\n\n{thumbs}\n")
         replace_section(args.out, "realdata", text)
 
 

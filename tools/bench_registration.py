@@ -57,20 +57,13 @@ log = logging.getLogger("bench_registration")
 
 REPO = Path(__file__).resolve().parents[1]
 SEED = 7
-DEFAULT_INTRO = """# Registration benchmarks
+DEFAULT_INTRO = """# Benchmarks
 
-How iFMI (`service/core/ifmi.py`) compares with other registration methods a user could pick, on
-simulated flights with exact ground truth (`service/sim/flight.py`), and how fast it is on this kind of
-machine. The registration section is written by `tools/bench_registration.py`; rerun it after a
-change to the registration (about 10 minutes on 2 cores):
+Today's figures of photomap on the machines it is developed on (2 cores, no GPU). Each `##` section
+is written by the tool it names: `python -m tools.NAME --out docs/benchmarks.md` rewrites its own
+section (between its `<!-- name:start/end -->` markers) and leaves the rest; history is in git.
+Targets are tables at the end of their sections.
 
-    python -m tools.bench_registration --out docs/benchmarks.md
-
-Success means translation error < 1 px, rotation error < 0.5 deg and scale error < 1 %. The
-translation error is the error of the new frame's centre in the reference frame; rotation and scale
-are compared with the true relative transform at that centre. A method that returns nothing counts
-as the identity. Drift: the pairwise matrices chained from the first frame, the error of the last
-frame's centre divided by the true path length (in first-frame pixels).
 """
 
 SUCCESS_PX, SUCCESS_DEG, SUCCESS_SCALE = 1.0, 0.5, 0.01
@@ -629,10 +622,17 @@ def targets_table(runs: list[Run], timings: dict[tuple[int, int], Timing]) -> li
 
 
 def render_report(flights: list[Flight], runs: list[Run], timings, cal: Calibration, args, elapsed: float) -> str:
-    lines = ["## Machine", ""] + machine_info() + [
-        f"- run: `python -m tools.bench_registration{' --quick' if args.quick else ''} --frames {args.frames}` "
-        f"(seed {SEED}), {elapsed / 60:.1f} min", "",
-        "## Sequences", "",
+    lines = ["## Registration", "",
+             f"Written by `python -m tools.bench_registration{' --quick' if args.quick else ''} --frames {args.frames}` "
+             f"(seed {SEED}, {elapsed / 60:.1f} min) on:", ""] + machine_info() + [
+        "", "How iFMI (`service/core/ifmi.py`) compares with other registration methods a user could pick, "
+        "on simulated flights with exact ground truth (`service/sim/flight.py`). Success means translation "
+        "error < 1 px, rotation error < 0.5 deg and scale error < 1 %. The translation error is the error "
+        "of the new frame's centre in the reference frame; rotation and scale are compared with the true "
+        "relative transform at that centre. A method that returns nothing counts as the identity. Drift: "
+        "the pairwise matrices chained from the first frame, the error of the last frame's centre divided "
+        "by the true path length (in first-frame pixels).",
+        "", "### Sequences", "",
         "| sequence | frames | what | motion per pair: median (max) shift, rotation, scale change |",
         "|---|---:|---|---|"]
     for f in flights:
@@ -647,9 +647,9 @@ def render_report(flights: list[Flight], runs: list[Run], timings, cal: Calibrat
               + ("" if hasattr(cv2, "AKAZE_create") else " AKAZE is absent from this OpenCV build.")
               + " ms/pair: median over the pairs after one warm-up pair, `time.perf_counter`, including the "
               "new frame's per-frame work.", "",
-              "## Accuracy, speed and drift", ""] + accuracy_table(runs)
+              "### Accuracy, speed and drift", ""] + accuracy_table(runs)
     samples = next(iter(timings.values())).samples if timings else 0
-    lines += ["", "## iFMI speed by frame size", "",
+    lines += ["", "### iFMI speed by frame size", "",
               "Median ms per pair on a textured 5 fps flight (the new frame's `prepare()` plus `register()`), "
               f"{samples} pairs per method and condition ({args.timing_pairs} pairs, {args.timing_repeats} passes), "
               "iFMI and iFMI no refine alternating pair by pair (which goes first alternates pass by pass), "
@@ -673,12 +673,12 @@ def render_report(flights: list[Flight], runs: list[Run], timings, cal: Calibrat
               "processes held the cores. Threads that spin (a multithreaded BLAS) show up in the wall time, "
               "not here.", ""]
     lines += cpu_table(timings)
-    lines += ["", "## iFMI confidence calibration", "",
+    lines += ["", "### iFMI confidence calibration", "",
               "Confidence of iFMI on the successful pairs of all sequences above against wrong results: pairs "
               "of those sequences with a gross error, pairs of views of the same terrains (aukerman, grass, "
               "sand) with disjoint footprints, and pairs of independent noise frames (white and smoothed).", ""]
     lines += calibration_table(cal)
-    lines += ["", "## Targets", ""] + targets_table(runs, timings)
+    lines += ["", "### Targets", ""] + targets_table(runs, timings)
     return "\n".join(lines) + "\n"
 
 

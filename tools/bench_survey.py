@@ -189,7 +189,7 @@ def report(args, r: dict, cog: dict, elapsed: float, load: tuple[float, float]) 
     when = datetime.date.today().isoformat()
     w, h = r["map_px"]
     lines = ["## Survey-size maps", "",
-             f"Written by `tools/bench_survey.py{' --quick' if args.quick else ''}` on {when} (Python "
+             f"Written by `python -m tools.bench_survey{' --quick' if args.quick else ''}` on {when} (Python "
              f"{platform.python_version()}, {os.cpu_count()} cores, {elapsed:.0f} s; 1-minute load average "
              f"{load[0]:.1f} at the start and {load[1]:.1f} at the end: other processes shared the cores, "
              "times are lower bounds).", "",
