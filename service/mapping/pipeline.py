@@ -29,7 +29,6 @@ import math
 from collections import deque
 import queue
 import shutil
-import tempfile
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -54,7 +53,6 @@ from photomap.errors import OutputError, PhotomapError
 from photomap.io.keyframestore import KeyframeStore
 from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
-from photomap.io.tilestore import DiskTileStore, WriteBehindTileStore
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import FrameEvent, FrameSink
@@ -65,6 +63,7 @@ from photomap.mapping.outputs import png_placement, remove_sidecars, render_smal
 from photomap.mapping.painter import Painter
 from photomap.mapping.rerender import Rerenderer
 from photomap.mapping.rows import RowView, TrajectoryRows
+from photomap.mapping.segments import SegmentMaps
 from photomap.mapping.telemetry_join import SegmentFit, TelemetryJoin
 from photomap.mapping.threads import WorkerFirst, lower_priority, switch_interval
 from photomap.mapping.timing import StageTimes
@@ -79,9 +78,6 @@ _LOCKSTEP_FRAMES = 30
 _WRITER_SHARE = 0.1  # a checkpoint's files (whose rows grow with the flight) take at most this share of the time
 _WRITER_REST_AFTER_S = 0.05  # ... once the trajectory takes longer than this to write
 _LOOP_LOCKSTEP_FRAMES = 8  # ... and a new keyframe's loop registrations (a few ms each) join its graph
-# tiles of a map the camera left moved to the tile store per frame (all at once: 256 tiles took the
-# worker 200 ms, waiting for the tile writer)
-_SPILL_TILES_PER_FRAME = 8
 
 
 @dataclass
@@ -252,7 +248,7 @@ class MappingPipeline:
         self.telemetry = telemetry
         self.stats = RunStats()
         self._rows = TrajectoryRows()  # one per input frame, as columns (a long flight keeps them for hours)
-        self.mosaics: dict[int, TiledMosaic] = {}
+        self.segments = SegmentMaps(cfg.mosaic, self._rows)  # the maps, one per segment
         self.frame_size: tuple[int, int] | None = None  # (w, h) of the input
         self.tracker: Tracker | None = None
         self.loops: LoopCloser | None = None
@@ -263,9 +259,6 @@ class MappingPipeline:
         self._next_index = 0
         self._started = 0.0
         self._last_checkpoint = 0.0
-        self._cache_dir: Path | None = None
-        self._tile_stores: dict[int, WriteBehindTileStore] = {}  # segment -> where its map spills
-        self._own_cache = False
         self._warned: set[str] = set()
         self._pending: tuple[int, np.ndarray, np.ndarray] | None = None  # last low-confidence frame: index, image, small
         self._state: Checkpointer | None = None  # the checkpointed full-resolution map
@@ -277,9 +270,6 @@ class MappingPipeline:
         self._checkpoint_files: Future | None = None
         self._files_due = 0.0  # monotonic s: the next checkpoint's files not before (_WRITER_SHARE)
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
-        self._segment_start: dict[int, int] = {}  # segment -> position in the rows where it started
-        self._kept: set[int] = set()  # segments known to hold more than one posed frame
-        self._spilling: set[int] = set()  # segments left by the camera whose tiles go to the store
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
 
@@ -287,6 +277,11 @@ class MappingPipeline:
     def rows(self) -> tuple[RowView, ...]:
         """The trajectory so far, one row per input frame (read only: the pipeline writes them)."""
         return tuple(self._rows)
+
+    @property
+    def mosaics(self) -> dict[int, TiledMosaic]:
+        """The maps so far, one per segment (read only: :class:`SegmentMaps` owns them)."""
+        return self.segments.mosaics
 
     # ------------------------------------------------------------------ control
     def stop(self) -> None:
@@ -371,7 +366,7 @@ class MappingPipeline:
         store = None
         if mapping.keyframes and mapping.loop_closure:
             keyframes = (state_folder(self.out_dir) / "keyframes" if self._checkpointing and not self.cfg.mosaic.cache_dir
-                         else self._cache() / "keyframes")  # kept with the checkpoint: a restart can re-render
+                         else self.segments.cache() / "keyframes")  # kept with the checkpoint: a restart can re-render
             store = KeyframeStore(keyframes)
             self.loops = LoopCloser(store, matcher, self.frame_size,
                                     f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None,
@@ -384,29 +379,6 @@ class MappingPipeline:
                                 keep=self.loops is not None,
                                 whole_frames=mapping.paint == "every", band_px=self.cfg.mosaic.tile_size,
                                 lockstep_frames=None if self.source.live else _LOCKSTEP_FRAMES)
-
-    def _cache(self) -> Path:
-        """The run's cache folder (configured, or a temporary one removed at the end)."""
-        if self._cache_dir is None:
-            if self.cfg.mosaic.cache_dir:
-                self._cache_dir = Path(self.cfg.mosaic.cache_dir).expanduser()
-                self._cache_dir.mkdir(parents=True, exist_ok=True)
-            else:
-                self._cache_dir = Path(tempfile.mkdtemp(prefix="photomap-cache-"))
-                self._own_cache = True
-        return self._cache_dir
-
-    def _mosaic(self, segment: int) -> TiledMosaic:
-        if segment not in self.mosaics:
-            store = None
-            if self.cfg.mosaic.max_tiles_in_memory:
-                # spilled tiles are written by a thread: the worker never waits for the disk
-                # its read-ahead counts in the map's tile cap: at most a quarter of it
-                store = self._tile_stores[segment] = WriteBehindTileStore(
-                    DiskTileStore(self._cache() / f"segment{segment}"),
-                    max_ready=min(WriteBehindTileStore.MAX_READY, self.cfg.mosaic.max_tiles_in_memory // 4))
-            self.mosaics[segment] = TiledMosaic(self.cfg.mosaic, store)
-        return self.mosaics[segment]
 
     def _warn_once(self, kind: str, message: str) -> None:
         if kind not in self._warned:
@@ -446,34 +418,11 @@ class MappingPipeline:
             self._next_index = self._rows[-1].frame + 1
 
     def _retire_segments(self, current: int) -> None:
-        """The tracker started segment ``current``: a segment it left with a single posed frame
-        (nothing registered to its reference) is dropped, its frame counted ``low_confidence``,
-        so featureless or black video cannot pile up maps; the others are spilled to the tile
-        store when one bounds memory (only the current map holds tiles in memory)."""
-        self._segment_start[current] = max(0, len(self._rows) - 1)
-        for seg in list(self.mosaics):
-            if seg == current:
-                continue
-            if seg not in self._kept:
-                glued = self._rows.glued(seg, self._segment_start.get(seg, 0))
-                if len(glued) <= 1:
-                    self._drop_segment(seg, glued)
-                    continue
-                self._kept.add(seg)
-            if self.cfg.mosaic.max_tiles_in_memory is not None:
-                self._spilling.add(seg)  # a few tiles a frame: _spill_retired
-
-    def _spill_retired(self) -> None:
-        """Move a few tiles of the maps the camera left to the tile store (only the current map
-        holds tiles in memory once they are all gone, its store the only ones read ahead)."""
-        if not self._spilling:
-            return
-        seg = min(self._spilling)  # one map a frame
-        mosaic = self.mosaics.get(seg)
-        if mosaic is None or seg == self._segment or not mosaic.spill(_SPILL_TILES_PER_FRAME):
-            self._spilling.discard(seg)  # joined, dropped, current again, or done
-            if seg != self._segment and seg in self._tile_stores:
-                self._tile_stores[seg].drop_read_ahead()  # read for frames that went elsewhere
+        """The tracker started segment ``current``: the maps retire the others
+        (:meth:`SegmentMaps.retire`); the single posed frame of a dropped one counts
+        ``low_confidence``."""
+        for seg, glued in self.segments.retire(current):
+            self._drop_segment(seg, glued)
 
     def _drop_segment(self, seg: int, glued: list[RowView]) -> None:
         for row in glued:
@@ -482,13 +431,7 @@ class MappingPipeline:
             self.stats.low_confidence += 1
             if math.isfinite(row.confidence):
                 self.stats.confidence_sum -= row.confidence
-        self.mosaics.pop(seg, None)
-        if seg in self._tile_stores:
-            self._tile_stores.pop(seg).flush()  # its writes done before its folder goes
-        if self.cfg.mosaic.max_tiles_in_memory and self._cache_dir is not None:
-            shutil.rmtree(self._cache_dir / f"segment{seg}", ignore_errors=True)
         self._painter.forget(seg)
-        self._segment_start.pop(seg, None)
         if self.loops is not None:
             self.loops.forget(seg)
         self.stats.segments_dropped += 1
@@ -543,7 +486,7 @@ class MappingPipeline:
                 touched |= self._anchor(step)
             if step.pose is not None:
                 whole = step.keyframe and (self.cfg.mapping.keyframes or step.status == REFERENCE)
-                touched |= self._painter.paint(self._mosaic(step.segment), step.segment, frame.index, image,
+                touched |= self._painter.paint(self.segments.mosaic(step.segment), step.segment, frame.index, image,
                                                step.pose, mask, whole=whole)
             timing.add("paint", time.perf_counter() - t2)
             pending = self._pending
@@ -605,7 +548,7 @@ class MappingPipeline:
             timing.add("loop_closure", time.perf_counter() - t3)
         t4 = time.perf_counter()
         touched |= self._painter.pump(self.mosaics, frame=frame.index).get(step.segment, set())  # re-rendered
-        self._spill_retired()
+        self.segments.spill_retired(self._segment)
         timing.add("map_upkeep", time.perf_counter() - t4)
         self.stats.worker_s += time.perf_counter() - t0
         if self.sinks:
@@ -655,8 +598,7 @@ class MappingPipeline:
         come to the sinks as they are swapped in); returns no tiles."""
         t = join.transform
         self._rows.transform_segment(join.segment, t, join.into)
-        self._mosaic(join.into)
-        self.mosaics.pop(join.segment, None)  # its kept frames are re-rendered into join.into
+        self.segments.join(join)  # its kept frames are re-rendered into join.into
         self._painter.on_join(join.segment, join.into, t)
         if self.tracker.segment == join.segment:
             self.tracker.rejoin(join.into, t)
@@ -689,7 +631,7 @@ class MappingPipeline:
             self.stats.registered += 1
             self.stats.confidence_sum += 1.0
         if self._pending is not None and self._pending[0] == step.anchor:
-            return self._painter.paint(self._mosaic(step.segment), step.segment, step.anchor, self._pending[1],
+            return self._painter.paint(self.segments.mosaic(step.segment), step.segment, step.anchor, self._pending[1],
                                        step.anchor_pose, self._view_mask(step.anchor), whole=True)
         return set()
 
@@ -782,12 +724,6 @@ class MappingPipeline:
         if self.tracker is not None:
             self._painter.pump(self.mosaics)
 
-    def _largest_segments(self) -> list[int]:
-        """Segments with a map, the one with the most posed frames first."""
-        glued = self._rows.segment_counts()
-        counts = {s: glued.get(s, 0) for s in self.mosaics}
-        return sorted(counts, key=lambda s: -counts[s])
-
     @property
     def _checkpointing(self) -> bool:
         """Checkpoints keep the full-resolution map (``output.checkpoint_map``, with an interval)."""
@@ -812,7 +748,7 @@ class MappingPipeline:
     def _state_meta(self, summary: dict) -> dict:
         """What the checkpoint manifest records besides the tiles."""
         segments = {}
-        order = self._largest_segments()
+        order = self.segments.largest()
         for seg in order:
             graph = self.loops.graphs.get(seg) if self.loops is not None else None
             keyframes = [[kf.index, *np.asarray(kf.pose, float).ravel().tolist()] for kf in graph.keyframes] \
@@ -851,7 +787,7 @@ class MappingPipeline:
         summary = self.summary()
         summary["complete"] = False
         if self.mosaics and self._painter is not None:  # from thumbnails the painter keeps up to date
-            segment = self._largest_segments()[0]
+            segment = self.segments.largest()[0]
             self._attempt("preview.png", self._painter.write_preview, self.out_dir / "preview.png", segment,
                           self.mosaics[segment], self.cfg.output.preview_px,
                           on_error=lambda exc: self._write_failed("preview.png", exc))
@@ -869,7 +805,7 @@ class MappingPipeline:
         join = self.telemetry
         if rows is None or join is None or not self.mosaics or join.stats.stopped_at_frame is not None:
             return None
-        main, footprints = self._largest_segments()[0], self.cfg.output.footprints
+        main, footprints = self.segments.largest()[0], self.cfg.output.footprints
 
         def refresh() -> None:
             fit = self._gps_fit(rows, main)  # no georeference below georef.min_fixes GPS fixes
@@ -979,7 +915,7 @@ class MappingPipeline:
         summary = self.summary()
         maps, unwritten = [], []
         max_px = self.cfg.output.max_mosaic_px
-        for rank, seg in enumerate(self._largest_segments()):
+        for rank, seg in enumerate(self.segments.largest()):
             name = "mosaic.png" if rank == 0 else f"mosaic_segment{seg}.png"
             info = self._attempt(name, write_png, self.out_dir / name, self.mosaics[seg], max_px)
             if info is None:
@@ -1045,8 +981,5 @@ class MappingPipeline:
             write_report(self.out_dir, map_image=small)
         except (OSError, ValueError, PhotomapError) as exc:
             log.warning("report.html not written: %s", exc)
-        for store in self._tile_stores.values():
-            store.flush()  # its writes done before the folder goes
-        if self._own_cache and self._cache_dir is not None:
-            shutil.rmtree(self._cache_dir, ignore_errors=True)
+        self.segments.close()
         return summary
