@@ -32,7 +32,7 @@ import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -61,6 +61,7 @@ from photomap.mapping.segments import SegmentMaps
 from photomap.mapping.telemetry_join import TelemetryJoin
 from photomap.mapping.threads import WorkerFirst, switch_interval
 from photomap.mapping.timing import StageTimes
+from photomap.telemetry.samples import TelemetrySample
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +113,21 @@ class RunStats:
             "timing_ms": self.timing.summary(),
             "events": list(self.events),
         }
+
+
+@dataclass
+class _Placed:
+    """A frame rectified and tracked: what the later steps of its work use."""
+
+    image: np.ndarray  # the image the map gets (rectified with telemetry)
+    mask: np.ndarray | None  # validity of its pixels (None: all valid)
+    small: np.ndarray  # ... resized to the working size
+    sample: TelemetrySample | None
+    step: TrackStep
+    new_segment: bool  # the frame started a map segment
+    register_s: float
+    touched: set = field(default_factory=set)  # map tiles it changed
+    pending: tuple[int, np.ndarray, np.ndarray] | None = None  # the low-confidence frame before it
 
 
 def _prefetch(source: FrameSource, depth: int, stop: threading.Event, *,
@@ -421,6 +437,8 @@ class MappingPipeline:
             self.stats.timing.add("frame", time.perf_counter() - t0)
 
     def _process_frame(self, frame: Frame) -> None:
+        """One frame through the worker: tracked, painted, recorded, loops closed, the maps kept
+        up, the sinks told, and a checkpoint when one is due."""
         t0 = time.perf_counter()
         timing = self.stats.timing
         self._gaps(frame.index)  # frames before this one that never came: dropped or undecodable
@@ -436,36 +454,8 @@ class MappingPipeline:
             self._skip(frame, "corrupt", t0)
             return
         try:
-            sample = self.telemetry.sample(frame) if self.telemetry else None
-            mask = None  # validity of a rectified view's pixels (None: all valid)
-            if sample is not None:
-                view = self.telemetry.rectify_frame(image, sample, frame.index)
-                image, mask = view.image, view.mask
-            small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
-            t1 = time.perf_counter()
-            timing.add("resize", t1 - t0)
-            started = self.tracker.segments
-            step = self.tracker.step(small, frame.index, sample, image)
-            register_s = time.perf_counter() - t1
-            self.stats.register_s += register_s
-            if step.keyframe and step.reference is not None and self.cfg.mapping.map_relative:
-                self._map_relative(step, small)
-            t2 = time.perf_counter()
-            timing.add("register", t2 - t1)
-            if self.tracker.segments > started:  # earlier segments got their last frame
-                for segment in list(self.mosaics):
-                    if segment != step.segment:
-                        self._painter.end_segment(self.mosaics.get(segment), segment)
-            touched: set = set()
-            if step.anchor is not None:
-                touched |= self._anchor(step)
-            if step.pose is not None:
-                whole = step.keyframe and (self.cfg.mapping.keyframes or step.status == REFERENCE)
-                touched |= self._painter.paint(self.segments.mosaic(step.segment), step.segment, frame.index, image,
-                                               step.pose, mask, whole=whole)
-            timing.add("paint", time.perf_counter() - t2)
-            pending = self._pending
-            self._pending = (frame.index, image, small) if step.status == LOW_CONFIDENCE else None
+            placed = self._track(frame, t0)
+            self._paint(frame, placed)
         except Exception as exc:  # never lose the map for one bad frame
             self.stats.errors += 1
             self._warn_once(f"error:{type(exc).__name__}",
@@ -473,8 +463,71 @@ class MappingPipeline:
             log.debug("frame %d failed", frame.index, exc_info=True)
             self._skip(frame, "corrupt", t0)
             return
-        new_segment = self.tracker.segments > started  # this frame started a map segment
-        if new_segment:
+        messages = self._record(frame, placed)
+        corrected_path = self._close_loops(frame, placed, messages)
+        t4 = time.perf_counter()
+        step = placed.step
+        placed.touched |= self._painter.pump(self.mosaics, frame=frame.index).get(step.segment, set())  # re-rendered
+        self.segments.spill_retired(self._segment)
+        timing.add("map_upkeep", time.perf_counter() - t4)
+        self.stats.worker_s += time.perf_counter() - t0
+        if self.sinks:
+            self._emit_frame(frame, placed, messages, corrected_path, t0)
+        interval = self.cfg.output.checkpoint_interval
+        if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
+            t6 = time.perf_counter()
+            self.checkpoint()
+            timing.add("outputs", time.perf_counter() - t6)
+
+    def _track(self, frame: Frame, t0: float) -> _Placed:
+        """Rectify the frame with its telemetry, resize it to the working size and track it (a
+        new keyframe snapped to the map when ``mapping.map_relative``); ``t0`` (perf_counter s)
+        is when the frame's work began."""
+        timing = self.stats.timing
+        image = frame.image
+        sample = self.telemetry.sample(frame) if self.telemetry else None
+        mask = None  # validity of a rectified view's pixels (None: all valid)
+        if sample is not None:
+            view = self.telemetry.rectify_frame(image, sample, frame.index)
+            image, mask = view.image, view.mask
+        small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
+        t1 = time.perf_counter()
+        timing.add("resize", t1 - t0)
+        started = self.tracker.segments
+        step = self.tracker.step(small, frame.index, sample, image)
+        register_s = time.perf_counter() - t1
+        self.stats.register_s += register_s
+        if step.keyframe and step.reference is not None and self.cfg.mapping.map_relative:
+            self._map_relative(step, small)
+        timing.add("register", time.perf_counter() - t1)
+        return _Placed(image, mask, small, sample, step, self.tracker.segments > started, register_s)
+
+    def _paint(self, frame: Frame, placed: _Placed) -> None:
+        """Paint the tracked frame (and the frame a new segment was anchored at) into its map;
+        the maps of segments it left get their last frame."""
+        t2 = time.perf_counter()
+        step = placed.step
+        if placed.new_segment:  # earlier segments got their last frame
+            for segment in list(self.mosaics):
+                if segment != step.segment:
+                    self._painter.end_segment(self.mosaics.get(segment), segment)
+        touched: set = set()
+        if step.anchor is not None:
+            touched |= self._anchor(step)
+        if step.pose is not None:
+            whole = step.keyframe and (self.cfg.mapping.keyframes or step.status == REFERENCE)
+            touched |= self._painter.paint(self.segments.mosaic(step.segment), step.segment, frame.index,
+                                           placed.image, step.pose, placed.mask, whole=whole)
+        self.stats.timing.add("paint", time.perf_counter() - t2)
+        placed.touched = touched
+        placed.pending = self._pending
+        self._pending = (frame.index, placed.image, placed.small) if step.status == LOW_CONFIDENCE else None
+
+    def _record(self, frame: Frame, placed: _Placed) -> list[str]:
+        """The frame's row, its counts and events (segments retired when it started one);
+        returns its messages for the sinks."""
+        step, sample = placed.step, placed.sample
+        if placed.new_segment:  # this frame started a map segment
             self._retire_segments(step.segment)
         self.stats.segments = self.tracker.segments
         messages = list(step.events)
@@ -500,53 +553,56 @@ class MappingPipeline:
             if step.pose is not None:
                 self.telemetry.keep(frame.index, sample)
         self._rows.append(frame.index, frame.t, step.pose, step.confidence, step.status, step.segment, extra)
+        return messages
+
+    def _close_loops(self, frame: Frame, placed: _Placed, messages: list[str]) -> Callable[[], np.ndarray] | None:
+        """Hand the frame to the loop closer and apply the corrections and joins it returns (their
+        messages appended to ``messages``); returns the current segment's path as corrected when
+        a correction moved it (for the sinks), else None."""
+        if self.loops is None:
+            return None
+        step, pending = placed.step, placed.pending
         corrected_path = None
         t3 = time.perf_counter()
-        if self.loops is not None:
-            if step.anchor is not None and pending is not None and pending[0] == step.anchor:
-                self.loops.on_anchor(step, pending[2], pending[1])
-            for update in self.loops.on_step(frame.index, step, small, image, sample):
-                if isinstance(update, Join):
-                    touched = self._join(update)  # the frame's tiles were in the joined map's frame: none here
-                    message = (f"map segment {update.segment} joined segment {update.into} at frame "
-                               f"{frame.index} (confidence {update.confidence:.2f})")
-                    log.info(message)
-                else:
-                    self._apply(update)
-                    message = f"loop closed at frame {frame.index}: map corrected"
-                self.stats.events.append(message)
-                messages.append(message)
-                if update.segment == step.segment or getattr(update, "into", None) == self._segment:
-                    corrected_path = functools.partial(self._path, self._segment)
-            if self._segment != step.segment:  # joined: this frame now lives in another map
-                step.segment = self._segment
-            timing.add("loop_closure", time.perf_counter() - t3)
-        t4 = time.perf_counter()
-        touched |= self._painter.pump(self.mosaics, frame=frame.index).get(step.segment, set())  # re-rendered
-        self.segments.spill_retired(self._segment)
-        timing.add("map_upkeep", time.perf_counter() - t4)
-        self.stats.worker_s += time.perf_counter() - t0
-        if self.sinks:
-            t5 = time.perf_counter()
-            link = self.telemetry.link_summary() if self.telemetry is not None else {}
-            anchor = (step.anchor, step.anchor_pose.copy()) if step.anchor is not None else None
-            self._emit(FrameEvent(
-                frame.index, frame.t, self.source.live, frame.image, self.frame_size, step.status,
-                None if self._rows[-1].M is None else np.array(self._rows[-1].M, float), float(step.confidence),
-                step.segment,
-                keyframe=step.keyframe, new_segment=new_segment, anchor=anchor, messages=tuple(messages),
-                touched=frozenset(touched), tiles=self.mosaics.get(step.segment),
-                register_ms=1000.0 * register_s, frame_ms=1000.0 * (time.perf_counter() - t0),
-                dropped_frames=int(self.source.stats.dropped), reconnects=int(self.source.stats.reconnects),
-                telemetry=sample, focal_px=self.telemetry.focal(self.frame_size[0]) if self.telemetry else None,
-                link_lost=int(link.get("link_lost", 0)),
-                link_regained=int(link.get("link_regained", 0)), path_after_correction=corrected_path))
-            timing.add("sinks", time.perf_counter() - t5)
-        interval = self.cfg.output.checkpoint_interval
-        if interval > 0 and time.monotonic() - self._last_checkpoint >= interval:
-            t6 = time.perf_counter()
-            self.checkpoint()
-            timing.add("outputs", time.perf_counter() - t6)
+        if step.anchor is not None and pending is not None and pending[0] == step.anchor:
+            self.loops.on_anchor(step, pending[2], pending[1])
+        for update in self.loops.on_step(frame.index, step, placed.small, placed.image, placed.sample):
+            if isinstance(update, Join):
+                placed.touched = self._join(update)  # the frame's tiles were in the joined map's frame: none here
+                message = (f"map segment {update.segment} joined segment {update.into} at frame "
+                           f"{frame.index} (confidence {update.confidence:.2f})")
+                log.info(message)
+            else:
+                self._apply(update)
+                message = f"loop closed at frame {frame.index}: map corrected"
+            self.stats.events.append(message)
+            messages.append(message)
+            if update.segment == step.segment or getattr(update, "into", None) == self._segment:
+                corrected_path = functools.partial(self._path, self._segment)
+        if self._segment != step.segment:  # joined: this frame now lives in another map
+            step.segment = self._segment
+        self.stats.timing.add("loop_closure", time.perf_counter() - t3)
+        return corrected_path
+
+    def _emit_frame(self, frame: Frame, placed: _Placed, messages: list[str],
+                    corrected_path: Callable[[], np.ndarray] | None, t0: float) -> None:
+        """The frame's event to the sinks (``t0``: perf_counter s when the frame's work began)."""
+        t5 = time.perf_counter()
+        step, sample = placed.step, placed.sample
+        link = self.telemetry.link_summary() if self.telemetry is not None else {}
+        anchor = (step.anchor, step.anchor_pose.copy()) if step.anchor is not None else None
+        self._emit(FrameEvent(
+            frame.index, frame.t, self.source.live, frame.image, self.frame_size, step.status,
+            None if self._rows[-1].M is None else np.array(self._rows[-1].M, float), float(step.confidence),
+            step.segment,
+            keyframe=step.keyframe, new_segment=placed.new_segment, anchor=anchor, messages=tuple(messages),
+            touched=frozenset(placed.touched), tiles=self.mosaics.get(step.segment),
+            register_ms=1000.0 * placed.register_s, frame_ms=1000.0 * (time.perf_counter() - t0),
+            dropped_frames=int(self.source.stats.dropped), reconnects=int(self.source.stats.reconnects),
+            telemetry=sample, focal_px=self.telemetry.focal(self.frame_size[0]) if self.telemetry else None,
+            link_lost=int(link.get("link_lost", 0)),
+            link_regained=int(link.get("link_regained", 0)), path_after_correction=corrected_path))
+        self.stats.timing.add("sinks", time.perf_counter() - t5)
 
     def _emit(self, event: FrameEvent) -> None:
         for sink in self.sinks:
