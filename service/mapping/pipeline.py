@@ -2,8 +2,9 @@
 
 Threads live here (and in the drivers): a file source is decoded by a prefetch thread into a
 bounded queue (replay never drops); a live source already drops its oldest frames when the worker
-falls behind. One worker thread runs prepare -> register -> pose -> map update for each frame,
-hands a :class:`~photomap.mapping.events.FrameEvent` to its sinks and checkpoints the outputs
+falls behind. One worker thread takes each frame through its steps (``_track``: rectify, resize,
+register and pose; ``_paint``; ``_record``: its row and counts; ``_close_loops``; ``_emit_frame``:
+a :class:`~photomap.mapping.events.FrameEvent` to the sinks) and checkpoints the outputs
 periodically; :meth:`MappingPipeline.stop` (SIGINT/SIGTERM) ends capture, lets the worker finish,
 and the outputs are written. The map is painted by a :class:`~photomap.mapping.painter.Painter`
 (keyframes whole, other frames only their new ground); after a loop-closure correction a
@@ -12,12 +13,11 @@ swaps them in, never waiting. The thread budget (BLAS pinned to one thread, Open
 ``mapping.opencv_threads``) holds for the whole run; the pipeline records its per-stage times
 (:mod:`photomap.mapping.timing`, ``run.json`` ``timing_ms``).
 
-State has one owner: the pipeline owns the trajectory rows, the maps (one per segment) and the
-tracker; the loop closer returns corrections that the pipeline applies; sinks only read events.
-
-Files written to the output folder (README, "What a run writes"): ``mosaic.png`` (BGRA, transparent where
-the map is empty; the largest segment; other segments as ``mosaic_segment{N}.png``),
-``trajectory.csv``, ``trajectory.tum`` and ``run.json``. All are written atomically.
+State has one owner: the pipeline owns the trajectory rows, the run's counters, the tracker and
+the painter; :class:`~photomap.mapping.segments.SegmentMaps` the maps (one per segment) and their
+life; :class:`~photomap.mapping.run_outputs.RunOutputs` what the run writes (checkpoints, the
+final outputs, the georeference); the loop closer returns corrections that the pipeline applies;
+sinks only read events.
 """
 
 from __future__ import annotations

@@ -9,9 +9,9 @@ telemetry, the live ``track.kml`` / ``track.geojson``. At the end it writes ``tr
 segment; other segments as ``mosaic_segment{N}.png``; full-resolution ``tiles/`` when the PNG is
 downscaled), the georeference (world files, GeoTIFF, track files: :mod:`photomap.mapping.outputs`,
 :mod:`photomap.mapping.geo_outputs`) when the telemetry fits the images, ``run.json`` and
-``report.html``; all atomically. A write that fails (e.g. disk full) is logged once per output
-and listed in ``run.json`` ``write_errors``, never raised: when the map itself could not be
-written the checkpoint keeps it (``photomap recover``).
+``report.html`` (README, "What a run writes"); all atomically. A write that fails (e.g. disk
+full) is logged once per output and listed in ``run.json`` ``write_errors``, never raised: when
+the map itself could not be written the checkpoint keeps it (``photomap recover``).
 """
 
 from __future__ import annotations
