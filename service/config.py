@@ -176,7 +176,7 @@ class MappingConfig(_Section):
 
 @dataclass(frozen=True)
 class OutputConfig(_Section):
-    """What a run writes and how often (:mod:`photomap.mapping.pipeline`)."""
+    """What a run writes and how often (:mod:`photomap.mapping.run_outputs`)."""
 
     _name = "output"
     checkpoint_interval: float = _num(10.0, 0.0, None)

@@ -597,7 +597,7 @@ def test_a_map_the_camera_left_goes_to_the_tile_store_a_few_tiles_a_frame(tmp_pa
     its tiles to the store over the next frames, a few each (all at once stalled the worker for
     200 ms at 1080p), until none is left in memory (nor read ahead for it); the maps are those of
     a run without a cap."""
-    from photomap.mapping.pipeline import _SPILL_TILES_PER_FRAME
+    from photomap.mapping.segments import _SPILL_TILES_PER_FRAME
     from test_drift import LOOPS
 
     _, _, blind = blind_flight()
@@ -607,7 +607,7 @@ def test_a_map_the_camera_left_goes_to_the_tile_store_a_few_tiles_a_frame(tmp_pa
 
     def sink(event):
         held.append(sum(m.tiles_in_memory for seg, m in pipe.mosaics.items() if seg != event.segment))
-        ahead.append(sum(st.tiles_read_ahead for seg, st in pipe._tile_stores.items() if seg != event.segment))
+        ahead.append(sum(st.tiles_read_ahead for seg, st in pipe.segments.tile_stores.items() if seg != event.segment))
 
     pipe = MappingPipeline(ListSource(blind), load_config(overrides=base + ["mosaic.max_tiles_in_memory=40"]),
                            tmp_path / "capped", sinks=[sink])

@@ -179,10 +179,10 @@ def test_checkpoint_files_take_a_bounded_share_of_the_writers_time(aukerman, tmp
     (``_WRITER_SHARE`` 0.1): one checkpoint write in the whole run, whatever the interval."""
     import types
 
-    from photomap.mapping import pipeline as pipeline_module
+    from photomap.mapping import run_outputs
 
     seq = fly(*aukerman, 40, 9)
-    real = pipeline_module.write_trajectory_csv
+    real = run_outputs.write_trajectory_csv
     cpu = [0.0]
     clock = types.SimpleNamespace(**{name: getattr(time, name) for name in dir(time) if not name.startswith("_")})
     clock.thread_time = lambda: cpu[0]
@@ -195,8 +195,8 @@ def test_checkpoint_files_take_a_bounded_share_of_the_writers_time(aukerman, tmp
             cpu[0] += 1000.0
         real(path, rows, frame_size)
 
-    monkeypatch.setattr(pipeline_module, "time", clock)
-    monkeypatch.setattr(pipeline_module, "write_trajectory_csv", costly)
+    monkeypatch.setattr(run_outputs, "time", clock)
+    monkeypatch.setattr(run_outputs, "write_trajectory_csv", costly)
     cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
     MappingPipeline(ListSource(seq.frames), cfg, tmp_path).run()
     assert len(checkpoint_writes) == 1
@@ -208,10 +208,10 @@ def test_a_slow_checkpoint_trajectory_never_lands_after_the_final_one(aukerman, 
     rows; the final file (written by finish) always has every frame, however slow that thread."""
     import time as _time
 
-    from photomap.mapping import pipeline as pipeline_module
+    from photomap.mapping import run_outputs
 
     seq = fly(*aukerman, 30, 9)
-    real = pipeline_module.write_trajectory_csv
+    real = run_outputs.write_trajectory_csv
     slow_calls = []
 
     def slow(path, rows, frame_size=None):
@@ -221,7 +221,7 @@ def test_a_slow_checkpoint_trajectory_never_lands_after_the_final_one(aukerman, 
             _time.sleep(0.3)
         real(path, rows, frame_size)
 
-    monkeypatch.setattr(pipeline_module, "write_trajectory_csv", slow)
+    monkeypatch.setattr(run_outputs, "write_trajectory_csv", slow)
     cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
     MappingPipeline(ListSource(seq.frames), cfg, tmp_path).run()
     import threading

@@ -122,6 +122,7 @@ class RssSampler:
 def measure(sim: Path, out: Path, overrides: list[str]) -> dict:
     """Map the survey in this process; RSS per phase."""
     import photomap.mapping.pipeline as pm
+    import photomap.mapping.run_outputs as ro
     from photomap.cli.replay import replay
     from photomap.config import load_config
 
@@ -136,9 +137,9 @@ def measure(sim: Path, out: Path, overrides: list[str]) -> dict:
                 phases.append((name, t0, time.monotonic()))
         return wrapper
 
-    pm.write_png = timed("mosaic.png", pm.write_png)
-    pm.write_tiles = timed("tiles/", pm.write_tiles)
-    pm.write_geo_outputs = timed("map.tif + track files", pm.write_geo_outputs)
+    ro.write_png = timed("mosaic.png", ro.write_png)
+    ro.write_tiles = timed("tiles/", ro.write_tiles)
+    ro.write_geo_outputs = timed("map.tif + track files", ro.write_geo_outputs)
     finish = pm.MappingPipeline.finish
     pm.MappingPipeline.finish = timed("outputs (all)", finish)
     cfg = load_config(overrides=overrides)

@@ -1,11 +1,11 @@
 """Crash-safe checkpoints of the full-resolution map, and recovering a run from one.
 
-:class:`Checkpointer` is what the pipeline calls at each checkpoint: the worker takes the tiles
-that changed since the last checkpoint (:meth:`photomap.io.statestore.MapState.snapshot`: no
-pixel copied, the map copies a tile before it changes it) and a background thread writes them
-and the manifest (PNG encoding, fsync), so the worker does not wait for the disk. A checkpoint
-that fails (disk full, I/O error) is logged once, the previous checkpoint stays valid, and the
-next interval tries again; mapping goes on.
+:class:`Checkpointer` is what :mod:`photomap.mapping.run_outputs` calls at each checkpoint: the
+worker takes the tiles that changed since the last checkpoint
+(:meth:`photomap.io.statestore.MapState.snapshot`: no pixel copied, the map copies a tile before
+it changes it) and a background thread writes them and the manifest (PNG encoding, fsync), so
+the worker does not wait for the disk. A checkpoint that fails (disk full, I/O error) is logged
+once, the previous checkpoint stays valid, and the next interval tries again; mapping goes on.
 
 :func:`recover_run` rebuilds a run folder's outputs (``mosaic.png``, ``mosaic_segment{N}.png``,
 full-resolution ``tiles/`` when the map is larger than ``max_mosaic_px``, georeference sidecars

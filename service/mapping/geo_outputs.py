@@ -1,4 +1,4 @@
-"""The georeferenced outputs of a run, for the pipeline to call (end of run and checkpoints).
+"""The georeferenced outputs of a run, for :mod:`photomap.mapping.run_outputs` (end of run and checkpoints).
 
 - :func:`write_geo_outputs` (end of run, after the georeference, **before** the tile cache is
   removed): the north-up COG ``map.tif`` of the main map from the live mosaic (when the ``geo``

@@ -32,7 +32,7 @@ re-renders the tiles whose frames moved, in the background: the worker only swap
 in (:meth:`Painter.pump`). A tile the worker painted since a re-render job started keeps its
 live pixels and is re-rendered again later (the drone has moved on by then).
 
-Used by the worker thread only (the pipeline owns the maps); the rerenderer's thread never touches
+Used by the worker thread only (:mod:`photomap.mapping.segments` owns the maps); the rerenderer's thread never touches
 a live map. Poses are 2x3 or 3x3, input-frame pixels -> map pixels (OpenCV pixel centres).
 """
 
