@@ -302,6 +302,8 @@ class SimulateConfig(_Section):
     stills_yaw: str = _choice("flip", "flip", "hold")
     stills_quality: int = _num(92, 1, 100)
     stills_xmp: bool = True
+    hotspots: int = _num(0, 0, 1000)
+    hotspot_style: str = _choice("thermal", "thermal", "visible")
 
     def _check(self) -> None:
         if self.object_size[0] > self.object_size[1]:
