@@ -21,6 +21,7 @@ scale; areas in input pixels.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -114,12 +115,15 @@ def colour_mask(bgr: np.ndarray, hue_deg: float, hue_tol_deg: float, min_saturat
     return mask.astype(np.uint8), hsv[..., 2]
 
 
-def find_blobs(mask: np.ndarray, weight: np.ndarray, values: np.ndarray, *, min_area: float,
-               max_area: float, factor: float = 1.0) -> Blobs:
-    """Connected blobs (8-neighbours) of ``mask`` with ``min_area <= area <= max_area`` (pixels of
-    ``mask``), not touching its border; centroid weighted by ``weight`` (float, > 0 inside),
-    peak = the largest of ``values`` inside. ``factor`` = input px per ``mask`` px: centroids and
-    areas come back in input pixels (pixel centres: ``x_in = (x + 0.5) * factor - 0.5``)."""
+def find_blobs(mask: np.ndarray, values: np.ndarray, base: float = 0.0, *, min_area: float, max_area: float,
+               factor: float = 1.0) -> Blobs:
+    """Connected blobs (8-neighbours) of ``mask`` (uint8, nonzero = in) with ``min_area <= area <=
+    max_area`` (pixels of ``mask``), not touching its border; centroid weighted by ``values -
+    base`` (the excess over the threshold), peak = the largest of ``values`` inside. ``factor`` =
+    input px per ``mask`` px: centroids and areas come back in input pixels (pixel centres:
+    ``x_in = (x + 0.5) * factor - 0.5``)."""
+    if cv2.countNonZero(mask) == 0:
+        return Blobs.empty()
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     if n <= 1:
         return Blobs.empty()
@@ -132,17 +136,16 @@ def find_blobs(mask: np.ndarray, weight: np.ndarray, values: np.ndarray, *, min_
         ok = ok[np.argsort(-area[ok])[:MAX_BLOBS]]
     xy, areas, peaks = [], [], []
     for i in ok.tolist():
-        ys, xs = slice(y0[i], y0[i] + bh[i]), slice(x0[i], x0[i] + bw[i])
+        ys, xs = slice(int(y0[i]), int(y0[i] + bh[i])), slice(int(x0[i]), int(x0[i] + bw[i]))
         inside = labels[ys, xs] == i + 1
-        wt = np.where(inside, weight[ys, xs], 0.0)
+        v = values[ys, xs].astype(np.float64)
+        wt = np.where(inside, np.maximum(v - base, 1e-6), 0.0)
         total = float(wt.sum())
-        if total <= 0:
-            continue
-        gy, gx = np.mgrid[ys, xs]
-        cx, cy = float((wt * gx).sum()) / total, float((wt * gy).sum()) / total
+        cx = float(wt.sum(axis=0) @ np.arange(xs.start, xs.stop, dtype=np.float64)) / total
+        cy = float(wt.sum(axis=1) @ np.arange(ys.start, ys.stop, dtype=np.float64)) / total
         xy.append(((cx + 0.5) * factor - 0.5, (cy + 0.5) * factor - 0.5))
         areas.append(float(area[i]) * factor * factor)
-        peaks.append(float(values[ys, xs][inside].max()))
+        peaks.append(float(v[inside].max()))
     if not xy:
         return Blobs.empty()
     return Blobs(np.array(xy, float), np.array(areas, float), np.array(peaks, float))
@@ -155,14 +158,14 @@ class HotSpotDetector:
     ----------
     k, min_excess : the hot threshold above the flight's median (see :class:`FlightLevels`).
     min_area_px, max_area_px : blob size limits, input pixels.
-    detect_px : longest side of the image the detection runs on (frames larger than this are
-        shrunk by an integer-free area resize first; 0 = full resolution).
+    detect_px : longest side of the image the detection runs on (larger frames are shrunk with
+        an area resize first, so peaks are those of the shrunk image; 0 = full resolution).
     window_frames : forgetting window of the flight's grey-level histogram, frames.
     hue_deg, hue_tol_deg, min_saturation, min_value : the colour mode's target (see :func:`colour_mask`).
     """
 
     def __init__(self, mode: str = "hot", *, k: float = 8.0, min_excess: float = 40.0,
-                 min_area_px: float = 6.0, max_area_px: float = 4000.0, detect_px: int = 640,
+                 min_area_px: float = 6.0, max_area_px: float = 4000.0, detect_px: int = 320,
                  window_frames: float = 300.0, hue_deg: float = 25.0, hue_tol_deg: float = 15.0,
                  min_saturation: float = 150.0, min_value: float = 150.0) -> None:
         if mode not in ("hot", "colour"):
@@ -193,8 +196,7 @@ class HotSpotDetector:
             if small.ndim != 3 or small.shape[2] < 3:
                 return Blobs.empty()
             mask, value = colour_mask(small, *self.colour)
-            return find_blobs(mask, value.astype(np.float32) * mask, value, min_area=min_a, max_area=max_a,
-                              factor=factor)
+            return find_blobs(mask, value, 0.0, min_area=min_a, max_area=max_a, factor=factor)
         grey = grey_levels(small)
         if self.levels is None:
             self.levels = FlightLevels(65536 if grey.dtype == np.uint16 else 256, self.window_frames)
@@ -203,6 +205,8 @@ class HotSpotDetector:
         self.levels.add(grey)
         thr = self.levels.threshold(self.k, self.min_excess)
         self.last_threshold = thr
-        excess = grey.astype(np.float32) - np.float32(thr)
-        mask = (excess > 0).astype(np.uint8)
-        return find_blobs(mask, np.maximum(excess, 0.0), grey, min_area=min_a, max_area=max_a, factor=factor)
+        if grey.dtype == np.uint8:
+            mask = cv2.threshold(grey, math.floor(thr), 1, cv2.THRESH_BINARY)[1]  # grey > floor(thr)
+        else:
+            mask = (grey > thr).view(np.uint8)
+        return find_blobs(mask, grey, thr, min_area=min_a, max_area=max_a, factor=factor)
