@@ -387,7 +387,7 @@ class HazardsConfig(_Section):
     enabled: bool = False
     mode: str = _choice("hot", "hot", "colour")
     k: float = _num(8.0, 0.0, None)
-    min_excess: float = _num(40.0, 0.0, None)
+    min_excess: float = _num(60.0, 0.0, None)
     window_frames: float = _num(300.0, 1.0, None)
     min_area_px: float = _num(6.0, 1.0, None)
     max_area_px: float = _num(4000.0, 1.0, None)

@@ -164,7 +164,7 @@ class HotSpotDetector:
     hue_deg, hue_tol_deg, min_saturation, min_value : the colour mode's target (see :func:`colour_mask`).
     """
 
-    def __init__(self, mode: str = "hot", *, k: float = 8.0, min_excess: float = 40.0,
+    def __init__(self, mode: str = "hot", *, k: float = 8.0, min_excess: float = 60.0,
                  min_area_px: float = 6.0, max_area_px: float = 4000.0, detect_px: int = 320,
                  window_frames: float = 300.0, hue_deg: float = 25.0, hue_tol_deg: float = 15.0,
                  min_saturation: float = 150.0, min_value: float = 150.0) -> None:

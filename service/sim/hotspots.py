@@ -3,7 +3,7 @@
 A hot spot is a small disc painted into the terrain image before the flight is rendered, so
 every frame that sees the ground there sees it (and registration sees it as part of the ground).
 ``thermal`` turns the whole terrain into a thermal-looking grey image first: the ground a cool,
-low-contrast grey (the terrain's luminance squeezed into about 40-150 levels), the spots hot
+low-contrast grey (the terrain's luminance squeezed into 45-115), the spots hot
 (a flat top of ``peak`` grey with a soft rim), as a thermal camera shows seats of fire. ``visible``
 keeps the colour terrain and paints fire-orange spots (for the colour-anomaly detector).
 
@@ -42,12 +42,13 @@ class HotSpot:
 
 def thermal_terrain(img: np.ndarray) -> np.ndarray:
     """A thermal-looking version of a BGR terrain: grey (three equal channels), the ground's
-    luminance squeezed linearly so that its 0.5th..99.5th percentiles span 40..150."""
+    luminance squeezed linearly so that its 0.5th..99.5th percentiles span 55..105 (clipped to
+    45..115: ground well below a fire's heat)."""
     lum = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32)
     sample = lum[:: max(1, lum.shape[0] // 512), :: max(1, lum.shape[1] // 512)]
     lo, hi = np.percentile(sample, [0.5, 99.5])
-    grey = 40.0 + 110.0 * (lum - lo) / max(float(hi - lo), 1.0)
-    grey = np.clip(grey, 20.0, 170.0).astype(np.uint8)
+    grey = 55.0 + 50.0 * (lum - lo) / max(float(hi - lo), 1.0)
+    grey = np.clip(grey, 45.0, 115.0).astype(np.uint8)
     return cv2.merge([grey, grey, grey])
 
 
