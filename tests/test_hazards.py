@@ -279,3 +279,31 @@ def test_planted_hot_spots_are_all_found_within_2_m_none_false_none_twice(tmp_pa
         assert (lon, lat) == pytest.approx(tuple(f["geometry"]["coordinates"]), abs=1e-9)
         assert (float(row["lat"]), float(row["lon"])) == pytest.approx((lat, lon), abs=1e-9)
         assert int(row["first_seen"]) == f["properties"]["first_seen"]
+
+
+def test_the_viewer_shows_the_hazards_as_points_on_the_map(tmp_path):
+    pytest.importorskip("rerun", reason="rerun-sdk is not installed (the `viewer` extra)")
+    from rerun.chunk import RrdReader
+
+    from photomap.config import ViewerConfig
+    from photomap.live.viewer import Viewer
+
+    world = disc(ground(4), 160.0, 120.0, 5.0, 250)
+    tracker = HazardTracker(HazardsConfig(enabled=True, detect_px=0), tmp_path)
+    viewer = Viewer("save", str(tmp_path / "view.rrd"), ViewerConfig(tile_hz=1000.0))
+    viewer.show_hazards(tracker.hazards)
+    for k in range(8):
+        event = _event(k, world, _translation(10, 20))
+        tracker.on_frame(event)
+        viewer.on_frame(event)
+    viewer.close()
+    points = []
+    for chunk in RrdReader(str(tmp_path / "view.rrd")).stream().to_chunks():
+        if chunk.entity_path == "/map/hazards":
+            rb = chunk.to_record_batch()
+            points += [(p, label) for p, label in zip(rb.column("Points2D:positions").to_pylist(),
+                                                      rb.column("Points2D:labels").to_pylist())]
+    assert points, "no hazard points in the recording"
+    (xy,), (label,) = points[-1]
+    assert label == "hazard 1"
+    assert xy == pytest.approx([170.0, 140.0], abs=0.3)  # frame (160, 120) through the pose
