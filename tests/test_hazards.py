@@ -240,20 +240,22 @@ def _distance_m(lat, lon, lat0, lon0) -> float:
     return float(np.hypot(e[0], n[0]))
 
 
-def test_planted_hot_spots_are_all_found_within_2_m_none_false_none_twice(tmp_path):
+@pytest.mark.parametrize("style, mode, frames, n", [("thermal", "hot", 200, 5), ("visible", "colour", 120, 3)])
+def test_planted_hot_spots_are_all_found_within_2_m_none_false_none_twice(tmp_path, style, mode, frames, n):
     sim, out = tmp_path / "sim", tmp_path / "run"
-    assert cli.main(["simulate", "--out", str(sim), "--frames", "200", "--size", "640x480", "--hotspots", "5",
-                     "--seed", "3", "-q"]) == 0
+    assert cli.main(["simulate", "--out", str(sim), "--frames", str(frames), "--size", "640x480",
+                     "--hotspots", str(n), "--hotspot-style", style, "--seed", "3", "-q"]) == 0
     truth = read_hotspots_csv(sim / "hotspots.csv")
-    assert len(truth) == 5
+    assert len(truth) == n
     assert cli.main(["replay", str(sim / "video.mp4"), "--out", str(out), "--mavlink", str(sim / "telemetry.tlog"),
-                     "--hazards", "--no-progress", "-q"]) == 0
+                     "--hazards", "--set", f"hazards.mode={mode}", "--no-progress", "-q"]) == 0
     run = json.loads((out / "run.json").read_text())
     assert run["georeference"] is not None  # with telemetry: positions in WGS84
+    assert run["hazards"]["count"] == n and run["hazards"]["geojson"] == "hazards.geojson"
 
     gj = json.loads((out / "hazards.geojson").read_text())
     feats = gj["features"]
-    assert gj["type"] == "FeatureCollection" and len(feats) == 5  # none on plain terrain
+    assert gj["type"] == "FeatureCollection" and len(feats) == n  # none on plain terrain
     matched = set()
     for f in feats:
         lon, lat = f["geometry"]["coordinates"]
@@ -264,13 +266,13 @@ def test_planted_hot_spots_are_all_found_within_2_m_none_false_none_twice(tmp_pa
         p = f["properties"]
         assert p["frames"] >= 3 and p["first_seen"] <= p["last_seen"] and p["peak"] > 200
         assert p["uncertainty_m"] is not None and p["uncertainty_m"] < 2.0
-    assert len(matched) == 5  # each spot once: none twice
+    assert len(matched) == n  # each spot once: none twice
 
     ns = {"k": "http://www.opengis.net/kml/2.2"}
     marks = ET.parse(out / "hazards.kml").getroot().findall(".//k:Placemark", ns)
     with open(out / "hazards.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert len(marks) == len(rows) == 5
+    assert len(marks) == len(rows) == n
     by_id = {f["properties"]["id"]: f for f in feats}
     for mark, row in zip(marks, rows):
         lon, lat, _ = (float(v) for v in mark.find("k:Point/k:coordinates", ns).text.split(","))

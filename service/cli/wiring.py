@@ -26,6 +26,7 @@ from photomap.drivers.mavlink import TelemetryReader, load_tlog
 from photomap.drivers.stills_telemetry import open_stills_telemetry as stills_telemetry
 from photomap.errors import InputError
 from photomap.io.preflight import check_output_dir
+from photomap.io.trajectory_files import write_json
 from photomap.live.viewer import Viewer
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.hazards import HazardTracker
@@ -256,8 +257,12 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
         view.close()
         for sig, old in previous.items():
             signal.signal(sig, old)
-    if hazards is not None:  # from the final poses and georeference
+    if hazards is not None:  # from the final poses and georeference; run.json says what was found
         summary["hazards"] = hazards.finish(pipeline.rows, summary.get("mosaics") or [], pipeline.frame_size)
+        try:
+            write_json(Path(out_dir) / "run.json", summary)
+        except OSError as exc:
+            log.error("cannot write run.json: %s", exc.strerror or exc)
     _log_summary(summary, out_dir)
     return summary
 

@@ -58,7 +58,7 @@ def grey_levels(image: np.ndarray) -> np.ndarray:
         return image
     if image.shape[2] == 1:
         return image[..., 0]
-    return cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2GRAY)
+    return cv2.cvtColor(np.ascontiguousarray(image[..., :3]), cv2.COLOR_BGR2GRAY)
 
 
 class FlightLevels:
@@ -108,7 +108,7 @@ def colour_mask(bgr: np.ndarray, hue_deg: float, hue_tol_deg: float, min_saturat
                 min_value: float) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of a BGR frame near a target colour: ``(mask uint8 0/1, value uint8)``. Hue in
     degrees (0-360, red 0, green 120; wraps around), saturation and value 0-255."""
-    hsv = cv2.cvtColor(bgr[..., :3], cv2.COLOR_BGR2HSV)
+    hsv = cv2.cvtColor(np.ascontiguousarray(bgr[..., :3]), cv2.COLOR_BGR2HSV)
     hue = hsv[..., 0].astype(np.float32) * 2.0  # OpenCV: 0-179 for 0-358 degrees
     dh = np.abs((hue - float(hue_deg) + 180.0) % 360.0 - 180.0)
     mask = (dh <= hue_tol_deg) & (hsv[..., 1] >= min_saturation) & (hsv[..., 2] >= min_value)
