@@ -70,7 +70,8 @@ class _Obs:
 
 @dataclass
 class _Track:
-    """A hazard (or a candidate): its sightings and their running area-weighted mean."""
+    """A hazard (or a candidate): its sightings and their running area-weighted statistics (so
+    that its live feature costs the same however many frames saw it)."""
 
     obs: list[_Obs] = field(default_factory=list)
     segment: int = 0
@@ -78,18 +79,46 @@ class _Track:
     y: float = 0.0
     id: int = 0  # 0 until confirmed
     frames: int = 0  # distinct frames that saw it
+    peak: float = -math.inf
     _sw: float = 0.0
     _swx: float = 0.0
     _swy: float = 0.0
+    _swr2: float = 0.0  # sum of w (x^2 + y^2)
+    _gw: float = 0.0  # sightings with a live WGS84 estimate
+    _gwlat: float = 0.0
+    _gwlon: float = 0.0
+    _mpp_sum: float = 0.0
+    _mpp_n: int = 0
 
     def add(self, ob: _Obs) -> None:
         if not self.obs or self.obs[-1].frame != ob.frame:
             self.frames += 1
         self.obs.append(ob)
-        self._sw += ob.area
-        self._swx += ob.area * ob.mx
-        self._swy += ob.area * ob.my
+        w = ob.area
+        self._sw += w
+        self._swx += w * ob.mx
+        self._swy += w * ob.my
+        self._swr2 += w * (ob.mx * ob.mx + ob.my * ob.my)
         self.x, self.y = self._swx / self._sw, self._swy / self._sw
+        self.peak = max(self.peak, ob.peak)
+        if ob.lat is not None and ob.lon is not None:
+            self._gw += w
+            self._gwlat += w * ob.lat
+            self._gwlon += w * ob.lon
+        if ob.mpp:
+            self._mpp_sum += ob.mpp
+            self._mpp_n += 1
+
+    def feature(self) -> dict:
+        """Its live GeoJSON feature (WGS84 from the telemetry alone)."""
+        lonlat = (self._gwlon / self._gw, self._gwlat / self._gw) if self._gw > 0 else None
+        unc = None
+        if self._mpp_n:
+            var = max(self._swr2 / self._sw - (self.x * self.x + self.y * self.y), 0.0)
+            unc = math.sqrt(var) * self._mpp_sum / self._mpp_n
+        first, last = self.obs[0], self.obs[-1]
+        return _feature(self.id, (first.frame, first.t), (last.frame, last.t), self.frames, self.peak,
+                        self.segment, (self.x, self.y), lonlat, unc)
 
 
 def _spread(xy: np.ndarray, w: np.ndarray) -> float:
@@ -98,12 +127,12 @@ def _spread(xy: np.ndarray, w: np.ndarray) -> float:
     return float(math.sqrt(np.average(((xy - mean) ** 2).sum(axis=1), weights=w)))
 
 
-def _feature(hid: int, obs: Sequence[_Obs], segment: int, xy: tuple[float, float],
-             lonlat: tuple[float, float] | None, uncertainty_m: float | None) -> dict:
-    first, last = min(obs, key=lambda o: o.frame), max(obs, key=lambda o: o.frame)
-    props = {"id": hid, "first_seen": first.frame, "first_seen_t": round(first.t, 3),
-             "last_seen": last.frame, "last_seen_t": round(last.t, 3), "frames": len({o.frame for o in obs}),
-             "peak": round(max(o.peak for o in obs), 3), "segment": segment,
+def _feature(hid: int, first: tuple[int, float], last: tuple[int, float], frames: int, peak: float, segment: int,
+             xy: tuple[float, float], lonlat: tuple[float, float] | None, uncertainty_m: float | None) -> dict:
+    """A hazard's GeoJSON feature: first/last ``(frame, t)``, ``lonlat`` None without WGS84."""
+    props = {"id": hid, "first_seen": int(first[0]), "first_seen_t": round(float(first[1]), 3),
+             "last_seen": int(last[0]), "last_seen_t": round(float(last[1]), 3), "frames": int(frames),
+             "peak": round(float(peak), 3), "segment": segment,
              "x_px": round(xy[0], 3), "y_px": round(xy[1], 3),
              "lat": None if lonlat is None else round(lonlat[1], 9),
              "lon": None if lonlat is None else round(lonlat[0], 9),
@@ -238,8 +267,8 @@ class HazardTracker:
         return list(zip(np.atleast_1d(lat).tolist(), np.atleast_1d(lon).tolist()))
 
     def _announce(self, track: _Track) -> None:
-        feature = self._live_feature(track)
-        p = feature["properties"]
+        with self._lock:
+            p = track.feature()["properties"]
         where = (f"{p['lat']:.6f},{p['lon']:.6f}" if p["lat"] is not None
                  else f"map {p['x_px']:.0f},{p['y_px']:.0f}")
         log.info("hazard %d at %s (frame %d, peak %g)", track.id, where, p["last_seen"], p["peak"])
@@ -257,19 +286,6 @@ class HazardTracker:
         except OSError as exc:
             log.warning("hazard files not written: %s", exc.strerror or exc)
 
-    def _live_feature(self, track: _Track) -> dict:
-        obs = track.obs
-        w = np.array([o.area for o in obs])
-        geo = [(o.lat, o.lon) for o in obs if o.lat is not None]
-        lonlat = None
-        if geo:
-            gw = np.array([o.area for o in obs if o.lat is not None])
-            lonlat = (float(np.average([g[1] for g in geo], weights=gw)),
-                      float(np.average([g[0] for g in geo], weights=gw)))
-        mpps = [o.mpp for o in obs if o.mpp]
-        unc = _spread(np.array([[o.mx, o.my] for o in obs]), w) * float(np.median(mpps)) if mpps else None
-        return _feature(track.id, obs, track.segment, (track.x, track.y), lonlat, unc)
-
     # ------------------------------------------------------------------ any thread
     def hazards(self) -> dict:
         """A GeoJSON FeatureCollection dict of the confirmed hazards so far (after :meth:`finish`:
@@ -278,7 +294,7 @@ class HazardTracker:
             if self._final is not None:
                 features = [dict(f, properties=dict(f["properties"])) for f in self._final]
             else:
-                features = [self._live_feature(t) for t in self._tracks if t.id]
+                features = [t.feature() for t in self._tracks if t.id]
         features.sort(key=lambda f: f["properties"]["id"])
         return {"type": "FeatureCollection", "features": features}
 
@@ -397,5 +413,9 @@ class HazardTracker:
             all_obs = [o for i in members for o in placed[i][1]]
             out.append((min(placed[i][3] for i in members), all_obs, seg, mean, lonlat, unc))
         out.sort(key=lambda c: c[0])
-        return [_feature(hid, obs, seg, (float(mean[0]), float(mean[1])), lonlat, unc)
-                for hid, obs, seg, mean, lonlat, unc in out]
+        features = []
+        for hid, obs, seg, mean, lonlat, unc in out:
+            first, last = min(obs, key=lambda o: o.frame), max(obs, key=lambda o: o.frame)
+            features.append(_feature(hid, (first.frame, first.t), (last.frame, last.t), len({o.frame for o in obs}),
+                                     max(o.peak for o in obs), seg, (float(mean[0]), float(mean[1])), lonlat, unc))
+        return features
