@@ -60,10 +60,9 @@ def hazards_kml_text(features: list[dict], *, name: str = "photomap hazards") ->
 
 
 def write_hazard_files(out_dir: str | Path, features: list[dict], *, stem: str = "hazards") -> dict:
-    """Write ``{stem}.geojson``, ``{stem}.kml`` and ``{stem}.csv`` atomically; returns their names
-    and the count."""
+    """Write ``{stem}.geojson``, ``{stem}.kml`` and ``{stem}.csv`` atomically; returns their names."""
     out = Path(out_dir)
     atomic_write_text(out / f"{stem}.geojson", geojson_text(features))
     atomic_write_text(out / f"{stem}.kml", hazards_kml_text(features, name=f"photomap {out.resolve().name} hazards"))
     atomic_write_text(out / f"{stem}.csv", hazards_csv_text(features))
-    return {"geojson": f"{stem}.geojson", "kml": f"{stem}.kml", "csv": f"{stem}.csv", "hazards": len(features)}
+    return {"geojson": f"{stem}.geojson", "kml": f"{stem}.kml", "csv": f"{stem}.csv"}
