@@ -190,6 +190,32 @@ def test_two_passes_split_by_drift_become_one_hazard_with_the_corrected_poses(tm
     assert math.hypot(p["x_px"] - 160.0, p["y_px"] - 120.0) < 0.3
 
 
+def test_one_spot_seen_from_two_georeferenced_segments_is_one_hazard_in_wgs84(tmp_path):
+    """The map lost track: the spot is a hazard in segment 0 and again in segment 1 live; both
+    segments are georeferenced, the spot is at one UTM position in both: one hazard in the files,
+    at that position, its uncertainty the georeference's GPS RMS (the sightings agree)."""
+    from photomap.geo.georef import utm_inverse
+
+    world = disc(ground(6), 160.0, 120.0, 5.0, 250)
+    tracker = HazardTracker(HazardsConfig(enabled=True, detect_px=0), tmp_path)
+    rows = []
+    for k, seg, pose in [(k, 0, _translation(0, 0)) for k in range(10)] + \
+                        [(k, 1, _translation(-100, 0)) for k in range(20, 30)]:
+        tracker.on_frame(_event(k, world, pose, segment=seg))
+        rows.append(PoseRow(k, k / 10.0, pose, 0.9, "registered", seg))
+    assert len(tracker.hazards()["features"]) == 2  # live: one per segment
+    maps = [{"segment": 0, "georeference": {"crs": "EPSG:32617", "gps_rms_m": 0.5,
+                                            "map_to_crs": [[0.1, 0.0, 500000.0], [0.0, -0.1, 4550000.0]]}},
+            {"segment": 1, "georeference": {"crs": "EPSG:32617", "gps_rms_m": 0.5,
+                                            "map_to_crs": [[0.1, 0.0, 500010.0], [0.0, -0.1, 4550000.0]]}}]
+    assert tracker.finish(rows, maps, (W, H))["count"] == 1
+    (f,) = tracker.hazards()["features"]
+    lat, lon = utm_inverse(np.array([500016.0]), np.array([4549988.0]), 32617)
+    assert f["geometry"]["coordinates"] == pytest.approx([lon[0], lat[0]], abs=1e-7)
+    p = f["properties"]
+    assert p["id"] == 1 and p["frames"] == 20 and p["uncertainty_m"] == pytest.approx(0.5, abs=0.01)
+
+
 def test_hazards_is_safe_to_read_from_another_thread(tmp_path):
     world = disc(ground(3), 160.0, 120.0, 5.0, 250)
     tracker = HazardTracker(HazardsConfig(enabled=True, detect_px=0), tmp_path)
