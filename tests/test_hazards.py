@@ -335,3 +335,35 @@ def test_the_viewer_shows_the_hazards_as_points_on_the_map(tmp_path):
     (xy,), (label,) = points[-1]
     assert label == "hazard 1"
     assert xy == pytest.approx([170.0, 140.0], abs=0.3)  # frame (160, 120) through the pose
+
+
+def test_the_simulator_paints_its_spots_where_hotspots_csv_says(tmp_path):
+    """Each planted spot's truth (terrain px), taken into a frame through the ground truth, lands
+    on hot pixels of that frame; the thermal frames are grey and the ground stays well below."""
+    from photomap.io.trajectory_files import read_groundtruth
+    from photomap.sim.flight import latlon_to_pixel
+    from photomap.sim.simulate import simulate_flight
+
+    out = simulate_flight(tmp_path / "sim", n_frames=40, size=(320, 240), seed=2, hotspots=3, save_frames=True)
+    meta = __import__("yaml").safe_load((out / "meta.yaml").read_text())
+    truth = read_hotspots_csv(out / "hotspots.csv")
+    gt = read_groundtruth(out / "groundtruth.csv")
+    assert meta["hotspots"]["count"] == 3
+    seen = 0
+    for k in range(0, 40, 5):
+        frame = cv2.imread(str(out / "frames" / f"{k:06d}.png"))
+        assert np.array_equal(frame[..., 0], frame[..., 2])  # grey
+        inv = np.linalg.inv(gt.H[k])
+        hot = np.zeros(frame.shape[:2], bool)
+        for t in truth:
+            x, y = latlon_to_pixel(np.array([t["lat"]]), np.array([t["lon"]]), meta["gsd"],
+                                   meta["origin"]["lat"], meta["origin"]["lon"])
+            assert (x[0], y[0]) == pytest.approx((t["x_px"], t["y_px"]), abs=1e-3)
+            u, v, w = inv @ [t["x_px"], t["y_px"], 1.0]
+            u, v = u / w, v / w
+            if 3 <= u < 317 and 3 <= v < 237:
+                assert frame[int(round(v)), int(round(u)), 0] > 200, (k, t["id"])
+                cv2.circle(hot, (int(round(u)), int(round(v))), 8, 1, -1)
+                seen += 1
+        assert frame[..., 0][~hot].max() <= 125  # the ground, away from the spots
+    assert seen >= 10
