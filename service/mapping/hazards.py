@@ -204,7 +204,8 @@ class HazardTracker:
     def _on_frame(self, event: FrameEvent) -> None:
         blobs = self.detector.detect(event.image)
         if not len(blobs):
-            self._forget(event.index)
+            with self._lock:
+                self._forget(event.index)
             return
         s = event.telemetry
         w, h = event.frame_size
