@@ -7,7 +7,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+import socket
 import threading
+import time
 import xml.etree.ElementTree as ET
 
 import cv2
@@ -251,6 +253,39 @@ def test_statustext_only_on_a_live_link_when_configured(tmp_path):
     assert hazard_tracker(cfg, tmp_path, Reader(), live=False).send_status is None
     assert hazard_tracker(cfg.updated({"hazards": {"statustext": False}}), tmp_path, Reader(), True).send_status is None
     assert hazard_tracker(Config(), tmp_path, Reader(), live=True) is None  # off by default
+
+
+def test_one_statustext_per_new_hazard_reaches_the_ground_station(tmp_path):
+    """Over a real MAVLink link on loopback: the tracker's sender is the reader's send_status; two
+    spots seen over 30 frames give exactly two STATUSTEXTs, one each."""
+    from pymavlink import mavutil
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from photomap.drivers.mavlink import TelemetryReader
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    world = disc(disc(ground(8), 100.0, 120.0, 5.0, 250), 220.0, 100.0, 5.0, 250)
+    with TelemetryReader(f"udpin:127.0.0.1:{port}") as reader:
+        peer = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+        try:
+            peer.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)
+            deadline = time.monotonic() + 5.0
+            while reader.stats.total == 0 and time.monotonic() < deadline:
+                time.sleep(0.02)  # the reader must have heard the peer to know where to send
+            tracker = HazardTracker(HazardsConfig(enabled=True, detect_px=0), tmp_path,
+                                    send_status=reader.send_status)
+            for k in range(30):
+                tracker.on_frame(_event(k, world, _translation(0, 0)))
+            texts = []
+            while (msg := peer.recv_match(type="STATUSTEXT", blocking=True, timeout=1.0)) is not None:
+                texts.append(msg.text)
+        finally:
+            peer.close()
+    assert len(texts) == 2
+    assert {t.split(" at ")[0] for t in texts} == {"photomap: hazard 1", "photomap: hazard 2"}
+    assert {t.split(" at ")[1] for t in texts} == {"map 100,120", "map 220,100"}
 
 
 def test_bad_hazard_config_names_the_key():
