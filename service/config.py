@@ -24,7 +24,7 @@ from photomap.errors import ConfigError
 
 __all__ = ["Config", "RegistrationConfig", "MappingConfig", "OutputConfig", "CaptureConfig",
            "TelemetryConfig", "MosaicConfig", "SimulateConfig", "ViewerConfig", "CameraConfig",
-           "GeorefConfig", "PosegraphConfig", "load_config", "parse_set", "default_config_path"]
+           "GeorefConfig", "PosegraphConfig", "HazardsConfig", "load_config", "parse_set", "default_config_path"]
 
 
 def _num(default: float | int | None, lo: float | None = None, hi: float | None = None, *,
@@ -302,6 +302,8 @@ class SimulateConfig(_Section):
     stills_yaw: str = _choice("flip", "flip", "hold")
     stills_quality: int = _num(92, 1, 100)
     stills_xmp: bool = True
+    hotspots: int = _num(0, 0, 1000)
+    hotspot_style: str = _choice("thermal", "thermal", "visible")
 
     def _check(self) -> None:
         if self.object_size[0] > self.object_size[1]:
@@ -378,6 +380,34 @@ class PosegraphConfig(_Section):
 
 
 @dataclass(frozen=True)
+class HazardsConfig(_Section):
+    """Hazard spots: hot spots or colour anomalies tracked on the map (:mod:`photomap.mapping.hazards`)."""
+
+    _name = "hazards"
+    enabled: bool = False
+    mode: str = _choice("hot", "hot", "colour")
+    k: float = _num(8.0, 0.0, None)
+    min_excess: float = _num(60.0, 0.0, None)
+    window_frames: float = _num(300.0, 1.0, None)
+    min_area_px: float = _num(6.0, 1.0, None)
+    max_area_px: float = _num(4000.0, 1.0, None)
+    detect_px: int = _num(320, 0, 100000)
+    hue_deg: float = _num(25.0, 0.0, 360.0)
+    hue_tol_deg: float = _num(15.0, 0.0, 180.0)
+    min_saturation: float = _num(150.0, 0.0, 255.0)
+    min_value: float = _num(150.0, 0.0, 255.0)
+    match_m: float = _num(3.0, 0.0, None, lo_open=True)
+    match_px: float = _num(30.0, 0.0, None, lo_open=True)
+    min_frames: int = _num(3, 1, 100000)
+    forget_frames: int = _num(30, 1, None)
+    statustext: bool = True
+
+    def _check(self) -> None:
+        if self.min_area_px > self.max_area_px:
+            self._fail("min_area_px", f"must not exceed max_area_px ({self.max_area_px}); got {self.min_area_px}")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration: one typed section per YAML section."""
 
@@ -392,6 +422,7 @@ class Config:
     camera: CameraConfig = field(default_factory=CameraConfig)
     georef: GeorefConfig = field(default_factory=GeorefConfig)
     posegraph: PosegraphConfig = field(default_factory=PosegraphConfig)
+    hazards: HazardsConfig = field(default_factory=HazardsConfig)
 
     def to_dict(self) -> dict:
         """Plain nested mapping (YAML/JSON-able; tuples become lists)."""

@@ -109,7 +109,7 @@ def test_every_config_key_is_read(tmp_path, monkeypatch):
                      "--yaw-mode", "heading", "--gsd", "0.1", "--set", "simulate.terrain_zoom=3", "-q"]) == 0
     # a replay with telemetry, loop closure, checkpoints, a recorded view and a spilling tile store
     args = ["replay", str(flight / "video.mp4"), "--out", str(tmp_path / "run"), "--no-progress", "-q",
-            "--mavlink", str(flight / "telemetry.tlog"), "--viewer", f"save={tmp_path / 'view.rrd'}",
+            "--mavlink", str(flight / "telemetry.tlog"), "--viewer", f"save={tmp_path / 'view.rrd'}", "--hazards",
             "--set", "mosaic.max_tiles_in_memory=64", "--set", "mapping.map_relative=true",
             "--set", "output.checkpoint_interval=0.000001"]
     assert cli.main(args) == 0

@@ -15,6 +15,7 @@ import argparse
 import time
 from pathlib import Path
 
+from photomap.cli.wiring import add_hazards_argument, hazards_config
 from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
                                  open_telemetry, print_summary)
 from photomap.config import Config
@@ -28,6 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="output folder (default: a time-stamped folder under output.data_dir)")
     add_telemetry_arguments(parser)
     add_viewer_argument(parser)
+    add_hazards_argument(parser)
 
 
 def flight_folder(data_dir: str | Path) -> Path:
@@ -42,6 +44,7 @@ def flight_folder(data_dir: str | Path) -> Path:
 
 
 def main(args: argparse.Namespace, cfg: Config) -> int:
+    cfg = hazards_config(args, cfg)
     out = Path(args.out) if args.out else flight_folder(cfg.output.data_dir)
     if args.time_offset is not None:
         cfg = cfg.updated({"telemetry": {"time_offset": args.time_offset}})

@@ -35,7 +35,7 @@ FLAGS = {"terrain": "terrain", "zoom": "terrain_zoom", "gsd": "gsd", "frames": "
          "object_height": "object_height", "object_size": "object_size", "max_bank": "max_bank",
          "pitch_offset": "pitch_offset", "mode": "mode", "strips": "strips",
          "stills_per_strip": "stills_per_strip", "forward_overlap": "forward_overlap",
-         "stills_yaw": "stills_yaw"}
+         "stills_yaw": "stills_yaw", "hotspots": "hotspots", "hotspot_style": "hotspot_style"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -82,6 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--forward-overlap", type=float, metavar="F", help="stills mode: overlap of consecutive stills (0..1)")
     a("--stills-yaw", choices=SURVEY_YAW_MODES, help="stills mode: flip (the picture turns 180 deg between "
       "strips) or hold (a gimbal holds the camera heading; the telemetry yaw flips)")
+    a("--hotspots", type=int, metavar="N", help="plant N hot spots along the flight (truth in hotspots.csv)")
+    a("--hotspot-style", choices=("thermal", "visible"), help="thermal (grey terrain, hot spots) or visible "
+      "(colour terrain, fire-orange spots)")
 
 
 def main(args: argparse.Namespace, cfg: Config) -> int:
@@ -105,7 +108,8 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         terrain_stain=s.terrain_stain, objects=s.objects, object_height=s.object_height,
         object_size=s.object_size, object_walls=s.object_walls, mode=s.mode, strips=s.strips,
         stills_per_strip=s.stills_per_strip, forward_overlap=s.forward_overlap, stills_yaw=s.stills_yaw,
-        stills_quality=s.stills_quality, stills_xmp=s.stills_xmp)
+        stills_quality=s.stills_quality, stills_xmp=s.stills_xmp, hotspots=s.hotspots,
+        hotspot_style=s.hotspot_style)
     if s.mode == "stills":
         n = yaml.safe_load((out / "meta.yaml").read_text(encoding="utf-8"))["frames"]
         print(f"simulated {n} stills into {out}/: stills/, groundtruth.csv, telemetry.tlog, meta.yaml"

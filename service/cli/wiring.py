@@ -26,8 +26,10 @@ from photomap.drivers.mavlink import TelemetryReader, load_tlog
 from photomap.drivers.stills_telemetry import open_stills_telemetry as stills_telemetry
 from photomap.errors import InputError
 from photomap.io.preflight import check_output_dir
+from photomap.io.trajectory_files import write_json
 from photomap.live.viewer import Viewer
 from photomap.mapping.events import FrameEvent, FrameSink
+from photomap.mapping.hazards import HazardTracker
 from photomap.mapping.pipeline import MappingPipeline
 from photomap.mapping.telemetry_join import TelemetryJoin
 
@@ -51,6 +53,17 @@ def add_viewer_argument(parser: argparse.ArgumentParser) -> None:
                              "(e.g. 0.0.0.0:9876: open to the network, without authentication, and "
                              "clients can also write into the view), connect=URL, save=FILE.rrd "
                              "(default: viewer.mode)")
+
+
+def add_hazards_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--hazards", action="store_true",
+                        help="detect hazard spots (hot spots or colour anomalies: the hazards config "
+                             "section) and write hazards.geojson/.kml/.csv (default: hazards.enabled)")
+
+
+def hazards_config(args: argparse.Namespace, cfg: Config) -> Config:
+    """``cfg`` with ``hazards.enabled`` set when ``--hazards`` was given."""
+    return cfg.updated({"hazards": {"enabled": True}}) if getattr(args, "hazards", False) else cfg
 
 
 # ---------------------------------------------------------------------------------- frames
@@ -177,6 +190,18 @@ def statustext_sink(send: Callable[[str], None]) -> FrameSink:
     return notify
 
 
+def hazard_tracker(cfg: Config, out_dir: str | Path, reader: TelemetryReader | None,
+                   live: bool) -> HazardTracker | None:
+    """The run's hazard tracker when ``hazards.enabled`` (its ``on_frame`` is a sink, its
+    ``hazards`` the live FeatureCollection); one STATUSTEXT per new hazard on a live link with
+    ``telemetry.send_statustext`` and ``hazards.statustext``."""
+    if not cfg.hazards.enabled:
+        return None
+    send = (reader.send_status if cfg.hazards.statustext and cfg.telemetry.send_statustext and reader is not None
+            and live else None)
+    return HazardTracker(cfg.hazards, out_dir, send_status=send, rectify_tilt=cfg.telemetry.rectify_tilt)
+
+
 # ---------------------------------------------------------------------------------- mapping
 def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_name: str = "",
                progress: bool = False, total: int | None = None, realtime: bool = False,
@@ -203,6 +228,10 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
     if status_interval and status_interval > 0 and not bar_shown:
         status = StatusReporter(status_interval, telemetry=telemetry is not None)
         sinks.append(status.on_frame)
+    hazards = hazard_tracker(cfg, out_dir, reader, source.live)
+    if hazards is not None:
+        sinks.append(hazards.on_frame)
+        view.show_hazards(hazards.hazards)
     if view.enabled:
         sinks.append(view.on_frame)
     if cfg.telemetry.send_statustext and reader is not None and source.live:
@@ -228,6 +257,12 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
         view.close()
         for sig, old in previous.items():
             signal.signal(sig, old)
+    if hazards is not None:  # from the final poses and georeference; run.json says what was found
+        summary["hazards"] = hazards.finish(pipeline.rows, summary.get("mosaics") or [], pipeline.frame_size)
+        try:
+            write_json(Path(out_dir) / "run.json", summary)
+        except OSError as exc:
+            log.error("cannot write run.json: %s", exc.strerror or exc)
     _log_summary(summary, out_dir)
     return summary
 
@@ -265,4 +300,8 @@ def print_summary(summary: dict, out_dir: str | Path) -> None:
               f"(world file {out / geo['world_file']}; opens in place in QGIS)")
     elif summary.get("metres_per_pixel"):
         print(f"scale: {summary['metres_per_pixel']:.3f} m per map pixel")
+    haz = summary.get("hazards")
+    if haz and haz.get("geojson"):
+        print(f"hazards: {haz['count']} ({out / haz['geojson']}, {haz['kml']}, {haz['csv']}; "
+              f"{haz['ms_per_frame'] or 0:.1f} ms/frame)")
     print(f"trajectory: {out / 'trajectory.csv'}")

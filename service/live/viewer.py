@@ -25,6 +25,9 @@ integer coordinates at pixel centres):
     (thinned to at most ``trajectory_max_points``).
 ``map/footprint``
     The current frame's outline through its pose (closed ``LineStrips2D``).
+``map/hazards``, ``geo/hazards``
+    With hazard detection (:meth:`Viewer.show_hazards`): the confirmed hazard spots of the current
+    segment as labelled red ``Points2D`` on the map and, georeferenced, ``GeoPoints``.
 ``camera/image``
     The input frame, downscaled to ``camera_px`` and JPEG-encoded, at most ``camera_hz``.
 ``health/confidence``, ``health/latency_ms/worker``, ``health/latency_ms/end_to_end``,
@@ -69,7 +72,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 from urllib.parse import urlsplit
 
 import cv2
@@ -341,6 +344,7 @@ class _Item:
     geo_footprint: np.ndarray | None = None  # (5, 2) lat, lon: the frame's ground outline
     geo_track: np.ndarray | None = None  # (N, 2) lat, lon: the GPS track so far (thinned)
     geo_keyframe: tuple[float, float] | None = None  # GPS (lat, lon) of a new keyframe
+    hazards: list[tuple[int, float, float, float | None, float | None]] | None = None  # id, x, y, lat, lon
 
 
 class _DropOldestQueue:
@@ -457,6 +461,8 @@ class Viewer:
         self._carry_events: list[tuple[str, str]] = []
         self._carry_clear: list[int] = []
         self._last_item: _Item | None = None
+        self._hazards: Callable[[], dict] | None = None  # show_hazards()
+        self._last_hazards = -math.inf
         # viewer-thread state
         self._placed: set[tuple[int, TileKey]] = set()
         self._rec = None
@@ -600,6 +606,13 @@ class Viewer:
         log.info("viewer: connect with: rerun --connect %s", self.url)
 
     # ------------------------------------------------------------------ worker side
+    def show_hazards(self, source: Callable[[], dict] | None) -> None:
+        """Show hazard spots (``source()``: a GeoJSON FeatureCollection dict whose features carry
+        ``id``, ``segment``, ``x_px``, ``y_px``, ``lat``, ``lon``; e.g. ``HazardTracker.hazards``)
+        as points on the map (``map/hazards``, the current segment's) and on the globe
+        (``geo/hazards``), refreshed with the tiles."""
+        self._hazards = source
+
     def on_frame(self, event: FrameEvent) -> None:
         """The pipeline sink: copy what the view needs and queue it. Never raises or blocks."""
         if self._rec is None or self._closed:
@@ -689,6 +702,11 @@ class Viewer:
         if self._dirty and now - self._last_tiles >= self._tile_period:
             self._last_tiles = now
             item.tiles = self._take_tiles(event.tiles, event.segment, self._max_tiles)
+        if self._hazards is not None and now - self._last_hazards >= self._tile_period:
+            self._last_hazards = now
+            props = [f["properties"] for f in self._hazards().get("features", ())]
+            item.hazards = [(p["id"], p["x_px"], p["y_px"], p.get("lat"), p.get("lon"))
+                            for p in props if p.get("segment") == event.segment]
         if now - self._last_camera >= self._camera_period:
             self._last_camera = now
             item.camera = _downscale(event.image, self._camera_px)
@@ -860,6 +878,14 @@ class Viewer:
         if item.geo_track is not None:
             rec.log("geo/track", rr.GeoLineStrings(lat_lon=[item.geo_track], radii=rr.Radius.ui_points(2.0),
                                                    colors=[(255, 64, 0)]))
+        if item.hazards:
+            red = (255, 32, 32)
+            rec.log("map/hazards", rr.Points2D([(x, y) for _, x, y, _, _ in item.hazards],
+                                               labels=[f"hazard {i}" for i, _, _, _, _ in item.hazards],
+                                               colors=[red], radii=rr.Radius.ui_points(7.0)))
+            geo = [(la, lo) for _, _, _, la, lo in item.hazards if la is not None and lo is not None]
+            if geo:
+                rec.log("geo/hazards", rr.GeoPoints(lat_lon=geo, radii=rr.Radius.ui_points(7.0), colors=[red]))
         if item.strips:
             rec.log("map/trajectory", rr.LineStrips2D([s for s, _ in item.strips],
                                                       colors=[c for _, c in item.strips],

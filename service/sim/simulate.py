@@ -14,12 +14,14 @@ from dataclasses import asdict
 from pathlib import Path
 
 import cv2
+import numpy as np
 import yaml
 
 from photomap.sim.tlog_writer import RATES_HZ, write_tlog
 
 from photomap.errors import InputError, PhotomapError
 from photomap.sim.flight import PATTERNS, YAW_MODES, Camera, build_pyramid, iter_frames, pixel_to_latlon, plan_flight, split_params
+from photomap.sim.hotspots import HOTSPOT_STYLES, paint_hotspots, place_hotspots, thermal_terrain, write_hotspots_csv
 from photomap.sim.objects import ObjectScene, random_objects
 from photomap.sim.stills import SENSOR_WIDTH_MM, SURVEY_YAW_MODES, focal_35mm, plan_survey, subset, write_still
 from photomap.sim.terrain import DEFAULT_GSD, PERIODIC, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
@@ -69,7 +71,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                     object_size: tuple[float, float] = (4.0, 12.0), object_walls: bool = True,
                     mode: str = "video", strips: int = 4, stills_per_strip: int = 10,
                     forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
-                    stills_xmp: bool = True, **params) -> Path:
+                    stills_xmp: bool = True, hotspots: int = 0, hotspot_style: str = "thermal",
+                    **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
     Parameters
@@ -96,6 +99,10 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         of a video; ``n_frames``, ``fps``, pattern and yaw settings then do not apply.
         ``stills_yaw``: ``flip`` (the picture turns 180 degrees between strips) or ``hold`` (a
         gimbal holds the camera's heading; the telemetry's yaw still flips).
+    hotspots : number of hot spots planted into the terrain along the flight
+        (:mod:`photomap.sim.hotspots`), their truth in ``hotspots.csv``; ``hotspot_style``
+        ``thermal`` (grey thermal-looking terrain, hot grey spots) or ``visible`` (colour
+        terrain, fire-orange spots).
     **params : :class:`photomap.sim.flight.Motion` and :class:`photomap.sim.flight.Effects` fields.
 
     Returns the output folder.
@@ -130,6 +137,13 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         flight_yaw = truth.yaw_deg
     if t0_unix <= 0:
         t0_unix = round(time.time(), 3)
+    spots = []
+    if hotspots > 0:
+        if hotspot_style not in HOTSPOT_STYLES:
+            raise InputError(f"hot spot style must be one of {', '.join(HOTSPOT_STYLES)}, got {hotspot_style!r}")
+        spots = place_hotspots(frames_truth.x, frames_truth.y, hotspots, gsd_eff, shape=img.shape[:2], seed=seed)
+        img = paint_hotspots(thermal_terrain(img) if hotspot_style == "thermal" else img, spots, gsd_eff,
+                             hotspot_style)
     overlay = None
     scene_objects = []
     if objects > 0:
@@ -177,6 +191,10 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
             writer.release()
 
     write_groundtruth(out / "groundtruth.csv", frames_truth)
+    if spots:
+        write_hotspots_csv(out / "hotspots.csv", spots,
+                           *pixel_to_latlon(np.array([s.x for s in spots]), np.array([s.y for s in spots]),
+                                            gsd_eff, origin_lat, origin_lon))
     write_tlog(out / "telemetry.tlog", truth.t, lat, lon, truth.alt_m, truth.roll_deg, truth.pitch_deg,
                flight_yaw, t0_unix=t0_unix, boot_offset_s=boot_offset_s, home_amsl_m=origin_amsl,
                fixed_wing=motion.max_bank > 0)
@@ -209,6 +227,9 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                            "size_m": [float(v) for v in object_size], "walls": bool(object_walls),
                            "count": len(scene_objects),
                            "note": "object tops on a plane height_m above the ground; truth = ground plane"}
+    if spots:
+        meta["hotspots"] = {"count": len(spots), "style": hotspot_style, "file": "hotspots.csv",
+                            "note": "discs painted into the terrain; x_px, y_px = terrain px of the centre"}
     if stills:
         meta["frames"] = len(shots)
         meta["fps"] = None
