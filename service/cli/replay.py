@@ -14,7 +14,7 @@ import argparse
 from pathlib import Path
 
 from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
-                                 open_stills_telemetry, open_telemetry, print_summary)
+                                 open_stills_telemetry, open_telemetry, print_summary, telemetry_beside)
 from photomap.config import Config
 from photomap.errors import OutputError
 
@@ -41,14 +41,16 @@ def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool 
            status_interval: float = 0.0) -> dict:
     """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary.
 
-    ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, or a live link (then use
-    ``realtime``). Without it, stills use their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a
+    ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, a DJI .SRT, or a live link
+    (then use ``realtime``). Without it, a video takes the .SRT with its name beside it; stills use their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a
     geo.txt file). ``status_interval`` > 0: a status line every that many seconds when no
     progress bar is shown (see :func:`photomap.cli.wiring.map_source`).
     """
     source = open_capture(str(input_spec), cfg.capture)
     total = getattr(source, "frame_count", None) or len(getattr(source, "paths", ()) or ()) or None
     spec = mavlink or cfg.telemetry.source
+    if not spec and not hasattr(source, "paths"):
+        spec = telemetry_beside(str(input_spec))   # DJI_0001.SRT beside DJI_0001.MP4
     join = reader = None
     if spec:
         join, reader, cfg = open_telemetry(spec, cfg, source=source, input_spec=str(input_spec),
