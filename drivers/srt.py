@@ -62,6 +62,7 @@ _GB = {name: re.compile(rf"\bgb_{name}\s*:\s*({_NUM})", re.I) for name in ("yaw"
 _GPS = re.compile(rf"\bGPS\s*\(\s*({_NUM})\s*,\s*({_NUM})\s*(?:,\s*([^)]*))?\)", re.I)
 _HEIGHT = (re.compile(rf"(?:^|[\s,])H\s+({_NUM})\s*m\b"), re.compile(rf"\bBAROMETER\s*:\s*({_NUM})", re.I),
            re.compile(rf"\bHb\s*:\s*({_NUM})"))
+_FOCAL = re.compile(rf"\[\s*focal_len\s*:\s*({_NUM})", re.I)
 _GPRY = re.compile(rf"\bG\.PRY\s*\(\s*({_NUM})\D*?,\s*({_NUM})\D*?,\s*({_NUM})", re.I)
 
 _MAX_SPEED = 150.0          # m/s: a cue farther than this from both neighbours is a glitch
@@ -87,6 +88,7 @@ class SrtCue:
     gimbal_pitch: float | None = None
     gimbal_roll: float | None = None
     decimals: int | None = None   # digits after the point of the position
+    focal_35mm: float | None = None   # 35 mm equivalent focal length [mm] (``focal_len``)
 
 
 @dataclass
@@ -118,6 +120,12 @@ class SrtTrack:
         """Fewest digits after the point of any position (4 digits: ~11 m steps)."""
         d = [c.decimals for c in self.cues if c.decimals is not None]
         return min(d) if d else None
+
+    @property
+    def focal_35mm(self) -> float | None:
+        """Median 35 mm equivalent focal length of the cues (mm), or None."""
+        f = [c.focal_35mm for c in self.cues if c.focal_35mm is not None]
+        return float(statistics.median(f)) if f else None
 
     def buffer(self, max_gap: float = 2.0, max_hold: float = 0.5) -> TelemetryBuffer:
         """The cues as a whole-file :class:`TelemetryBuffer` (see the module doc for fields).
@@ -168,7 +176,7 @@ class SrtTrack:
                 "with_gimbal": sum(c.gimbal_pitch is not None for c in self.cues),
                 "without_gps": self.without_gps, "unparsed": self.unparsed,
                 "out_of_order": self.out_of_order, "glitches": self.glitches,
-                "period_s": self.period, "position_decimals": self.decimals,
+                "period_s": self.period, "position_decimals": self.decimals, "focal_35mm": self.focal_35mm,
                 "timed_by_date": self.timed_by_date,
                 "span": [self.cues[0].t, self.cues[-1].t] if self.cues else None}
 
@@ -211,6 +219,9 @@ def parse_cue_text(text: str, index: int, t: float) -> SrtCue | None:
             fields["decimals"] = min(_decimals(lat_m.group(1)), _decimals(lon_m.group(1)))
         fields["rel_alt"] = _in(_f(_REL.search(text)), _REL_ALT_RANGE)
         fields["abs_alt"] = _in(_f(_ABS.search(text)) if _ABS.search(text) else _f(_ALT.search(text)), _ALT_RANGE)
+        focal = _f(_FOCAL.search(text))
+        if focal is not None and focal > 0:   # Mavic 2 / Air 2S write tenths of a mm: 240 = 24 mm
+            fields["focal_35mm"] = focal / 10.0 if focal >= 100.0 else focal
         g = {k: _f(p.search(text)) for k, p in _GB.items()}
         if g["pitch"] is not None and -180.0 <= g["pitch"] <= 180.0:
             fields.update(gimbal_pitch=g["pitch"], gimbal_roll=g["roll"] if g["roll"] is not None else 0.0)

@@ -21,6 +21,7 @@ from tqdm import tqdm
 from photomap.cli.oplog import StatusReporter
 from photomap.config import CaptureConfig, Config
 from photomap.drivers.capture import open_source
+from photomap.drivers.exif import focal_length_px
 from photomap.drivers.frames import FrameSource
 from photomap.drivers.mavlink import TelemetryReader, load_tlog
 from photomap.drivers.srt import is_srt, read_srt, srt_beside
@@ -101,7 +102,8 @@ def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None,
             raise InputError(f"{spec}: a DJI subtitle file is the telemetry of a recorded video, "
                              "not of a live camera")
         beside = bool(input_spec) and Path(spec).with_suffix("") == Path(input_spec).with_suffix("")
-        return open_srt_telemetry(spec, cfg, beside=beside), None, cfg
+        join, cfg = open_srt_telemetry(spec, cfg, source=source, beside=beside)
+        return join, None, cfg
     if spec.lower().endswith(".tlog") and not live:
         if not Path(spec).is_file():
             raise InputError(f"telemetry log not found: {spec}")
@@ -129,18 +131,27 @@ def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None,
     return join, reader, cfg
 
 
-def open_srt_telemetry(path: str | Path, cfg: Config, *, beside: bool = False) -> TelemetryJoin:
+def open_srt_telemetry(path: str | Path, cfg: Config, *, source: FrameSource | None = None,
+                       beside: bool = False) -> tuple[TelemetryJoin, Config]:
     """A join for a DJI subtitle file (:mod:`photomap.drivers.srt`): its cues are on the video's
-    clock (video start 0, offset ``telemetry.time_offset``), joined like a .tlog. Logs one line
-    (``beside``: the file was found beside the video, and the line says so)."""
+    clock (video start 0, offset ``telemetry.time_offset``), joined like a .tlog. The config
+    gets the cues' 35 mm equivalent focal length (at the frames' size, as for stills) when the
+    camera model is not configured. Logs one line (``beside``: the file was found beside the
+    video, and the line says so)."""
     tcfg = cfg.telemetry
     if not Path(path).is_file():
         raise InputError(f"telemetry file not found: {path}")
     track = read_srt(path)
     log.info("telemetry from %s%s", track.describe(), " (found beside the video)" if beside else "")
+    size = getattr(source, "size", None)
+    if not cfg.camera.fx_px and not cfg.camera.hfov_deg and track.focal_35mm and size:
+        fx, _ = focal_length_px(*size, focal_35mm=track.focal_35mm)
+        if fx:
+            cfg = cfg.updated({"camera": {"fx_px": float(fx)}})
     buffer = track.buffer(max_gap=tcfg.max_gap, max_hold=tcfg.max_hold)
-    return TelemetryJoin(buffer.at, "log", cfg, video_start=0.0, offset=tcfg.time_offset,
+    join = TelemetryJoin(buffer.at, "log", cfg, video_start=0.0, offset=tcfg.time_offset,
                          link_summary=track.summary, field_at=buffer.value_at)
+    return join, cfg
 
 
 def telemetry_beside(input_spec: str) -> str | None:

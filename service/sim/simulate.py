@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import yaml
 
+from photomap.sim.srt_writer import write_srt
 from photomap.sim.tlog_writer import RATES_HZ, write_tlog
 
 from photomap.errors import InputError, PhotomapError
@@ -69,7 +70,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                     object_size: tuple[float, float] = (4.0, 12.0), object_walls: bool = True,
                     mode: str = "video", strips: int = 4, stills_per_strip: int = 10,
                     forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
-                    stills_xmp: bool = True, **params) -> Path:
+                    stills_xmp: bool = True, srt: bool = False, **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
     Parameters
@@ -96,6 +97,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         of a video; ``n_frames``, ``fps``, pattern and yaw settings then do not apply.
         ``stills_yaw``: ``flip`` (the picture turns 180 degrees between strips) or ``hold`` (a
         gimbal holds the camera's heading; the telemetry's yaw still flips).
+    srt : also write ``video.srt`` beside the video, the DJI Mini-style subtitle telemetry of
+        every frame (:mod:`photomap.sim.srt_writer`; video mode only).
     **params : :class:`photomap.sim.flight.Motion` and :class:`photomap.sim.flight.Effects` fields.
 
     Returns the output folder.
@@ -177,6 +180,11 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
             writer.release()
 
     write_groundtruth(out / "groundtruth.csv", frames_truth)
+    srt_file = None
+    if srt and not stills:
+        srt_file = media.with_suffix(".srt")
+        write_srt(srt_file, truth.t, lat, lon, truth.alt_m, truth.roll_deg, truth.pitch_deg, truth.yaw_deg,
+                  t0_unix=t0_unix, home_amsl_m=origin_amsl, focal_35mm=focal_35mm(camera))
     write_tlog(out / "telemetry.tlog", truth.t, lat, lon, truth.alt_m, truth.roll_deg, truth.pitch_deg,
                flight_yaw, t0_unix=t0_unix, boot_offset_s=boot_offset_s, home_amsl_m=origin_amsl,
                fixed_wing=motion.max_bank > 0)
@@ -197,7 +205,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         "effects": asdict(effects),
         "telemetry_rates_hz": dict(RATES_HZ),
         "files": {"video": media.name, "groundtruth": "groundtruth.csv", "telemetry": "telemetry.tlog",
-                  "frames": f"frames/%06d.{frames_format}" if save_frames else None},
+                  "frames": f"frames/%06d.{frames_format}" if save_frames else None,
+                  "srt": srt_file.name if srt_file is not None else None},
         "conventions": "H maps frame pixels to terrain pixels (OpenCV pixel centres); yaw_deg = MAVLink "
                        "heading of the image's up direction = angle of H; scale = terrain px per frame px "
                        "at nadir; tlog position = camera nadir point, groundtruth x, y = frame centre",
