@@ -19,8 +19,8 @@ Styles (a style is detected per cue, so joined files of two models parse too):
   abs_alt: ..]`` or ``[altitude: ..]`` (AMSL), gimbal ``[gb_yaw: .. gb_pitch: .. gb_roll: ..]``.
 - ``gps_lon_lat`` (Phantom 3/4, P4 RTK, Mavic Pro, Mavic Mini, Spark): ``GPS(lon, lat, n)``
   (``n`` is the satellite count), height above take-off ``H 85.8m``, ``BAROMETER:1.9`` or
-  ``Hb:1.9`` (``HOME(..)``, the take-off point, is not needed), gimbal ``G.PRY (pitch, roll, yaw)`` (``F.PRY`` is
-  the aircraft's and is not used: the camera hangs in the gimbal).
+  ``Hb:1.9`` (``HOME(..)``, the take-off point, is not needed), gimbal ``G.PRY (pitch, roll,
+  yaw)`` (``F.PRY`` is the aircraft's and is not used: the camera hangs in the gimbal).
 - ``gps_lat_lon`` (Matrice 200/300): ``GPS(lat, lon, 0.0M) BAROMETER:12.3M``.
 
 Units and conventions of the samples (those of :mod:`photomap.telemetry.samples`): ``lat``,
@@ -160,12 +160,15 @@ class SrtTrack:
         text = (f"{Path(self.path).name}: {s['cues']} DJI subtitle cues {period} "
                 f"({', '.join(sorted(self.styles))}), {s['with_gps']} with GPS, {s['with_height']} with "
                 f"height above take-off, {s['with_gimbal']} with gimbal attitude")
-        dropped = self.unparsed + self.out_of_order + self.glitches
+        dropped = self.unparsed + self.out_of_order
         if dropped:
-            text += f"; {dropped} block(s) left out (unreadable {self.unparsed}, time going back " \
-                    f"{self.out_of_order}, position jumps {self.glitches})"
+            text += (f"; {dropped} block(s) left out (unreadable {self.unparsed}, time going back "
+                     f"{self.out_of_order})")
+        if self.glitches:
+            text += f"; {self.glitches} position jump(s) removed"
         if self.decimals is not None and self.decimals <= 4:
-            text += f"; positions have {self.decimals} decimals (steps of ~{111_320 * 10 ** -self.decimals:.0f} m)"
+            step = 111_320 * 10 ** -self.decimals
+            text += f"; positions have {self.decimals} decimals (steps of ~{step:.0f} m)"
         return text
 
     def summary(self) -> dict:

@@ -191,7 +191,8 @@ print(n)
 
 def test_stderr_stays_quiet_for_a_folder_of_tiffs_with_private_tags(tmp_path):
     for k in range(12):
-        tiff_with_unknown_tags(tmp_path / f"IMG_{k:04d}_1.tif", ((np.indices((64, 64)).sum(0) + k) * 300).astype(np.uint16))
+        ramp = ((np.indices((64, 64)).sum(0) + k) * 300).astype(np.uint16)
+        tiff_with_unknown_tags(tmp_path / f"IMG_{k:04d}_1.tif", ramp)
     run = subprocess.run([sys.executable, "-c", _QUIET_SCRIPT, str(tmp_path)], capture_output=True, text=True,
                          timeout=60)
     assert run.returncode == 0 and run.stdout.strip() == "12", run.stderr

@@ -13,8 +13,8 @@ all channels together, so colour balance is kept) and follows the flight slowly:
 frame sets it; a later frame whose percentiles lie outside it widens it by ``widen_rate`` of the
 way (brighter or darker ground soon fits, instead of saturating for the rest of the flight),
 one whose percentiles lie inside narrows it by ``rate`` of the way (an exponential average over
-about ``1 / rate`` frames, by default 500: the range is nearly the flight's envelope). Values outside the range saturate at 0 and 255. ``uint8`` frames
-pass through unchanged.
+about ``1 / rate`` frames, by default 500: the range is nearly the flight's envelope). Values
+outside the range saturate at 0 and 255. ``uint8`` frames pass through unchanged.
 """
 
 from __future__ import annotations
