@@ -241,17 +241,18 @@ def test_simulated_srt_reads_back_the_truth(dji):
 
 
 def test_dji_video_is_georeferenced_from_its_srt_alone(dji, tmp_path, caplog):
+    """`photomap replay DJI_0001.MP4`: the SRT beside it is the only telemetry."""
     flight, folder = dji
     caplog.set_level(logging.INFO)
-    summary = replay(str(folder / "DJI_0001.MP4"), tmp_path, load_config())
+    assert main(["replay", str(folder / "DJI_0001.MP4"), "--out", str(tmp_path), "--no-progress"]) == 0
     found = [r.getMessage() for r in caplog.records if "found beside the video" in r.getMessage()]
     assert len(found) == 1 and found[0].startswith("telemetry from DJI_0001.SRT: 150 DJI subtitle cues")
+    summary = json.loads((tmp_path / "run.json").read_text())
     tel = summary["telemetry"]
     assert tel["status"] == "ok" and tel["problems"] == [] and tel["frames_with_telemetry"] == 150
     assert tel["link"]["format"] == "dji_srt" and tel["link"]["with_gps"] == 150
     assert tel["time_offset_check"]["refused"] is None and abs(tel["time_offset_check"]["residual_offset_s"]) < 0.05
     assert summary["georeference"] is not None and (tmp_path / "mosaic.pgw").is_file()
-    assert json.loads((tmp_path / "run.json").read_text())["telemetry"]["status"] == "ok"
     lat, lon = truth_centres(flight)
     rows = [r for r in read_trajectory_csv(tmp_path / "trajectory.csv") if r.glued]
     assert len(rows) == 150
@@ -278,6 +279,19 @@ def test_telemetry_flag_takes_an_srt_and_its_gps_is_still_checked(dji, tmp_path,
     assert summary["telemetry"]["status"] == "gps_mismatch", summary["telemetry"]["problems"]
     assert summary["georeference"] is None
     assert not [r for r in caplog.records if "found beside the video" in r.getMessage()]
+
+
+def test_batch_takes_the_srt_as_the_videos_sidecar(dji):
+    _, folder = dji
+    from photomap.cli.batch import sidecar_telemetry
+    assert sidecar_telemetry(folder / "DJI_0001.MP4") == str(folder / "DJI_0001.SRT")
+
+
+def test_simulate_srt_flag(tmp_path):
+    assert main(["simulate", "--out", str(tmp_path / "s"), "--frames", "6", "--size", "160x120", "--srt",
+                 "-q"]) == 0
+    track = read_srt(tmp_path / "s" / "video.srt")
+    assert len(track.cues) == 6 and track.with_gps == 6 and dict(track.styles) == {"bracket": 6}
 
 
 def test_cli_telemetry_srt_without_gps_is_one_line(dji, tmp_path, capsys):

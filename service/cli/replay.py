@@ -42,15 +42,13 @@ def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool 
     """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary.
 
     ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, a DJI .SRT, or a live link
-    (then use ``realtime``). Without it, a video takes the .SRT with its name beside it; stills use their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a
+    (then use ``realtime``; the command finds a video's .SRT beside it). Without it, stills use their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a
     geo.txt file). ``status_interval`` > 0: a status line every that many seconds when no
     progress bar is shown (see :func:`photomap.cli.wiring.map_source`).
     """
     source = open_capture(str(input_spec), cfg.capture)
     total = getattr(source, "frame_count", None) or len(getattr(source, "paths", ()) or ()) or None
     spec = mavlink or cfg.telemetry.source
-    if not spec and not hasattr(source, "paths"):
-        spec = telemetry_beside(str(input_spec))   # DJI_0001.SRT beside DJI_0001.MP4
     join = reader = None
     if spec:
         join, reader, cfg = open_telemetry(spec, cfg, source=source, input_spec=str(input_spec),
@@ -69,8 +67,11 @@ def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool 
 def main(args: argparse.Namespace, cfg: Config) -> int:
     if args.time_offset is not None:
         cfg = cfg.updated({"telemetry": {"time_offset": args.time_offset}})
+    mavlink = args.mavlink
+    if not mavlink and not cfg.telemetry.source:
+        mavlink = telemetry_beside(args.input)   # DJI_0001.SRT beside DJI_0001.MP4
     summary = replay(args.input, args.out, cfg, progress=not (args.no_progress or args.quiet),
-                     realtime=args.realtime, mavlink=args.mavlink, video_start=args.video_start,
+                     realtime=args.realtime, mavlink=mavlink, video_start=args.video_start,
                      viewer=args.viewer, geo=args.geo, status_interval=getattr(args, "status_interval", 0.0))
     print_summary(summary, args.out)
     if summary.get("write_errors"):
