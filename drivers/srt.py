@@ -53,16 +53,13 @@ _NUM = r"[-+]?\d+(?:\.\d+)?"
 _TIME = re.compile(r"(\d+):(\d{1,2}):(\d{1,2})[,.](\d{1,3})\s*-->\s*(\d+):(\d{1,2}):(\d{1,2})[,.](\d{1,3})")
 _DATE = re.compile(r"(\d{4})[-./](\d{1,2})[-./](\d{1,2})\s+(\d{1,2}):(\d{2}):(\d{2})(?:[.,](\d{1,6}))?")
 _TAG = re.compile(r"<[^>]*>")
-_LAT = re.compile(rf"\[\s*latitude\s*:\s*({_NUM})", re.I)
-_LON = re.compile(rf"\[\s*longt?itude\s*:\s*({_NUM})", re.I)
-_REL = re.compile(rf"\brel_alt\s*:\s*({_NUM})", re.I)
-_ABS = re.compile(rf"\babs_alt\s*:\s*({_NUM})", re.I)
-_ALT = re.compile(rf"\[\s*altitude\s*:\s*({_NUM})", re.I)
-_GB = {name: re.compile(rf"\bgb_{name}\s*:\s*({_NUM})", re.I) for name in ("yaw", "pitch", "roll")}
+_KEY_VALUE = re.compile(rf"([A-Za-z_]+)\s*:\s*({_NUM})")
+#: Keys that make a cue of the bracket style (any one of them).
+_BRACKET_KEYS = frozenset({"latitude", "longitude", "longtitude", "rel_alt", "abs_alt", "altitude",
+                           "gb_yaw", "gb_pitch", "gb_roll"})
 _GPS = re.compile(rf"\bGPS\s*\(\s*({_NUM})\s*,\s*({_NUM})\s*(?:,\s*([^)]*))?\)", re.I)
 _HEIGHT = (re.compile(rf"(?:^|[\s,])H\s+({_NUM})\s*m\b"), re.compile(rf"\bBAROMETER\s*:\s*({_NUM})", re.I),
            re.compile(rf"\bHb\s*:\s*({_NUM})"))
-_FOCAL = re.compile(rf"\[\s*focal_len\s*:\s*({_NUM})", re.I)
 _GPRY = re.compile(rf"\bG\.PRY\s*\(\s*({_NUM})\D*?,\s*({_NUM})\D*?,\s*({_NUM})", re.I)
 
 _MAX_SPEED = 150.0          # m/s: a cue farther than this from both neighbours is a glitch
@@ -209,28 +206,35 @@ def _in(v: float | None, lo_hi: tuple[float, float]) -> float | None:
     return v if v is not None and lo_hi[0] <= v <= lo_hi[1] else None
 
 
+def _float(text: str | None) -> float | None:
+    if text is None:
+        return None
+    v = float(text)
+    return v if math.isfinite(v) else None
+
+
 def parse_cue_text(text: str, index: int, t: float) -> SrtCue | None:
     """The telemetry of one cue's text (tags removed, lines joined), or None when it names no
     field of any known style (position, height or gimbal)."""
-    lat_m, lon_m = _LAT.search(text), _LON.search(text)
-    gps = _GPS.search(text)
+    kv = {k.lower(): v for k, v in _KEY_VALUE.findall(text)}   # "[latitude : 1.5]" -> latitude: "1.5"
     fields: dict = {}
-    if lat_m or lon_m or _REL.search(text) or _ALT.search(text) or _GB["pitch"].search(text):
+    if _BRACKET_KEYS.intersection(kv):
         style = "bracket"
-        fields["lat"], fields["lon"] = _position(_f(lat_m), _f(lon_m))
+        lat_s, lon_s = kv.get("latitude"), kv.get("longitude", kv.get("longtitude"))
+        fields["lat"], fields["lon"] = _position(_float(lat_s), _float(lon_s))
         if fields["lat"] is not None:
-            fields["decimals"] = min(_decimals(lat_m.group(1)), _decimals(lon_m.group(1)))
-        fields["rel_alt"] = _in(_f(_REL.search(text)), _REL_ALT_RANGE)
-        fields["abs_alt"] = _in(_f(_ABS.search(text)) if _ABS.search(text) else _f(_ALT.search(text)), _ALT_RANGE)
-        focal = _f(_FOCAL.search(text))
+            fields["decimals"] = min(_decimals(lat_s), _decimals(lon_s))
+        fields["rel_alt"] = _in(_float(kv.get("rel_alt")), _REL_ALT_RANGE)
+        fields["abs_alt"] = _in(_float(kv.get("abs_alt", kv.get("altitude"))), _ALT_RANGE)
+        focal = _float(kv.get("focal_len"))
         if focal is not None and focal > 0:   # Mavic 2 / Air 2S write tenths of a mm: 240 = 24 mm
             fields["focal_35mm"] = focal / 10.0 if focal >= 100.0 else focal
-        g = {k: _f(p.search(text)) for k, p in _GB.items()}
-        if g["pitch"] is not None and -180.0 <= g["pitch"] <= 180.0:
-            fields.update(gimbal_pitch=g["pitch"], gimbal_roll=g["roll"] if g["roll"] is not None else 0.0)
-        if g["yaw"] is not None and -360.0 <= g["yaw"] <= 360.0:
-            fields["gimbal_yaw"] = g["yaw"]
-    elif gps:
+        pitch, roll, yaw = (_float(kv.get(k)) for k in ("gb_pitch", "gb_roll", "gb_yaw"))
+        if pitch is not None and -180.0 <= pitch <= 180.0:
+            fields.update(gimbal_pitch=pitch, gimbal_roll=roll if roll is not None else 0.0)
+        if yaw is not None and -360.0 <= yaw <= 360.0:
+            fields["gimbal_yaw"] = yaw
+    elif (gps := _GPS.search(text)) is not None:
         third = (gps.group(3) or "").strip()
         lat_first = third.upper().endswith("M")   # Matrice: GPS(lat, lon, 0.0M)
         a, b = float(gps.group(1)), float(gps.group(2))
@@ -290,13 +294,13 @@ def parse_srt_text(text: str, name: str = "<srt>") -> SrtTrack:
         start = date = None
         body = []
         for line in lines:
-            m = _TIME.search(line)
-            if m and start is None:
+            m = _TIME.search(line) if start is None and "-->" in line else None
+            if m:
                 h, mi, sec, ms = m.groups()[:4]
                 start = int(h) * 3600 + int(mi) * 60 + int(sec) + int(ms.ljust(3, "0")) / 1000.0
                 continue
-            d = _DATE.search(line)
-            if d and date is None:
+            d = _DATE.search(line) if date is None and line[:1].isdigit() else None
+            if d:
                 date = _date(d)
             body.append(line)
         raw.append((start, date, _TAG.sub(" ", " ".join(body)), k + 1))
