@@ -60,6 +60,8 @@ def warning_kind(line: str) -> tuple[str, str] | None:
     """``(library, message with numbers as N)`` of a library warning line, or None when the
     line is not one (it is passed on to stderr)."""
     text = line.strip()
+    if not text:
+        return None
     m = _OPENCV_LOG.match(text)
     if m:
         text = m.group(2).strip()
@@ -106,11 +108,10 @@ class ImageReader:
         image, caught = self._captured(lambda: cv2.imread(str(path), self.flags))
         kinds = set()
         passed = []
-        for line in caught.splitlines():
+        for line in caught.splitlines(keepends=True):
             kind = warning_kind(line)
             if kind is None:
-                if line.strip():
-                    passed.append(line)
+                passed.append(line)   # as it was written (a progress bar's "\r" included)
                 continue
             self.warnings[kind] += 1
             kinds.add(kind)
@@ -119,8 +120,8 @@ class ImageReader:
             self.files_warned[kind] += 1
         if passed:
             try:
-                sys.stderr.write("\n".join(passed) + "\n")
-            except (OSError, ValueError):
+                os.write(2, "".join(passed).encode("utf-8", errors="replace"))
+            except OSError:
                 pass
         return image
 

@@ -180,6 +180,35 @@ def test_reader_counts_libtiff_warnings_and_passes_other_output(tmp_path, capfd)
                                 "imread_('...'): can't open/read file: check file path/integrity"]
 
 
+def test_other_output_during_a_read_reaches_stderr_as_written(monkeypatch, capfd):
+    """What another thread writes to stderr while a still decodes (a progress bar's update, a
+    log line) is passed on unchanged; only the library's warning is held back."""
+    import os
+    import photomap.drivers.imread as imread
+
+    def noisy_imread(path, flags):
+        os.write(2, b"mapping  50%|#####     |\r")
+        os.write(2, b"[ WARN:0@1.0] global grfmt_tiff.cpp:123 TIFF_Warning TIFFReadDirectory: odd\n")
+        os.write(2, b"12:00:00 INFO photomap.x: a log line\n")
+        return np.zeros((4, 4), np.uint8)
+
+    monkeypatch.setattr(imread.cv2, "imread", noisy_imread)
+    reader = ImageReader()
+    assert reader.read("x.tif").shape == (4, 4)
+    assert capfd.readouterr().err == "mapping  50%|#####     |\r12:00:00 INFO photomap.x: a log line\n"
+    assert list(reader.warnings) == [("libtiff", "TIFFReadDirectory: odd")]
+
+
+def test_a_truncated_jpeg_is_read_and_its_warning_counted(tmp_path, capfd):
+    ok, data = cv2.imencode(".jpg", texture(120, 160))
+    (tmp_path / "cut.jpg").write_bytes(data.tobytes()[: len(data) // 2])
+    reader = ImageReader()
+    for _ in range(2):
+        assert reader.read(tmp_path / "cut.jpg").shape == (120, 160, 3)   # libjpeg fills the rest
+    assert "JPEG" not in capfd.readouterr().err
+    assert reader.summary() == ["libjpeg warned 2 time(s) in 2 file(s) (first cut.jpg): Premature end of JPEG file"]
+
+
 _QUIET_SCRIPT = """
 import logging, sys
 logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(message)s")
