@@ -236,8 +236,10 @@ def parse_cue_text(text: str, index: int, t: float) -> SrtCue | None:
             fields["gimbal_yaw"] = yaw
     elif (gps := _GPS.search(text)) is not None:
         third = (gps.group(3) or "").strip()
-        lat_first = third.upper().endswith("M")   # Matrice: GPS(lat, lon, 0.0M)
         a, b = float(gps.group(1)), float(gps.group(2))
+        # Matrice: GPS(lat, lon, 0.0M); the others lon first. A first value beyond 90 deg is a
+        # longitude, a second one beyond 90 deg is too.
+        lat_first = (third.upper().endswith("M") or abs(b) > 90.0) and abs(a) <= 90.0
         lat, lon = (a, b) if lat_first else (b, a)
         style = "gps_lat_lon" if lat_first else "gps_lon_lat"
         fields["lat"], fields["lon"] = _position(lat, lon)

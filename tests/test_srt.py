@@ -181,6 +181,14 @@ def test_a_position_jump_and_time_going_back_are_left_out():
     assert track.glitches == 1 and track.out_of_order == 1 and track.without_gps == 1
 
 
+def test_gps_order_follows_the_values_when_the_style_does_not_say():
+    cue = "1\n00:00:00,000 --> 00:00:01,000\nGPS({}, {}, 17) H 50.0m\n"
+    lon_first = parse_srt_text(cue.format("149.0251", "-20.2533")).cues[0]
+    lat_first = parse_srt_text(cue.format("-20.2533", "149.0251")).cues[0]
+    assert (lon_first.lat, lon_first.lon) == (lat_first.lat, lat_first.lon) == (-20.2533, 149.0251)
+    assert (lon_first.style, lat_first.style) == ("gps_lon_lat", "gps_lat_lon")
+
+
 def test_srt_beside_a_video_in_any_case(tmp_path):
     video = tmp_path / "DJI_0001.MP4"
     video.write_bytes(b"x")
