@@ -32,7 +32,6 @@ pitch = gimbal pitch + 90 deg (a gimbal at -90 deg looks straight down), roll = 
 
 from __future__ import annotations
 
-import logging
 import math
 import re
 import statistics
@@ -43,8 +42,6 @@ from pathlib import Path
 
 from photomap.errors import InputError
 from photomap.telemetry.samples import TelemetryBuffer
-
-log = logging.getLogger(__name__)
 
 #: File name endings of DJI subtitle telemetry.
 SRT_SUFFIXES = (".srt",)
@@ -97,7 +94,7 @@ class SrtTrack:
     blocks: int = 0
     styles: Counter = field(default_factory=Counter)
     without_gps: int = 0
-    unparsed: int = 0             # blocks with neither a time nor a known field
+    unparsed: int = 0             # blocks without a time, or without any known field
     out_of_order: int = 0
     glitches: int = 0
     timed_by_date: bool = False
@@ -182,13 +179,6 @@ class SrtTrack:
 
 
 # ------------------------------------------------------------------------------ parsing
-def _f(m: re.Match | None, group: int = 1) -> float | None:
-    if m is None or m.group(group) is None:
-        return None
-    v = float(m.group(group))
-    return v if math.isfinite(v) else None
-
-
 def _decimals(text: str) -> int:
     return len(text.split(".")[1]) if "." in text else 0
 
@@ -211,6 +201,10 @@ def _float(text: str | None) -> float | None:
         return None
     v = float(text)
     return v if math.isfinite(v) else None
+
+
+def _f(m: re.Match | None, group: int = 1) -> float | None:
+    return None if m is None else _float(m.group(group))
 
 
 def parse_cue_text(text: str, index: int, t: float) -> SrtCue | None:
