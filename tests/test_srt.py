@@ -289,6 +289,14 @@ def test_telemetry_flag_takes_an_srt_and_its_gps_is_still_checked(dji, tmp_path,
     assert not [r for r in caplog.records if "found beside the video" in r.getMessage()]
 
 
+def test_a_real_srt_of_another_flight_is_refused(dji, tmp_path):
+    _, folder = dji
+    summary = replay(str(folder / "DJI_0001.MP4"), tmp_path, load_config(), mavlink=str(SRT / "p4_rtk.SRT"))
+    tel = summary["telemetry"]
+    assert tel["frames_with_telemetry"] > 0 and tel["status"] != "ok", tel
+    assert tel["problems"] and summary["georeference"] is None
+
+
 def test_batch_takes_the_srt_as_the_videos_sidecar(dji):
     _, folder = dji
     from photomap.cli.batch import sidecar_telemetry
