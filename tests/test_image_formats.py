@@ -95,6 +95,12 @@ def test_stretch_is_per_flight_not_per_frame():
     assert np.abs(pa[:, :150].astype(int) - pb[:, :150].astype(int)).mean() > 20   # what per frame would do
     # the robust range spans the scene: about 0.5 % saturates at each end
     assert 0.002 < (a == 255).mean() < 0.02 and 0.002 < (a == 0).mean() < 0.02
+    # a blank frame first (lens cap) does not set the range; nor does one later
+    late = RunningStretch()
+    late(np.full((50, 50), 1000, np.uint16))
+    assert np.array_equal(late(scene), flight_first := RunningStretch()(scene))
+    late(np.full((50, 50), 60000, np.uint16))
+    assert np.array_equal(late.apply(scene), flight_first)
     # uint8 passes through; NaN of a float frame is 0
     img8 = np.full((20, 20), 7, np.uint8)
     assert flight(img8) is img8

@@ -10,7 +10,7 @@ else.
 
 The range is robust (the ``low_pct`` and ``high_pct`` percentiles of a subsample of the frame,
 all channels together, so colour balance is kept) and follows the flight slowly: the first
-frame sets it; a later frame whose percentiles lie outside it widens it by ``widen_rate`` of the
+frame with any contrast sets it (a blank frame does not move it); a later frame whose percentiles lie outside it widens it by ``widen_rate`` of the
 way (brighter or darker ground soon fits, instead of saturating for the rest of the flight),
 one whose percentiles lie inside narrows it by ``rate`` of the way (an exponential average over
 about ``1 / rate`` frames, by default 500: the range is nearly the flight's envelope). Values
@@ -67,6 +67,7 @@ class RunningStretch:
         self.low: float | None = None
         self.high: float | None = None
         self.frames = 0
+        self._flat = False
 
     def percentiles(self, image: np.ndarray) -> tuple[float, float] | None:
         """``(low, high)`` percentiles of a subsample of ``image`` (finite values only), or None
@@ -85,9 +86,11 @@ class RunningStretch:
         the range, or None while no frame has had a finite value."""
         p = self.percentiles(image)
         if p is not None:
-            if self.low is None or self.high is None:
+            flat = p[1] <= p[0]
+            if self.low is None or self.high is None or (self._flat and not flat):
                 self.low, self.high = p
-            else:
+                self._flat = flat   # a blank first frame does not set the flight's range
+            elif not flat:
                 self.low += (self.widen_rate if p[0] < self.low else self.rate) * (p[0] - self.low)
                 self.high += (self.widen_rate if p[1] > self.high else self.rate) * (p[1] - self.high)
         if self.low is None or self.high is None:
