@@ -108,6 +108,7 @@ def test_stretch_is_per_flight_not_per_frame():
     f[0, 0] = np.nan
     out = RunningStretch()(f)
     assert out[0, 0] == 0 and out[-1, -1] == 255
+    assert np.isnan(f[0, 0]) and f[-1, -1] == 1.0   # the input is left as it was
 
 
 @pytest.fixture(scope="module")

@@ -108,7 +108,17 @@ class RunningStretch:
         else:
             lo, hi = self.low, self.high
         scale = 255.0 / max(hi - lo, 1e-12)
-        out = (np.asarray(image, dtype=np.float32) - np.float32(lo)) * np.float32(scale)
+        if image.dtype == np.uint16:   # a table of all 65536 values: no float copy of the frame
+            return np.take(self._map(np.arange(65536, dtype=np.float32), lo, scale), image)
+        return self._map(np.array(image, dtype=np.float32), lo, scale)   # a copy: the input stays
+
+    @staticmethod
+    def _map(values: np.ndarray, lo: float, scale: float) -> np.ndarray:
+        """float32 ``values`` -> ``uint8`` of ``(values - lo) * scale``, rounded and saturated
+        (NaN -> 0); ``values`` is overwritten."""
+        out = values
+        out -= np.float32(lo)
+        out *= np.float32(scale)
         np.nan_to_num(out, copy=False, nan=0.0, posinf=255.0, neginf=0.0)
         np.clip(out, 0.0, 255.0, out=out)
         return (out + 0.5).astype(np.uint8)
