@@ -220,6 +220,8 @@ def parse_cue_text(text: str, index: int, t: float) -> SrtCue | None:
             fields["decimals"] = min(_decimals(lat_s), _decimals(lon_s))
         fields["rel_alt"] = _in(_float(kv.get("rel_alt")), _REL_ALT_RANGE)
         fields["abs_alt"] = _in(_float(kv.get("abs_alt", kv.get("altitude"))), _ALT_RANGE)
+        if fields["lat"] is None and fields["abs_alt"] == 0.0:
+            fields["abs_alt"] = None   # "[latitude: 0.000000] .. [altitude: 0.000000]": no fix yet
         focal = _float(kv.get("focal_len"))
         if focal is not None and focal > 0:   # Mavic 2 / Air 2S write tenths of a mm: 240 = 24 mm
             fields["focal_35mm"] = focal / 10.0 if focal >= 100.0 else focal

@@ -189,6 +189,14 @@ def test_gps_order_follows_the_values_when_the_style_does_not_say():
     assert (lon_first.style, lat_first.style) == ("gps_lon_lat", "gps_lat_lon")
 
 
+def test_no_fix_yet_in_the_bracket_style():
+    text = ("1\n00:00:00,000 --> 00:00:00,016\n<font size=\"36\">SrtCnt : 1, DiffTime : 16ms\n"
+            "[iso : 3200] [focal_len : 240] [latitude: 0.000000] [longitude: 0.000000] "
+            "[altitude: 0.000000] </font>\n")
+    cue = parse_srt_text(text).cues[0]
+    assert (cue.lat, cue.lon, cue.abs_alt, cue.focal_35mm) == (None, None, None, 24.0)
+
+
 def test_srt_beside_a_video_in_any_case(tmp_path):
     video = tmp_path / "DJI_0001.MP4"
     video.write_bytes(b"x")
