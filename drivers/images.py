@@ -109,7 +109,8 @@ class ImageFolderSource(SourceBase):
         if not self.paths:
             if not Path(spec).is_dir() and not _GLOB_CHARS.search(spec):
                 raise InputError(f"image folder not found: {spec}")
-            raise InputError(f"no images in {spec} (formats read: {', '.join(s.lstrip('.') for s in IMAGE_SUFFIXES)})")
+            formats = ", ".join(s.lstrip(".") for s in IMAGE_SUFFIXES)
+            raise InputError(f"no images in {spec} (formats read: {formats})")
         stamps = [exif_time(p) for p in self.paths]
         missing = sum(s is None for s in stamps)
         self.exif_times = missing == 0

@@ -42,8 +42,8 @@ def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool 
     """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary.
 
     ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, a DJI .SRT, or a live link
-    (then use ``realtime``; the command finds a video's .SRT beside it). Without it, stills use their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a
-    geo.txt file). ``status_interval`` > 0: a status line every that many seconds when no
+    (then use ``realtime``; the command finds a video's .SRT beside it). Without it, stills use
+    their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a geo.txt file). ``status_interval`` > 0: a status line every that many seconds when no
     progress bar is shown (see :func:`photomap.cli.wiring.map_source`).
     """
     source = open_capture(str(input_spec), cfg.capture)

@@ -205,12 +205,13 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         "effects": asdict(effects),
         "telemetry_rates_hz": dict(RATES_HZ),
         "files": {"video": media.name, "groundtruth": "groundtruth.csv", "telemetry": "telemetry.tlog",
-                  "frames": f"frames/%06d.{frames_format}" if save_frames else None,
-                  "srt": srt_file.name if srt_file is not None else None},
+                  "frames": f"frames/%06d.{frames_format}" if save_frames else None},
         "conventions": "H maps frame pixels to terrain pixels (OpenCV pixel centres); yaw_deg = MAVLink "
                        "heading of the image's up direction = angle of H; scale = terrain px per frame px "
                        "at nadir; tlog position = camera nadir point, groundtruth x, y = frame centre",
     }
+    if srt_file is not None:
+        meta["files"]["srt"] = srt_file.name
     if periodic:
         meta["terrain"].update(periodic)
     if objects > 0:
