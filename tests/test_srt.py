@@ -269,14 +269,39 @@ def test_dji_video_is_georeferenced_from_its_srt_alone(dji, tmp_path, caplog):
     assert tel["link"]["format"] == "dji_srt" and tel["link"]["with_gps"] == 150
     assert tel["time_offset_check"]["refused"] is None and abs(tel["time_offset_check"]["residual_offset_s"]) < 0.05
     assert summary["georeference"] is not None and (tmp_path / "mosaic.pgw").is_file()
-    lat, lon = truth_centres(flight)
-    rows = [r for r in read_trajectory_csv(tmp_path / "trajectory.csv") if r.glued]
-    assert len(rows) == 150
-    err = [math.hypot((r.extra["lat"] - lat[r.frame]) * EARTH_M_PER_DEG,
-                      (r.extra["lon"] - lon[r.frame]) * EARTH_M_PER_DEG * math.cos(math.radians(lat[r.frame])))
-           for r in rows]
+    err = centre_errors_m(tmp_path, flight)
+    assert len(err) == 150
     assert float(np.median(err)) < 1.5, np.median(err)
     assert max(err) < 1.5, max(err)
+
+
+def centre_errors_m(run: Path, flight: Path) -> list[float]:
+    lat, lon = truth_centres(flight)
+    rows = [r for r in read_trajectory_csv(run / "trajectory.csv") if r.glued]
+    return [math.hypot((r.extra["lat"] - lat[r.frame]) * EARTH_M_PER_DEG,
+                       (r.extra["lon"] - lon[r.frame]) * EARTH_M_PER_DEG * math.cos(math.radians(lat[r.frame])))
+            for r in rows]
+
+
+def test_phantom_style_cues_once_a_second_are_interpolated(dji, tmp_path):
+    """The same flight as 1 Hz Phantom 4 cues (GPS(lon, lat, n), H above take-off, no gimbal,
+    no focal length: the camera model is configured): positions between cues are interpolated."""
+    flight, folder = dji
+    lines = []
+    for k, c in enumerate(read_srt(folder / "DJI_0001.SRT").cues[::15]):   # 15 fps: one a second
+        start = f"00:00:{int(c.t):02d},{round(c.t % 1 * 1000):03d}"
+        end = f"00:00:{int(c.t) + 1:02d},{round(c.t % 1 * 1000):03d}"
+        lines += [str(k + 1), f"{start} --> {end}", f"F/2.8, SS 200, ISO 100, EV 0, GPS ({c.lon:.6f}, "
+                  f"{c.lat:.6f}, 17), D 10.00m, H {c.rel_alt:.2f}m, H.S 1.00m/s, V.S 0.00m/s", ""]
+    (tmp_path / "p4.SRT").write_text("\n".join(lines))
+    fx = yaml.safe_load((flight / "meta.yaml").read_text())["camera"]["fx"]
+    summary = replay(str(folder / "DJI_0001.MP4"), tmp_path / "run", load_config().updated({"camera": {"fx_px": fx}}),
+                     mavlink=str(tmp_path / "p4.SRT"))
+    assert summary["telemetry"]["status"] == "ok" and summary["telemetry"]["frames_with_telemetry"] == 150
+    assert summary["telemetry"]["link"]["styles"] == {"gps_lon_lat": 10}
+    assert summary["georeference"] is not None
+    err = centre_errors_m(tmp_path / "run", flight)
+    assert len(err) == 150 and float(np.median(err)) < 1.5, np.median(err)
 
 
 def test_telemetry_flag_takes_an_srt_and_its_gps_is_still_checked(dji, tmp_path, caplog):
