@@ -410,7 +410,9 @@ def read_still_metadata(path: str | Path) -> StillMetadata:
                 exif_ifd = _safe_ifd(exif, ExifTags.IFD.Exif, problems)
                 gps_ifd = _safe_ifd(exif, ExifTags.IFD.GPSInfo, problems)
                 packet = xmp_packet(im)
-        problems += [f"EXIF: {w.message}" for w in caught]   # Pillow warns on corrupt EXIF
+        # Pillow warns on corrupt EXIF; a ResourceWarning is some other object's finaliser that
+        # the garbage collector happened to run here, not this file's
+        problems += [f"EXIF: {w.message}" for w in caught if not issubclass(w.category, ResourceWarning)]
     except Exception as exc:  # noqa: BLE001 - untrusted file: any parser failure means "no metadata"
         log.debug("%s: metadata unreadable (%s: %s)", path, type(exc).__name__, exc)
         return StillMetadata(name=path.name, problems=(f"unreadable: {type(exc).__name__}: {exc}",))

@@ -25,7 +25,9 @@ class Frame:
         ``index / rate`` when the stills carry no EXIF time. Live cameras: the host's
         monotonic clock (``time.monotonic()``) when the frame was received.
     image : numpy.ndarray
-        uint8, ``HxW`` (gray) or ``HxWx3`` (BGR, OpenCV order).
+        uint8, ``HxW`` (gray) or ``HxWx3`` (BGR, OpenCV order). A source of deeper images
+        (16-bit, float) brings them to uint8 with one
+        :class:`~photomap.core.stretch.RunningStretch` per flight.
     source : str
         Where the frame came from: the still's file name, the video's file name, the device.
     """

@@ -1,4 +1,10 @@
-"""Replay a folder (or glob) of stills, timed by their EXIF capture time when they carry one."""
+"""Replay a folder (or glob) of stills, timed by their EXIF capture time when they carry one.
+
+Every format this OpenCV build reads is taken (:func:`photomap.drivers.imread.image_suffixes`:
+JPEG, PNG, TIFF, BMP, PGM/PPM/PBM, WebP, JPEG 2000 ...), at its own depth: 16-bit and float
+stills are brought to 8 bits by one :class:`~photomap.core.stretch.RunningStretch` per flight,
+and the image libraries' warnings are summarised once per kind with a count at the end.
+"""
 
 from __future__ import annotations
 
@@ -10,14 +16,16 @@ from typing import Iterator
 
 import cv2
 
+from photomap.core.stretch import RunningStretch
 from photomap.errors import InputError
 
 from photomap.drivers.exif import parse_exif_datetime, read_capture_time
 from photomap.drivers.frames import CaptureStats, Frame, SourceBase
+from photomap.drivers.imread import ImageReader, image_suffixes
 
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+IMAGE_SUFFIXES = image_suffixes()
 
 _GLOB_CHARS = re.compile(r"[*?\[]")
 #: Stills with a side shorter than this (pixels) are skipped: too small to register.
@@ -38,7 +46,7 @@ def exif_time(path: str | Path) -> float | None:
 
 
 def list_images(folder_or_glob: str | Path) -> list[Path]:
-    """Still images (jpg, jpeg, png, tif, tiff; any case) of a folder or glob, sorted by path.
+    """Still images (:data:`IMAGE_SUFFIXES`, any case) of a folder or glob, sorted by path.
 
     Raises
     ------
@@ -101,7 +109,8 @@ class ImageFolderSource(SourceBase):
         if not self.paths:
             if not Path(spec).is_dir() and not _GLOB_CHARS.search(spec):
                 raise InputError(f"image folder not found: {spec}")
-            raise InputError(f"no images (jpg, png, tif) in {spec}")
+            formats = ", ".join(s.lstrip(".") for s in IMAGE_SUFFIXES)
+            raise InputError(f"no images in {spec} (formats read: {formats})")
         stamps = [exif_time(p) for p in self.paths]
         missing = sum(s is None for s in stamps)
         self.exif_times = missing == 0
@@ -113,12 +122,25 @@ class ImageFolderSource(SourceBase):
                     "%g per second", missing, len(stamps), spec, rate)
             self.times = [i / rate for i in range(len(self.paths))]
         self._closed = False
+        self.stretch = RunningStretch()   # 16-bit / float stills: one range for the flight
 
     def __iter__(self) -> Iterator[Frame]:
+        reader = ImageReader()
+        try:
+            yield from self._frames(reader)
+        finally:
+            for line in reader.summary():
+                log.info("%s", line)
+            if self.stretch.frames:
+                log.info("%d still(s) deeper than 8 bits stretched to 8 bits (range %s)",
+                         self.stretch.frames, self.stretch.describe())
+            reader.close()
+
+    def _frames(self, reader: ImageReader) -> Iterator[Frame]:
         for index, (path, t) in enumerate(zip(self.paths, self.times)):
             if self._closed:
                 return
-            image = cv2.imread(str(path), cv2.IMREAD_ANYCOLOR)
+            image = reader.read(path)
             if image is None:
                 log.warning("skipping %s: not a readable image", path)
                 self.stats.corrupt += 1
@@ -128,8 +150,10 @@ class ImageFolderSource(SourceBase):
                             "side)", path, image.shape[1], image.shape[0], MIN_SIDE)
                 self.stats.corrupt += 1
                 continue
+            if image.ndim == 3 and image.shape[2] == 4:
+                image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
             self.stats.read += 1
-            yield Frame(index=index, t=t, image=image, source=path.name)
+            yield Frame(index=index, t=t, image=self.stretch(image), source=path.name)
 
     def close(self) -> None:
         """Stop iteration at the next frame."""

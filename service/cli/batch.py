@@ -4,8 +4,8 @@ Each INPUT is one flight: a video file or a folder of stills (as `photomap repla
 or a manifest (a .yaml/.yml/.csv file listing flights). Telemetry is found by a sidecar
 convention unless the manifest says otherwise:
 
-  video  DIR/NAME.EXT  ->  DIR/NAME.tlog, else DIR/telemetry.tlog when DIR holds no other video
-                           (the layout `photomap simulate` writes)
+  video  DIR/NAME.EXT  ->  DIR/NAME.tlog, else DIR/NAME.SRT (DJI), else DIR/telemetry.tlog when
+                           DIR holds no other video (the layout `photomap simulate` writes)
   stills DIR/          ->  DIR.tlog beside the folder, else the one *.tlog inside it; without
                            one, the stills' own EXIF GPS / DJI XMP (as replay does)
 
@@ -53,6 +53,7 @@ from typing import Callable, Sequence
 import yaml
 
 from photomap.config import Config
+from photomap.drivers.srt import srt_beside
 from photomap.errors import InputError, PhotomapError
 
 log = logging.getLogger(__name__)
@@ -92,6 +93,9 @@ def sidecar_telemetry(input_path: str | Path) -> str | None:
         own = p.with_suffix(".tlog")
         if own.is_file():
             return str(own)
+        srt = srt_beside(p)
+        if srt is not None:
+            return str(srt)
         shared = p.parent / "telemetry.tlog"
         videos = [q for q in p.parent.iterdir() if q.is_file() and q.suffix.lower() in VIDEO_SUFFIXES]
         if shared.is_file() and videos == [p]:

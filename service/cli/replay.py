@@ -15,7 +15,7 @@ from pathlib import Path
 
 from photomap.cli.wiring import add_hazards_argument, hazards_config
 from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
-                                 open_stills_telemetry, open_telemetry, print_summary)
+                                 open_stills_telemetry, open_telemetry, print_summary, telemetry_beside)
 from photomap.config import Config
 from photomap.errors import OutputError
 
@@ -43,9 +43,9 @@ def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool 
            status_interval: float = 0.0) -> dict:
     """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary.
 
-    ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, or a live link (then use
-    ``realtime``). Without it, stills use their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a
-    geo.txt file). ``status_interval`` > 0: a status line every that many seconds when no
+    ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, a DJI .SRT, or a live link
+    (then use ``realtime``; the command finds a video's .SRT beside it). Without it, stills use
+    their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a geo.txt file). ``status_interval`` > 0: a status line every that many seconds when no
     progress bar is shown (see :func:`photomap.cli.wiring.map_source`).
     """
     source = open_capture(str(input_spec), cfg.capture)
@@ -70,8 +70,11 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
     cfg = hazards_config(args, cfg)
     if args.time_offset is not None:
         cfg = cfg.updated({"telemetry": {"time_offset": args.time_offset}})
+    mavlink = args.mavlink
+    if not mavlink and not cfg.telemetry.source:
+        mavlink = telemetry_beside(args.input)   # DJI_0001.SRT beside DJI_0001.MP4
     summary = replay(args.input, args.out, cfg, progress=not (args.no_progress or args.quiet),
-                     realtime=args.realtime, mavlink=args.mavlink, video_start=args.video_start,
+                     realtime=args.realtime, mavlink=mavlink, video_start=args.video_start,
                      viewer=args.viewer, geo=args.geo, status_interval=getattr(args, "status_interval", 0.0))
     print_summary(summary, args.out)
     if summary.get("write_errors"):

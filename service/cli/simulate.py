@@ -65,6 +65,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--codec", choices=sorted(VIDEO_CODECS), help="video codec: mp4v (video.mp4, strong compression), "
       "mjpg (video.avi) or ffv1 (video.mkv, lossless)")
     a("--side-overlap", type=float, metavar="F", help="lawn-mower strip spacing as footprint overlap (0..1)")
+    a("--srt", action="store_true", help="also write video.srt, DJI Mini-style subtitle telemetry (one cue per "
+      "frame), which `photomap replay video.mp4` joins by itself")
     g = parser.add_argument_group("hard cases of real flights")
     a = g.add_argument
     a("--terrain-period", type=int, metavar="PX", help="period of the tiles/rows terrains, terrain pixels")
@@ -109,7 +111,8 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         object_size=s.object_size, object_walls=s.object_walls, mode=s.mode, strips=s.strips,
         stills_per_strip=s.stills_per_strip, forward_overlap=s.forward_overlap, stills_yaw=s.stills_yaw,
         stills_quality=s.stills_quality, stills_xmp=s.stills_xmp, hotspots=s.hotspots,
-        hotspot_style=s.hotspot_style)
+        hotspot_style=s.hotspot_style,
+        srt=bool(getattr(args, "srt", False)))
     if s.mode == "stills":
         n = yaml.safe_load((out / "meta.yaml").read_text(encoding="utf-8"))["frames"]
         print(f"simulated {n} stills into {out}/: stills/, groundtruth.csv, telemetry.tlog, meta.yaml"
@@ -117,5 +120,5 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         return 0
     video = VIDEO_CODECS[s.video_codec][0]
     print(f"simulated {s.frames} frames into {out}/: {video}, groundtruth.csv, telemetry.tlog, meta.yaml"
-          + (", frames/" if s.save_frames else ""))
+          + (", video.srt" if getattr(args, "srt", False) else "") + (", frames/" if s.save_frames else ""))
     return 0

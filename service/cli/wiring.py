@@ -21,8 +21,10 @@ from tqdm import tqdm
 from photomap.cli.oplog import StatusReporter
 from photomap.config import CaptureConfig, Config
 from photomap.drivers.capture import open_source
+from photomap.drivers.exif import focal_length_px
 from photomap.drivers.frames import FrameSource
 from photomap.drivers.mavlink import TelemetryReader, load_tlog
+from photomap.drivers.srt import is_srt, read_srt, srt_beside
 from photomap.drivers.stills_telemetry import open_stills_telemetry as stills_telemetry
 from photomap.errors import InputError
 from photomap.io.preflight import check_output_dir
@@ -38,9 +40,10 @@ log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------------- arguments
 def add_telemetry_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--mavlink", metavar="CONNECTION",
-                        help="MAVLink telemetry: a .tlog file, udpin:0.0.0.0:14550, tcp:HOST:PORT, "
-                             "/dev/ttyUSB0,57600 ... (default: telemetry.source; none = vision only)")
+    parser.add_argument("--mavlink", "--telemetry", dest="mavlink", metavar="CONNECTION",
+                        help="telemetry: a .tlog file, a DJI .SRT (replay; found beside DJI_0001.MP4 "
+                             "by itself), udpin:0.0.0.0:14550, tcp:HOST:PORT, /dev/ttyUSB0,57600 ... "
+                             "(default: telemetry.source; none = vision only)")
     parser.add_argument("--time-offset", type=float, metavar="SECONDS",
                         help="seconds added to frame times to get telemetry times")
 
@@ -107,6 +110,13 @@ def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None,
     camera = meta.get("camera") or {}
     if not cfg.camera.fx_px and not cfg.camera.hfov_deg and camera.get("fx"):
         cfg = cfg.updated({"camera": {"fx_px": float(camera["fx"])}})  # the video's own camera model
+    if is_srt(spec):
+        if live:
+            raise InputError(f"{spec}: a DJI subtitle file is the telemetry of a recorded video, "
+                             "not of a live camera")
+        beside = bool(input_spec) and Path(spec).with_suffix("") == Path(input_spec).with_suffix("")
+        join, cfg = open_srt_telemetry(spec, cfg, source=source, beside=beside)
+        return join, None, cfg
     if spec.lower().endswith(".tlog") and not live:
         if not Path(spec).is_file():
             raise InputError(f"telemetry log not found: {spec}")
@@ -132,6 +142,35 @@ def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None,
     join = TelemetryJoin(reader.at, "live" if live else "link", cfg, offset=tcfg.time_offset,
                          link_summary=lambda: _link_summary(spec, reader.stats))
     return join, reader, cfg
+
+
+def open_srt_telemetry(path: str | Path, cfg: Config, *, source: FrameSource | None = None,
+                       beside: bool = False) -> tuple[TelemetryJoin, Config]:
+    """A join for a DJI subtitle file (:mod:`photomap.drivers.srt`): its cues are on the video's
+    clock (video start 0, offset ``telemetry.time_offset``), joined like a .tlog. The config
+    gets the cues' 35 mm equivalent focal length (at the frames' size, as for stills) when the
+    camera model is not configured. Logs one line (``beside``: the file was found beside the
+    video, and the line says so)."""
+    tcfg = cfg.telemetry
+    if not Path(path).is_file():
+        raise InputError(f"telemetry file not found: {path}")
+    track = read_srt(path)
+    log.info("telemetry from %s%s", track.describe(), " (found beside the video)" if beside else "")
+    size = getattr(source, "size", None)
+    if not cfg.camera.fx_px and not cfg.camera.hfov_deg and track.focal_35mm and size:
+        fx, _ = focal_length_px(*size, focal_35mm=track.focal_35mm)
+        if fx:
+            cfg = cfg.updated({"camera": {"fx_px": float(fx)}})
+    buffer = track.buffer(max_gap=tcfg.max_gap, max_hold=tcfg.max_hold)
+    join = TelemetryJoin(buffer.at, "log", cfg, video_start=0.0, offset=tcfg.time_offset,
+                         link_summary=track.summary, field_at=buffer.value_at)
+    return join, cfg
+
+
+def telemetry_beside(input_spec: str) -> str | None:
+    """The DJI subtitle file beside a video (``DJI_0001.SRT`` for ``DJI_0001.MP4``), or None."""
+    found = srt_beside(input_spec)
+    return None if found is None else str(found)
 
 
 def open_stills_telemetry(source: FrameSource, cfg: Config, geo: str | None = None

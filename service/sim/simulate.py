@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import yaml
 
+from photomap.sim.srt_writer import write_srt
 from photomap.sim.tlog_writer import RATES_HZ, write_tlog
 
 from photomap.errors import InputError, PhotomapError
@@ -71,7 +72,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                     object_size: tuple[float, float] = (4.0, 12.0), object_walls: bool = True,
                     mode: str = "video", strips: int = 4, stills_per_strip: int = 10,
                     forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
-                    stills_xmp: bool = True, hotspots: int = 0, hotspot_style: str = "thermal",
+                    stills_xmp: bool = True, hotspots: int = 0, hotspot_style: str = "thermal", srt: bool = False,
                     **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
@@ -103,6 +104,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         (:mod:`photomap.sim.hotspots`), their truth in ``hotspots.csv``; ``hotspot_style``
         ``thermal`` (grey thermal-looking terrain, hot grey spots) or ``visible`` (colour
         terrain, fire-orange spots).
+    srt : also write ``video.srt`` beside the video, the DJI Mini-style subtitle telemetry of
+        every frame (:mod:`photomap.sim.srt_writer`; video mode only).
     **params : :class:`photomap.sim.flight.Motion` and :class:`photomap.sim.flight.Effects` fields.
 
     Returns the output folder.
@@ -195,6 +198,11 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         write_hotspots_csv(out / "hotspots.csv", spots,
                            *pixel_to_latlon(np.array([s.x for s in spots]), np.array([s.y for s in spots]),
                                             gsd_eff, origin_lat, origin_lon))
+    srt_file = None
+    if srt and not stills:
+        srt_file = media.with_suffix(".srt")
+        write_srt(srt_file, truth.t, lat, lon, truth.alt_m, truth.roll_deg, truth.pitch_deg, truth.yaw_deg,
+                  t0_unix=t0_unix, home_amsl_m=origin_amsl, focal_35mm=focal_35mm(camera))
     write_tlog(out / "telemetry.tlog", truth.t, lat, lon, truth.alt_m, truth.roll_deg, truth.pitch_deg,
                flight_yaw, t0_unix=t0_unix, boot_offset_s=boot_offset_s, home_amsl_m=origin_amsl,
                fixed_wing=motion.max_bank > 0)
@@ -220,6 +228,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                        "heading of the image's up direction = angle of H; scale = terrain px per frame px "
                        "at nadir; tlog position = camera nadir point, groundtruth x, y = frame centre",
     }
+    if srt_file is not None:
+        meta["files"]["srt"] = srt_file.name
     if periodic:
         meta["terrain"].update(periodic)
     if objects > 0:
