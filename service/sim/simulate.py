@@ -72,7 +72,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                     object_size: tuple[float, float] = (4.0, 12.0), object_walls: bool = True,
                     mode: str = "video", strips: int = 4, stills_per_strip: int = 10,
                     forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
-                    stills_xmp: bool = True, hotspots: int = 0, hotspot_style: str = "thermal", srt: bool = False,
+                    stills_xmp: bool = True, hotspots: int = 0, hotspot_style: str = "thermal",
+                    srt: bool = False,
                     **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
