@@ -35,7 +35,8 @@ FLAGS = {"terrain": "terrain", "zoom": "terrain_zoom", "gsd": "gsd", "frames": "
          "object_height": "object_height", "object_size": "object_size", "max_bank": "max_bank",
          "pitch_offset": "pitch_offset", "mode": "mode", "strips": "strips",
          "stills_per_strip": "stills_per_strip", "forward_overlap": "forward_overlap",
-         "stills_yaw": "stills_yaw"}
+         "stills_yaw": "stills_yaw", "k1": "k1", "k2": "k2", "p1": "p1", "p2": "p2", "k3": "k3",
+         "overlay": "overlay"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -82,6 +83,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--forward-overlap", type=float, metavar="F", help="stills mode: overlap of consecutive stills (0..1)")
     a("--stills-yaw", choices=SURVEY_YAW_MODES, help="stills mode: flip (the picture turns 180 deg between "
       "strips) or hold (a gimbal holds the camera heading; the telemetry yaw flips)")
+    g = parser.add_argument_group("the camera's lens and overlay")
+    a = g.add_argument
+    for name in ("k1", "k2", "p1", "p2", "k3"):
+        a(f"--{name}", type=float, metavar="C", help=f"Brown-Conrady distortion coefficient {name} (OpenCV)")
+    a("--overlay", action="store_true", default=None, help="burn OSD text, a crosshair and a box into every "
+      "frame; also writes mask.png (for replay --mask)")
 
 
 def main(args: argparse.Namespace, cfg: Config) -> int:
@@ -105,7 +112,8 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         terrain_stain=s.terrain_stain, objects=s.objects, object_height=s.object_height,
         object_size=s.object_size, object_walls=s.object_walls, mode=s.mode, strips=s.strips,
         stills_per_strip=s.stills_per_strip, forward_overlap=s.forward_overlap, stills_yaw=s.stills_yaw,
-        stills_quality=s.stills_quality, stills_xmp=s.stills_xmp)
+        stills_quality=s.stills_quality, stills_xmp=s.stills_xmp, distortion=(s.k1, s.k2, s.p1, s.p2, s.k3),
+        osd=s.overlay)
     if s.mode == "stills":
         n = yaml.safe_load((out / "meta.yaml").read_text(encoding="utf-8"))["frames"]
         print(f"simulated {n} stills into {out}/: stills/, groundtruth.csv, telemetry.tlog, meta.yaml"
