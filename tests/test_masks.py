@@ -1,0 +1,120 @@
+"""Frame masks (`--mask`, `capture.mask`): a masked pixel never reaches the map or a registration."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from photomap.config import load_config
+from photomap.core.ifmi import Registrar
+from photomap.geo.lens import LensModel, Undistortion
+from photomap.mapping.frameprep import FramePrep
+from photomap.sim.lens import OVERLAY_BGR, Overlay
+
+
+def magenta_pixels(img: np.ndarray) -> int:
+    """Pixels of the overlay's colour (the terrains have none: a clean flight's map has 0)."""
+    b, g, r = (img[..., i].astype(int) for i in range(3))
+    return int(((np.minimum(b, r) - g) > 90).sum())
+
+
+def test_the_overlay_mask_covers_what_is_drawn():
+    ov = Overlay(320, 240)
+    frame = np.full((240, 320, 3), 100, np.uint8)
+    ov.draw(frame)
+    drawn = np.any(frame != 100, axis=2)
+    mask = ov.mask()
+    assert drawn.sum() > 500 and not np.any(drawn & (mask != 0))
+    assert (mask == 0).mean() < 0.2  # and leaves most of the frame
+    assert tuple(int(v) for v in frame[120, 160]) == OVERLAY_BGR  # the crosshair's centre
+
+
+def test_a_masked_overlay_leaves_registration_to_the_ground():
+    """A faint ground under a bright overlay fixed in the frame: the overlay pulls the shift
+    toward zero; with the mask in the window the shift is the ground's, at a higher confidence."""
+    rng = np.random.default_rng(0)
+    ground = cv2.GaussianBlur(rng.normal(0, 1, (400, 480)).astype(np.float32), (0, 0), 3)
+    ground = np.clip(128 + 5 * ground / ground.std(), 0, 255).astype(np.uint8)
+    h, w = 240, 320
+    a = cv2.cvtColor(ground[60:60 + h, 60:60 + w], cv2.COLOR_GRAY2BGR)
+    b = cv2.cvtColor(ground[56:56 + h, 67:67 + w], cv2.COLOR_GRAY2BGR)  # b -> a: shift (7, -4)
+    ov = Overlay(w, h)
+    ov.draw(a)
+    ov.draw(b)
+    prep = FramePrep({}, None, ov.mask())
+    prep.setup(w, h)
+    plain = Registrar((h, w)).register(a, b)
+    masked = Registrar((h, w), mask=prep.window((w, h))).register(prep.apply(a), prep.apply(b))
+    err = lambda r: math.hypot(r.matrix[0, 2] - 7.0, r.matrix[1, 2] + 4.0)  # noqa: E731
+    assert err(masked) < 0.05 and err(plain) > 3 * err(masked)
+    assert masked.confidence > plain.confidence + 0.2
+
+
+def test_the_mask_is_scaled_to_the_frames_and_undistorted_with_them():
+    mask = np.full((60, 80), 255, np.uint8)
+    mask[:, :8] = 0  # the left tenth of the raw frame
+    prep = FramePrep({}, None, mask)
+    prep.setup(640, 480)
+    assert prep.mask.shape == (480, 640) and (prep.mask[:, :64] == 0).all() and (prep.mask[:, 64:] == 255).all()
+    img = np.full((480, 640, 3), 200, np.uint8)
+    img[:, :64] = (255, 0, 255)
+    out = prep.apply(img)
+    assert magenta_pixels(out) == 0 and magenta_pixels(img) > 0  # filled, the source's frame untouched
+    fx = 320 / math.tan(math.radians(30))
+    camera = dict(model="brown", fx_px=fx, hfov_deg=0.0, fy_px=0.0, cx_px=0.0, cy_px=0.0, k1=-0.2, k2=0.05,
+                  p1=0.0, p2=0.0, k3=0.0, k4=0.0)
+    lensed = FramePrep(camera, None, mask)
+    lensed.setup(640, 480)
+    und = Undistortion.of(LensModel("brown", 640, 480, fx, fx, 319.5, 239.5, (-0.2, 0.05, 0.0, 0.0, 0.0)))
+    # the masked band, in the undistorted view, is where the raw frame's band went
+    band = und.apply(np.where(np.arange(640) < 64, 0, 255).astype(np.uint8)[None].repeat(480, 0),
+                     cv2.INTER_NEAREST)
+    assert np.mean((lensed.mask == 0) == (band < 255)) > 0.99
+    assert lensed.fx == pytest.approx(fx)
+
+
+def test_a_mask_that_leaves_nothing_is_refused(tmp_path):
+    from photomap.errors import InputError
+    mask = np.zeros((48, 64), np.uint8)
+    mask[:2, :2] = 255
+    with pytest.raises(InputError, match="less than 5 %"):
+        FramePrep({}, None, mask).setup(64, 48)
+
+
+def test_with_the_mask_the_overlay_never_reaches_the_map(tmp_path):
+    """A figure-eight with loop closure (re-renders of kept frames) over burned-in OSD: with
+    --mask no overlay pixel is in the map and the ATE is that of the flight without the
+    overlay; without the mask the overlay is painted along the track."""
+    from photomap.cli import main as cli
+    from photomap.eval.metrics import evaluate_trajectory
+    from photomap.geometry import frame_centre
+    from photomap.io.trajectory_files import read_groundtruth, read_trajectory_csv
+    from photomap.sim.simulate import simulate_flight
+    import json
+
+    kw = dict(n_frames=150, size=(320, 240), fps=10.0, seed=2, pattern="figure8", yaw_mode="heading", speed=6.0,
+              terrain_zoom=3.0, gsd=0.1, altitude=(25.0, 35.0), noise=1.0, video_codec="ffv1")
+    clean = simulate_flight(tmp_path / "clean", **kw)
+    osd = simulate_flight(tmp_path / "osd", osd=True, **kw)
+    assert (osd / "mask.png").is_file()
+
+    def run(flight, name, *extra):
+        out = tmp_path / name
+        assert cli.main(["replay", str(flight / "video.mkv"), "--out", str(out), "--no-progress", "-q", *extra]) == 0
+        summary = json.loads((out / "run.json").read_text())
+        ate = evaluate_trajectory(read_trajectory_csv(out / "trajectory.csv"),
+                                  read_groundtruth(flight / "groundtruth.csv"), frame_centre(320, 240))["headline"]
+        return summary, ate["ate"]["pct"], magenta_pixels(cv2.imread(str(out / "mosaic.png")))
+
+    base, base_ate, base_magenta = run(clean, "clean")
+    masked, masked_ate, masked_magenta = run(osd, "masked", "--mask", str(osd / "mask.png"))
+    _, _, unmasked_magenta = run(osd, "unmasked")
+    assert base_magenta == 0
+    assert masked["loop_closure"]["corrections"] >= 1  # kept frames were re-rendered
+    assert masked_magenta == 0
+    assert unmasked_magenta > 500
+    assert masked["segments"] == base["segments"] == 1 and masked["registered"] == base["registered"]
+    assert masked_ate <= base_ate + 0.01  # percent of the path
