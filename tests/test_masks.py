@@ -118,3 +118,26 @@ def test_with_the_mask_the_overlay_never_reaches_the_map(tmp_path):
     assert unmasked_magenta > 500
     assert masked["segments"] == base["segments"] == 1 and masked["registered"] == base["registered"]
     assert masked_ate <= base_ate + 0.01  # percent of the path
+
+
+def test_a_tilted_frame_keeps_its_mask_through_the_rectification():
+    """The telemetry's nadir rectification warps the frame mask with the frame: the masked
+    corner stays invalid in the view (and the frame's focal length is the lens's)."""
+    from photomap.mapping.telemetry_join import TelemetryJoin
+    from photomap.telemetry.samples import TelemetrySample
+
+    w, h = 320, 240
+    sample = TelemetrySample(t=0.0, roll=math.radians(6.0), pitch=math.radians(-4.0), yaw=0.0)
+    join = TelemetryJoin(lambda t: sample, "log", load_config(), video_start=0.0)
+    mask = np.full((h, w), 255, np.uint8)
+    mask[:60, :80] = 0
+    join.use_camera(300.0, mask)
+    assert join.focal(w) == 300.0
+    img = np.full((h, w, 3), 120, np.uint8)
+    view = join.rectify_frame(img, sample, 0)
+    assert view.homography is not None
+    corner = cv2.perspectiveTransform(np.array([[[40.0, 30.0]]]), view.homography)[0, 0]
+    assert view.mask[int(round(corner[1])), int(round(corner[0]))] == 0
+    centre = cv2.perspectiveTransform(np.array([[[160.0, 120.0]]]), view.homography)[0, 0]
+    assert view.mask[int(round(centre[1])), int(round(centre[0]))] == 255
+    assert (join.mask(0) == view.mask).all()  # the same mask when the frame is re-rendered
