@@ -115,6 +115,7 @@ def test_with_the_mask_the_overlay_never_reaches_the_map(tmp_path):
     assert base_magenta == 0
     assert masked["loop_closure"]["corrections"] >= 1  # kept frames were re-rendered
     assert masked_magenta == 0
+    assert masked["frame_prep"]["mask"] and 0.02 < masked["frame_prep"]["masked_fraction"] < 0.2
     assert unmasked_magenta > 500
     assert masked["segments"] == base["segments"] == 1 and masked["registered"] == base["registered"]
     assert masked_ate <= base_ate + 0.01  # percent of the path

@@ -98,6 +98,10 @@ class FramePrep:
             log.info("lens: %s model, fx %.1f px at %dx%d, distortion %s; frames are undistorted",
                      lens.model, lens.fx, width, height, " ".join(f"{v:g}" for v in lens.dist))
         if self.user_mask is not None:
+            mh, mw = self.user_mask.shape
+            if abs(mw / mh - width / height) > 0.01 * width / height:
+                log.warning("the frame mask is %dx%d, the frames %dx%d (another aspect ratio): it is stretched "
+                            "to the frames", mw, mh, width, height)
             user = cv2.resize(self.user_mask, (width, height), interpolation=cv2.INTER_NEAREST) \
                 if self.user_mask.shape != (height, width) else self.user_mask
             valid = self.undistortion.apply_mask(user) if self.undistortion is not None else user
@@ -108,6 +112,17 @@ class FramePrep:
             raise InputError("the frame mask (with the lens model) leaves less than 5 % of each frame: "
                              "nothing to map")
         self.mask = valid
+
+    def summary(self) -> dict:
+        """For run.json: the lens the frames were undistorted with (None: none) and the share of
+        each frame's pixels that were masked."""
+        und = self.undistortion
+        lens = None if und is None else {
+            "model": und.lens.model, "size": [und.lens.width, und.lens.height], "fx": und.lens.fx,
+            "fy": und.lens.fy, "cx": und.lens.cx, "cy": und.lens.cy, "distortion": list(und.lens.dist),
+            "fx_undistorted": und.fx, "source": "calibration" if self.calibration is not None else "config"}
+        masked = 0.0 if self.mask is None else 1.0 - cv2.countNonZero(self.mask) / self.mask.size
+        return {"lens": lens, "mask": self.user_mask is not None, "masked_fraction": round(masked, 4)}
 
     def apply(self, image: np.ndarray) -> np.ndarray:
         """The frame as the map sees it: undistorted, masked pixels filled with the valid ones' mean."""

@@ -722,6 +722,8 @@ class MappingPipeline:
                     "working_size": list(getattr(self, "_small", ())),
                     "reconnects": src.reconnects, "map_scale": self._map_scale,
                     "video_start_unix": self._video_start_unix()})
+        if self._prep is not None:
+            out["frame_prep"] = self._prep.summary()
         if self._painter is not None:
             out["painting"] = self._painter.stats.summary()
         if self.loops is not None:
