@@ -142,3 +142,19 @@ def test_a_tilted_frame_keeps_its_mask_through_the_rectification():
     centre = cv2.perspectiveTransform(np.array([[[160.0, 120.0]]]), view.homography)[0, 0]
     assert view.mask[int(round(centre[1])), int(round(centre[0]))] == 255
     assert (join.mask(0) == view.mask).all()  # the same mask when the frame is re-rendered
+
+
+def test_the_second_opinion_finds_no_keypoints_on_masked_pixels():
+    from photomap.core.features import FeatureMatcher
+
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320), dtype=np.uint8), (0, 0), 1.2)
+    ov = Overlay(320, 240)
+    prep = FramePrep({}, None, ov.mask())
+    prep.setup(320, 240)
+    weights = prep.window((160, 120))  # the registrar's mask at a working size of half the frame
+    sift = FeatureMatcher("sift", working_size=320)
+    everywhere, masked = sift.prepare(img), sift.prepare(img, weights)
+    hidden = lambda pts: int((ov.mask()[np.round(pts[:, 1]).astype(int), np.round(pts[:, 0]).astype(int)] == 0).sum())  # noqa: E731
+    assert hidden(everywhere.points) > 5 and hidden(masked.points) == 0
+    assert len(masked) > 0.6 * len(everywhere)
