@@ -244,3 +244,19 @@ def test_a_distorted_flight_maps_as_well_as_a_pinhole_one_when_its_lens_is_given
     without = _ate_pct(distorted, tmp_path / "run_without")
     assert with_model <= ideal + 0.01  # percent of the path: no worse than the ideal lens
     assert without > 0.1 and without > 20 * with_model
+
+
+def test_simulate_flags_record_the_lens_and_the_overlay(tmp_path):
+    import yaml
+    from photomap.cli import main as cli
+
+    out = tmp_path / "sim"
+    assert cli.main(["simulate", "--out", str(out), "--frames", "3", "--size", "160x120", "--hfov", "50",
+                     "--k1", "-0.2", "--k2", "0.05", "--overlay", "--codec", "ffv1", "-q"]) == 0
+    meta = yaml.safe_load((out / "meta.yaml").read_text())
+    assert meta["camera"]["distortion"] == {"k1": -0.2, "k2": 0.05, "p1": 0.0, "p2": 0.0, "k3": 0.0}
+    assert meta["overlay"]["mask"] == "mask.png"
+    mask = read_mask(out / "mask.png")
+    assert mask.shape == (120, 160) and 0.02 < (mask == 0).mean() < 0.3
+    assert cli.main(["simulate", "--out", str(tmp_path / "bad"), "--frames", "3", "--size", "160x120",
+                     "--k1", "-0.3", "-q"]) == 3  # folds inside a 60-degree frame: refused
