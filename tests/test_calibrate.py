@@ -30,8 +30,10 @@ def _board_texture() -> np.ndarray:
     return tex
 
 
-def render_views(lens: LensModel, n: int, seed: int = 0) -> list[np.ndarray]:
-    """``n`` views of the board through ``lens`` from random poses (tilted up to 35 deg)."""
+def render_views(lens: LensModel, n: int, seed: int = 0, spread: float = 0.2,
+                 depth_m: tuple[float, float] = (0.28, 0.45)) -> list[np.ndarray]:
+    """``n`` views of the board through ``lens`` from random poses (tilted up to 35 deg), its
+    centre within ``spread`` of the frame's (a fraction of the size), ``depth_m`` away."""
     rng = np.random.default_rng(seed)
     tex = _board_texture()
     render = DistortedRender(lens)
@@ -44,9 +46,9 @@ def render_views(lens: LensModel, n: int, seed: int = 0) -> list[np.ndarray]:
     while len(views) < n:
         rvec = np.radians(rng.uniform([-35, -35, -180], [35, 35, 180]))
         rot, _ = cv2.Rodrigues(rvec)
-        depth = rng.uniform(0.28, 0.45)
+        depth = rng.uniform(*depth_m)
         # the board's centre somewhere in the frame, away from the very edge
-        u, v = rng.uniform(0.3, 0.7) * lens.width, rng.uniform(0.3, 0.7) * lens.height
+        u, v = rng.uniform(0.5 - spread, 0.5 + spread, 2) * (lens.width, lens.height)
         ray = np.array([(u - lens.cx) / lens.fx, (v - lens.cy) / lens.fy, 1.0]) * depth
         t = ray - rot @ centre
         h_ideal = lens.ideal_matrix() @ np.column_stack([rot[:, 0], rot[:, 1], t]) @ tex_to_plane
@@ -104,3 +106,21 @@ def test_no_board_is_one_clear_error(tmp_path, capsys):
     assert not (tmp_path / "c.yaml").exists()
     assert cli.main(["calibrate", str(folder), "--board", "9", "--square", "0.02", "--out", "x.yaml", "-q"]) != 0
     assert "COLSxROWS" in capsys.readouterr().err
+
+
+def test_calibrate_a_fisheye_lens(tmp_path, capsys):
+    lens = LensModel("fisheye", 640, 480, 280.0, 280.0, 319.5, 239.5, (0.05, -0.02, 0.004, -0.001))
+    folder = tmp_path / "shots"
+    folder.mkdir()
+    for k, img in enumerate(render_views(lens, 20, spread=0.3, depth_m=(0.17, 0.28))):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), img)
+    out = tmp_path / "fisheye.yaml"
+    assert cli.main(["calibrate", str(folder), "--board", "9x6", "--square", str(SQUARE_M), "--fisheye",
+                     "--out", str(out), "-q"]) == 0
+    assert capsys.readouterr().out.startswith("calibrated fisheye lens from ")
+    got = read_calibration(out)
+    assert got.model == "fisheye" and got.fx == pytest.approx(280.0, rel=0.02)
+    # the fitted lens bends rays like the true one over the middle of the frame
+    xx, yy = np.meshgrid(np.linspace(96, 544, 15), np.linspace(72, 408, 11))
+    pts = np.column_stack([xx.ravel(), yy.ravel()])
+    assert np.abs(got.undistort_points(pts) - lens.undistort_points(pts)).max() < 2.0

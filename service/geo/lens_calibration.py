@@ -84,6 +84,12 @@ def board_points(board: tuple[int, int], square: float) -> np.ndarray:
     return grid
 
 
+def _fisheye_flag(name: str) -> int:
+    """A fisheye calibration flag: in ``cv2.fisheye`` up to OpenCV 4, in ``cv2`` (other values) from 5."""
+    value = getattr(cv2.fisheye, name, None)
+    return int(value if value is not None else getattr(cv2, name))
+
+
 def calibrate(views: list[np.ndarray], board: tuple[int, int], square: float, size: tuple[int, int],
               model: str = "brown") -> Calibration:
     """Fit a ``model`` lens (``brown``: k1 k2 p1 p2 k3; ``fisheye``: k1..k4) to the corner
@@ -94,7 +100,7 @@ def calibrate(views: list[np.ndarray], board: tuple[int, int], square: float, si
     obj = board_points(board, square)
     w, h = size
     if model == "fisheye":
-        flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+        flags = _fisheye_flag("CALIB_RECOMPUTE_EXTRINSIC") | _fisheye_flag("CALIB_FIX_SKEW")
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-7)
         try:
             rms, k, d, _, _ = cv2.fisheye.calibrate([obj.reshape(1, -1, 3).astype(np.float64) for _ in views],
