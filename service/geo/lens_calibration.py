@@ -109,8 +109,13 @@ def calibrate(views: list[np.ndarray], board: tuple[int, int], square: float, si
         except cv2.error as exc:
             raise InputError(f"the fisheye calibration did not converge ({exc.err}): use more, sharper views") from None
     else:
-        rms, k, d, _, _ = cv2.calibrateCamera([obj] * len(views), [v.reshape(-1, 1, 2) for v in views],
-                                              (w, h), None, None)
+        try:
+            rms, k, d, _, _ = cv2.calibrateCamera([obj] * len(views), [v.reshape(-1, 1, 2) for v in views],
+                                                  (w, h), None, None)
+        except cv2.error as exc:
+            raise InputError(f"the calibration failed ({exc.err}): use more views, from other angles") from None
+    if not (np.isfinite(rms) and np.all(np.isfinite(k)) and np.all(np.isfinite(d))):
+        raise InputError("the calibration did not converge: use more views, from other angles")
     d = np.asarray(d, float).ravel()
     lens = LensModel(model, int(w), int(h), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
                      tuple(float(v) for v in d[:4 if model == "fisheye" else 5]))
