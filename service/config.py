@@ -203,6 +203,7 @@ class CaptureConfig(_Section):
     reconnect_initial: float = _num(0.5, 0.0, 3600.0, lo_open=True)
     reconnect_max: float = _num(8.0, 0.0, 3600.0, lo_open=True)
     image_rate: float = _num(1.0, 0.0, 1000.0, lo_open=True)
+    mask: str = ""
 
     def _check(self) -> None:
         if len(self.fourcc) not in (0, 4):
@@ -304,6 +305,12 @@ class SimulateConfig(_Section):
     stills_xmp: bool = True
     hotspots: int = _num(0, 0, 1000)
     hotspot_style: str = _choice("thermal", "thermal", "visible")
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+    overlay: bool = False
 
     def _check(self) -> None:
         if self.object_size[0] > self.object_size[1]:
@@ -342,6 +349,30 @@ class CameraConfig(_Section):
     _name = "camera"
     fx_px: float = _num(0.0, 0.0, None)
     hfov_deg: float = _num(0.0, 0.0, 180.0, hi_open=True)
+    # lens model (photomap.geo.lens): from a calibration file, or the keys below at the input size
+    calibration: str = ""
+    model: str = _choice("brown", "brown", "fisheye")
+    fy_px: float = _num(0.0, 0.0, None)
+    cx_px: float = _num(0.0, 0.0, None)
+    cy_px: float = _num(0.0, 0.0, None)
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+
+    def _check(self) -> None:
+        if self.calibration:
+            for key in ("fx_px", "hfov_deg", "fy_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3", "k4"):
+                if getattr(self, key):
+                    self._fail(key, f"conflicts with camera.calibration ({self.calibration}), which gives the "
+                                    f"camera model: leave it at 0")
+        if self.model == "fisheye" and any((self.p1, self.p2)):
+            self._fail("p1" if self.p1 else "p2", "is a Brown-Conrady coefficient: a fisheye lens takes k1..k4")
+        if self.model == "brown" and self.k4:
+            self._fail("k4", "is a fisheye coefficient: set camera.model=fisheye (a Brown-Conrady lens takes "
+                             "k1 k2 p1 p2 k3)")
 
 
 @dataclass(frozen=True)

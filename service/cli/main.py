@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("photomap.cli.run", "map live from a camera (V4L2) until stopped"),
     "replay": ("photomap.cli.replay", "map a logged video or a folder of images"),
     "simulate": ("photomap.cli.simulate", "fly a virtual camera over a terrain image: video, telemetry, ground truth"),
+    "calibrate": ("photomap.cli.calibrate", "fit the camera's lens model (distortion) to views of a checkerboard"),
     "evaluate": ("photomap.eval.evaluate", "compare a run's trajectory with ground truth: errors, ATE, drift, plots"),
     "batch": ("photomap.cli.batch", "map many logged flights at once on every core or a Dask cluster"),
     "merge": ("photomap.cli.merge", "merge the maps of several runs over one site into one map"),

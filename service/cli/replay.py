@@ -14,8 +14,9 @@ import argparse
 from pathlib import Path
 
 from photomap.cli.wiring import add_hazards_argument, hazards_config
-from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
-                                 open_stills_telemetry, open_telemetry, print_summary, telemetry_beside)
+from photomap.cli.wiring import (add_mask_argument, add_telemetry_arguments, add_viewer_argument, map_source,
+                                 open_capture, open_stills_telemetry, open_telemetry, print_summary,
+                                 telemetry_beside, with_mask_argument)
 from photomap.config import Config
 from photomap.errors import OutputError
 
@@ -27,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replay at the frames' original pace instead of as fast as possible")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_telemetry_arguments(parser)
+    add_mask_argument(parser)
     add_viewer_argument(parser)
     add_hazards_argument(parser)
     parser.add_argument("--geo", metavar="FILE",
@@ -68,6 +70,7 @@ def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool 
 
 def main(args: argparse.Namespace, cfg: Config) -> int:
     cfg = hazards_config(args, cfg)
+    cfg = with_mask_argument(args, cfg)
     if args.time_offset is not None:
         cfg = cfg.updated({"telemetry": {"time_offset": args.time_offset}})
     mavlink = args.mavlink

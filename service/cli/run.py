@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 from photomap.cli.wiring import add_hazards_argument, hazards_config
-from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
-                                 open_telemetry, print_summary)
+from photomap.cli.wiring import (add_mask_argument, add_telemetry_arguments, add_viewer_argument, map_source,
+                                 open_capture, open_telemetry, print_summary, with_mask_argument)
 from photomap.config import Config
 from photomap.errors import OutputError
 
@@ -28,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="DIR",
                         help="output folder (default: a time-stamped folder under output.data_dir)")
     add_telemetry_arguments(parser)
+    add_mask_argument(parser)
     add_viewer_argument(parser)
     add_hazards_argument(parser)
 
@@ -46,6 +47,7 @@ def flight_folder(data_dir: str | Path) -> Path:
 def main(args: argparse.Namespace, cfg: Config) -> int:
     cfg = hazards_config(args, cfg)
     out = Path(args.out) if args.out else flight_folder(cfg.output.data_dir)
+    cfg = with_mask_argument(args, cfg)
     if args.time_offset is not None:
         cfg = cfg.updated({"telemetry": {"time_offset": args.time_offset}})
     spec = args.mavlink or cfg.telemetry.source

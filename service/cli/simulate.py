@@ -35,7 +35,8 @@ FLAGS = {"terrain": "terrain", "zoom": "terrain_zoom", "gsd": "gsd", "frames": "
          "object_height": "object_height", "object_size": "object_size", "max_bank": "max_bank",
          "pitch_offset": "pitch_offset", "mode": "mode", "strips": "strips",
          "stills_per_strip": "stills_per_strip", "forward_overlap": "forward_overlap",
-         "stills_yaw": "stills_yaw", "hotspots": "hotspots", "hotspot_style": "hotspot_style"}
+         "stills_yaw": "stills_yaw", "hotspots": "hotspots", "hotspot_style": "hotspot_style",
+         "k1": "k1", "k2": "k2", "p1": "p1", "p2": "p2", "k3": "k3", "overlay": "overlay"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -87,6 +88,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--hotspots", type=int, metavar="N", help="plant N hot spots along the flight (truth in hotspots.csv)")
     a("--hotspot-style", choices=("thermal", "visible"), help="thermal (grey terrain, hot spots) or visible "
       "(colour terrain, fire-orange spots)")
+    g = parser.add_argument_group("the camera's lens and overlay")
+    a = g.add_argument
+    for name in ("k1", "k2", "p1", "p2", "k3"):
+        a(f"--{name}", type=float, metavar="C", help=f"Brown-Conrady distortion coefficient {name} (OpenCV)")
+    a("--overlay", action="store_true", default=None, help="burn OSD text, a crosshair and a box into every "
+      "frame; also writes mask.png (for replay --mask)")
 
 
 def main(args: argparse.Namespace, cfg: Config) -> int:
@@ -112,7 +119,8 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         stills_per_strip=s.stills_per_strip, forward_overlap=s.forward_overlap, stills_yaw=s.stills_yaw,
         stills_quality=s.stills_quality, stills_xmp=s.stills_xmp, hotspots=s.hotspots,
         hotspot_style=s.hotspot_style,
-        srt=bool(getattr(args, "srt", False)))
+        srt=bool(getattr(args, "srt", False)),
+        distortion=(s.k1, s.k2, s.p1, s.p2, s.k3), osd=s.overlay)
     if s.mode == "stills":
         n = yaml.safe_load((out / "meta.yaml").read_text(encoding="utf-8"))["frames"]
         print(f"simulated {n} stills into {out}/: stills/, groundtruth.csv, telemetry.tlog, meta.yaml"

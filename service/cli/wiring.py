@@ -69,6 +69,19 @@ def hazards_config(args: argparse.Namespace, cfg: Config) -> Config:
     return cfg.updated({"hazards": {"enabled": True}}) if getattr(args, "hazards", False) else cfg
 
 
+def add_mask_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--mask", metavar="PNG",
+                        help="frame mask image: black pixels (burned-in text, a crosshair, the drone in "
+                             "view) are never registered or painted; scaled to the frame size "
+                             "(default: capture.mask)")
+
+
+def with_mask_argument(args: argparse.Namespace, cfg: Config) -> Config:
+    """``cfg`` with ``--mask`` as ``capture.mask`` when it was given."""
+    mask = getattr(args, "mask", None)
+    return cfg.updated({"capture": {"mask": str(mask)}}) if mask else cfg
+
+
 # ---------------------------------------------------------------------------------- frames
 def open_capture(spec: str, c: CaptureConfig) -> FrameSource:
     """The frame source ``spec`` names (camera, folder/glob of stills, video), set up from ``capture``."""
@@ -108,7 +121,7 @@ def open_telemetry(spec: str, cfg: Config, *, source: FrameSource | None = None,
     tcfg = cfg.telemetry
     meta = video_metadata(input_spec) if input_spec else {}
     camera = meta.get("camera") or {}
-    if not cfg.camera.fx_px and not cfg.camera.hfov_deg and camera.get("fx"):
+    if not cfg.camera.fx_px and not cfg.camera.hfov_deg and not cfg.camera.calibration and camera.get("fx"):
         cfg = cfg.updated({"camera": {"fx_px": float(camera["fx"])}})  # the video's own camera model
     if is_srt(spec):
         if live:
@@ -181,7 +194,7 @@ def open_stills_telemetry(source: FrameSource, cfg: Config, geo: str | None = No
     tel = stills_telemetry(source, geo=geo)
     if tel is None:
         return None, cfg
-    if not cfg.camera.fx_px and not cfg.camera.hfov_deg and tel.focal_px:
+    if not cfg.camera.fx_px and not cfg.camera.hfov_deg and not cfg.camera.calibration and tel.focal_px:
         cfg = cfg.updated({"camera": {"fx_px": float(tel.focal_px)}})
     return TelemetryJoin(tel.at, "stills", cfg, link_summary=tel.summary), cfg
 

@@ -222,11 +222,19 @@ class FeatureMatcher:
         self._matcher = cv2.BFMatcher(self._norm)
 
     # ------------------------------------------------------------------ per frame
-    def prepare(self, frame: np.ndarray) -> FeatureFrame:
-        """Detect and describe keypoints of a frame (grey or BGR, uint8 or float)."""
+    def prepare(self, frame: np.ndarray, mask: np.ndarray | None = None) -> FeatureFrame:
+        """Detect and describe keypoints of a frame (grey or BGR, uint8 or float).
+
+        ``mask``: pixel weights in [0, 1] of frames of this aspect ratio, at any size (e.g. a
+        registrar's :attr:`~photomap.core.ifmi.Registrar.mask`): keypoints only where it is 1."""
         gray = _to_uint8(_gray(frame))
         small, f = _resize(gray, self.working_size)
-        kps, desc = self._detector.detectAndCompute(small, None)
+        keep = None
+        if mask is not None:
+            weights = cv2.resize(np.asarray(mask, np.float32), (small.shape[1], small.shape[0]),
+                                 interpolation=cv2.INTER_LINEAR)
+            keep = np.where(weights >= 0.999, np.uint8(255), np.uint8(0))
+        kps, desc = self._detector.detectAndCompute(small, keep)
         n = len(kps)
         pts = np.array([k.pt for k in kps], np.float32).reshape(n, 2)
         pts = (pts + 0.5) / f - 0.5  # detection pixels -> frame pixels (pixel centres)

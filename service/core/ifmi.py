@@ -371,9 +371,15 @@ class Registrar:
         ``candidate_ratio`` of the best also scored by the translation step (up to
         ``max_candidates``), and the Gauss-Newton (inverse compositional) refinement's
         ``refine_iterations`` (0: off). ``working_size`` is not used here: the caller downscales.
+    mask : (h, w) float array in [0, 1], optional
+        Weight of each pixel, multiplied into the apodization window (0 = never used: burned-in
+        overlays, pixels the lens does not cover; see :mod:`photomap.mapping.frameprep`). It
+        weights every frame this registrar prepares, so it belongs to the frames' own pixels
+        (a mask fixed in the frame). None: every pixel.
     """
 
-    def __init__(self, shape: tuple[int, int], params: RegistrationConfig = RegistrationConfig()) -> None:
+    def __init__(self, shape: tuple[int, int], params: RegistrationConfig = RegistrationConfig(),
+                 mask: np.ndarray | None = None) -> None:
         h, w = int(shape[0]), int(shape[1])
         if h < 16 or w < 16:
             raise ValueError(f"frames of {w}x{h} px are too small to register")
@@ -396,6 +402,13 @@ class Registrar:
             yy, xx = np.mgrid[0:h, 0:w]
             rr = np.hypot((xx - (w - 1) / 2) / ((w - 1) / 2), (yy - (h - 1) / 2) / ((h - 1) / 2))
             self.window = np.where(rr < 1, 0.5 * (1 + np.cos(np.pi * np.clip((rr - (1 - window_taper)) / window_taper, 0, 1))), 0).astype(np.float32)
+        self.mask = None
+        if mask is not None:
+            mask = np.asarray(mask, np.float32)
+            if mask.shape != (h, w):
+                raise ValueError(f"registration mask shape {mask.shape} does not match the frames' {(h, w)}")
+            self.mask = np.clip(mask, 0.0, 1.0)
+            self.window = self.window * self.mask
 
         # frequency grid of an rfft2 spectrum (rows: fy in fft order, cols: fx >= 0), cycles/px;
         # the constants below are kept split into the CCS layout's interior and edge parts

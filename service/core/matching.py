@@ -132,7 +132,7 @@ class PairMatcher:
 
     def _features(self, view: View) -> FeatureFrame | None:
         if view.features is None and view.image is not None and self.features is not None:
-            view.features = self.features.prepare(view.image)
+            view.features = self.features.prepare(view.image, self.registrar.mask)  # none on masked pixels
         return view.features
 
     def match(self, reference: View, moving: View, prior: Prior | None = None,

@@ -227,7 +227,7 @@ class LoopCloser:
         # ... and a new keyframe's loop registrations in another (with a registrar of its own)
         self._loop_executor = (ThreadPoolExecutor(1, "photomap-loops", initializer=lower_priority)
                                if params.optimize_in_background else None)
-        self._loop_registrar = (Registrar(self.registrar.shape, self.registrar.params)
+        self._loop_registrar = (Registrar(self.registrar.shape, self.registrar.params, self.registrar.mask)
                                 if self._loop_executor is not None else None)
         self._loop_jobs: deque[tuple[int, int, Future]] = deque()  # (keyframe, frame submitted, measurements)
         # live: a new keyframe's search for a join to another segment (a few registrations with

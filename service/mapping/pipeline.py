@@ -51,6 +51,7 @@ from photomap.errors import PhotomapError
 from photomap.io.keyframestore import KeyframeStore
 from photomap.mapping.checkpoint import state_folder
 from photomap.mapping.events import FrameEvent, FrameSink
+from photomap.mapping.frameprep import FramePrep
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.memory import frozen_heap, limit_heap_growth, trimmed_heap
 from photomap.mapping.painter import Painter
@@ -262,6 +263,7 @@ class MappingPipeline:
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
+        self._prep = FramePrep.from_config(cfg)  # lens undistortion and frame mask (None: neither)
 
     @property
     def rows(self) -> tuple[RowView, ...]:
@@ -342,12 +344,17 @@ class MappingPipeline:
         self._small = (max(16, int(round(w * f))), max(16, int(round(h * f))))
         f = self._small[0] / w  # exact factor of cv2.resize in x (and, to rounding, in y)
         self._working_scale = f
+        if self._prep is not None:
+            self._prep.setup(w, h)
+            if self.telemetry is not None:
+                self.telemetry.use_camera(self._prep.fx, self._prep.mask)
         mapping = self.cfg.mapping
         # the map's resolution: at most map_px a video frame (survey stills keep theirs)
         if mapping.map_px and max(w, h) > mapping.map_px and not isinstance(self.source, ImageFolderSource):
             mapping = dataclasses.replace(mapping, map_scale=mapping.map_scale * mapping.map_px / max(w, h))
         self._map_scale = mapping.map_scale
-        registrar = Registrar((self._small[1], self._small[0]), self.cfg.registration)
+        registrar = Registrar((self._small[1], self._small[0]), self.cfg.registration,
+                              self._prep.window(self._small) if self._prep is not None else None)
         matcher = PairMatcher(registrar, min_confidence=mapping.min_confidence,
                               trust_confidence=mapping.trust_confidence, verify=mapping.verify_placements,
                               second_opinion=mapping.second_opinion, second_opinion_px=mapping.second_opinion_px)
@@ -480,16 +487,18 @@ class MappingPipeline:
             timing.add("outputs", time.perf_counter() - t6)
 
     def _track(self, frame: Frame, t0: float) -> _Placed:
-        """Rectify the frame with its telemetry, resize it to the working size and track it (a
+        """Undistort and mask the frame (``camera`` lens, ``capture.mask``), rectify it with its telemetry, resize it to the working size and track it (a
         new keyframe snapped to the map when ``mapping.map_relative``); ``t0`` (perf_counter s)
         is when the frame's work began."""
         timing = self.stats.timing
         image = frame.image
         sample = self.telemetry.sample(frame) if self.telemetry else None
-        mask = None  # validity of a rectified view's pixels (None: all valid)
+        mask = None  # validity of the view's pixels (None: all valid)
+        if self._prep is not None:
+            image, mask = self._prep.apply(image), self._prep.mask
         if sample is not None:
             view = self.telemetry.rectify_frame(image, sample, frame.index)
-            image, mask = view.image, view.mask
+            image, mask = view.image, (view.mask if view.homography is not None else mask)
         small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
         t1 = time.perf_counter()
         timing.add("resize", t1 - t0)
@@ -668,7 +677,8 @@ class MappingPipeline:
 
     def _view_mask(self, index: int) -> np.ndarray | None:
         """Valid pixels of the image the map got of frame ``index`` (None: all of them)."""
-        return self.telemetry.mask(index) if self.telemetry is not None else None
+        mask = self.telemetry.mask(index) if self.telemetry is not None else None
+        return mask if mask is not None or self._prep is None else self._prep.mask
 
     # ------------------------------------------------------------------ outputs
     def summary(self) -> dict:
@@ -685,6 +695,8 @@ class MappingPipeline:
                     "working_size": list(getattr(self, "_small", ())),
                     "reconnects": src.reconnects, "map_scale": self._map_scale,
                     "video_start_unix": self._video_start_unix()})
+        if self._prep is not None:
+            out["frame_prep"] = self._prep.summary()
         if self._painter is not None:
             out["painting"] = self._painter.stats.summary()
         if self.loops is not None:

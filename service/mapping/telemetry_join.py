@@ -165,6 +165,7 @@ class TelemetryJoin:
         self._mono_to_unix = time.time() - time.monotonic()
         self._link_start: float | None = None
         self._fx: float | None = None
+        self._frame_mask: np.ndarray | None = None  # valid pixels of every input frame (None: all)
         self._samples: dict[int, TelemetrySample] = {}  # frame index -> sample (posed frames only)
         self.link_summary = link_summary
         self._frames = 0                     # frames asked for their sample
@@ -248,6 +249,14 @@ class TelemetryJoin:
         self._missing.append(frame.index)
         return None
 
+    def use_camera(self, fx: float | None, mask: np.ndarray | None) -> None:
+        """The input frames' camera after lens undistortion (:mod:`photomap.mapping.frameprep`):
+        their focal length (None: from the ``camera`` config) and their valid pixels (255; None:
+        all), which a rectified view's mask then carries."""
+        if fx is not None:
+            self._fx = float(fx)
+        self._frame_mask = mask
+
     def focal(self, width: int) -> float | None:
         if self._fx is None:
             self._fx = focal_px(width, self.ccfg.fx_px, self.ccfg.hfov_deg)
@@ -292,9 +301,9 @@ class TelemetryJoin:
         """The image of :meth:`rectify_frame` (the input itself when it is not rectified)."""
         return self.rectify_frame(image, s).image
 
-    @staticmethod
-    def _warp_mask(hmg: np.ndarray, w: int, h: int) -> np.ndarray:
-        """255 where the view pixel's source lies inside the input frame, else 0.
+    def _warp_mask(self, hmg: np.ndarray, w: int, h: int) -> np.ndarray:
+        """255 where the view pixel's source lies inside the input frame (and inside its mask,
+        :meth:`use_camera`), else 0.
 
         The frame's outer pixel centres, moved 1 px in, map to a quadrilateral (convex for any
         tilt that keeps the horizon out of the frame), filled with 1/16 px precision; filling
@@ -305,6 +314,10 @@ class TelemetryJoin:
         pts = np.round(quad[:, :2] / quad[:, 2:] * 16.0).astype(np.int32)
         mask = np.zeros((h, w), np.uint8)
         cv2.fillConvexPoly(mask, pts, 255, lineType=cv2.LINE_8, shift=4)
+        if self._frame_mask is not None:
+            inside = cv2.warpPerspective(self._frame_mask, hmg, (w, h), flags=cv2.INTER_LINEAR,
+                                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            mask[inside < 255] = 0
         return mask
 
     def homography(self, index: int) -> np.ndarray | None:

@@ -32,6 +32,7 @@ import numpy as np
 from photomap.errors import InputError
 from photomap.geo.georef import enu_from_latlon, latlon_from_enu
 from photomap.geometry import pose_scale, similarity_matrix
+from photomap.sim.lens import DistortedRender, Overlay
 
 PATTERNS = ("random", "lawnmower", "figure8")
 GRAVITY = 9.80665            # m/s^2
@@ -598,20 +599,27 @@ def apply_effects(img: np.ndarray, effects: Effects, rng: np.random.Generator, g
 
 
 def iter_frames(terrain: np.ndarray, truth: Truth, camera: Camera, effects: Effects, seed: int = 0,
-                period_s: float = 10.0, pyramid: list[np.ndarray] | None = None, overlay=None):
+                period_s: float = 10.0, pyramid: list[np.ndarray] | None = None, overlay=None,
+                lens: DistortedRender | None = None, osd: Overlay | None = None):
     """Yield the uint8 BGR frames of ``truth`` one by one (deterministic for a seed).
 
     ``overlay(k, view) -> view`` draws over the float BGR ground view of frame ``k`` before the
-    sensor effects (e.g. :meth:`photomap.sim.objects.ObjectScene.overlay`).
+    sensor effects (e.g. :meth:`photomap.sim.objects.ObjectScene.overlay`). ``lens``: the frames
+    are seen through its distortion (the truth stays the ideal pinhole view); ``osd``: burned in
+    over each finished frame (:mod:`photomap.sim.lens`).
     """
     if pyramid is None:
         pyramid = build_pyramid(terrain, float(truth.scale.max()) * 1.2)
     gain = 1.0 + effects.gain_drift * _smooth_random(truth.t, period_s, np.random.default_rng([seed, 2]))
     for k, hk in enumerate(truth.H):
-        view = render_view(pyramid, hk, (camera.height, camera.width))
+        if lens is not None:
+            view = lens.distort(render_view(pyramid, lens.canvas_homography(hk), lens.canvas[::-1]))
+        else:
+            view = render_view(pyramid, hk, (camera.height, camera.width))
         if overlay is not None:
             view = overlay(k, view)
-        yield apply_effects(view, effects, np.random.default_rng([seed, 3, k]), float(gain[k]))
+        frame = apply_effects(view, effects, np.random.default_rng([seed, 3, k]), float(gain[k]))
+        yield osd.draw(frame) if osd is not None else frame
 
 
 def simulate_sequence(terrain: np.ndarray, n_frames: int, frame_size: tuple[int, int] = (480, 640),

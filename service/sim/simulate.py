@@ -23,6 +23,8 @@ from photomap.sim.tlog_writer import RATES_HZ, write_tlog
 from photomap.errors import InputError, PhotomapError
 from photomap.sim.flight import PATTERNS, YAW_MODES, Camera, build_pyramid, iter_frames, pixel_to_latlon, plan_flight, split_params
 from photomap.sim.hotspots import HOTSPOT_STYLES, paint_hotspots, place_hotspots, thermal_terrain, write_hotspots_csv
+from photomap.geo.lens import LensModel
+from photomap.sim.lens import OVERLAY_BGR, DistortedRender, Overlay
 from photomap.sim.objects import ObjectScene, random_objects
 from photomap.sim.stills import SENSOR_WIDTH_MM, SURVEY_YAW_MODES, focal_35mm, plan_survey, subset, write_still
 from photomap.sim.terrain import DEFAULT_GSD, PERIODIC, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
@@ -73,7 +75,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                     mode: str = "video", strips: int = 4, stills_per_strip: int = 10,
                     forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
                     stills_xmp: bool = True, hotspots: int = 0, hotspot_style: str = "thermal",
-                    srt: bool = False,
+                    srt: bool = False, distortion: tuple[float, ...] = (), osd: bool = False,
                     **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
@@ -107,6 +109,10 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         terrain, fire-orange spots).
     srt : also write ``video.srt`` beside the video, the DJI Mini-style subtitle telemetry of
         every frame (:mod:`photomap.sim.srt_writer`; video mode only).
+    distortion : the camera's Brown-Conrady ``(k1, k2, p1, p2, k3)`` about the frame centre
+        (:mod:`photomap.sim.lens`; () or zeros = an ideal pinhole camera). The ground truth is
+        the ideal pinhole view: undistorting a frame with this model gives the truth's frame.
+    osd : burn an overlay (text, crosshair, box) into every frame; ``mask.png`` marks it.
     **params : :class:`photomap.sim.flight.Motion` and :class:`photomap.sim.flight.Effects` fields.
 
     Returns the output folder.
@@ -130,6 +136,12 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     img = load_terrain(name, zoom=zoom, size=(terrain_size[1], terrain_size[0]), seed=seed, **periodic)
     valid = valid_mask(img)
     camera = Camera.from_hfov(size[0], size[1], hfov_deg)
+    dist = tuple(float(v) for v in distortion)
+    lens = (LensModel("brown", camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
+                      (dist + (0.0,) * 5)[:5]) if any(dist) else None)
+    if lens is not None and objects > 0:
+        raise InputError("simulated lens distortion and objects (parallax) cannot be combined")
+    distorted = DistortedRender(lens) if lens is not None else None
     if stills:
         truth, shots, flight_yaw = plan_survey(valid, camera, gsd_eff, motion, strips=strips,
                                                per_strip=stills_per_strip, forward_overlap=forward_overlap,
@@ -167,7 +179,11 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         frames_dir.mkdir(exist_ok=True)
     lat, lon = pixel_to_latlon(truth.cam_x, truth.cam_y, gsd_eff, origin_lat, origin_lon)
     pyramid = build_pyramid(img, float(frames_truth.scale.max()) * 1.2)
-    frames = iter_frames(img, frames_truth, camera, effects, seed, motion.period_s, pyramid, overlay=overlay)
+    osd_layer = Overlay(camera.width, camera.height) if osd else None
+    frames = iter_frames(img, frames_truth, camera, effects, seed, motion.period_s, pyramid, overlay=overlay,
+                         lens=distorted, osd=osd_layer)
+    if osd_layer is not None and not cv2.imwrite(str(out / "mask.png"), osd_layer.mask()):
+        raise PhotomapError(f"cannot write {out / 'mask.png'}")
     if stills:
         media = out / "stills"
         media.mkdir(exist_ok=True)
@@ -231,6 +247,13 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     }
     if srt_file is not None:
         meta["files"]["srt"] = srt_file.name
+    if lens is not None:
+        meta["camera"].update({"model": "brown", "distortion": dict(zip(("k1", "k2", "p1", "p2", "k3"), lens.dist)),
+                               "note": "frames seen through OpenCV's Brown-Conrady model (fx, fy, cx, cy, these "
+                                       "coefficients); groundtruth H maps the undistorted (pinhole) frame"})
+    if osd_layer is not None:
+        meta["overlay"] = {"mask": "mask.png", "colour_bgr": list(OVERLAY_BGR),
+                           "note": "text, crosshair and box burned into every frame; mask.png black there"}
     if periodic:
         meta["terrain"].update(periodic)
     if objects > 0:
