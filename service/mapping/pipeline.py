@@ -487,9 +487,9 @@ class MappingPipeline:
             timing.add("outputs", time.perf_counter() - t6)
 
     def _track(self, frame: Frame, t0: float) -> _Placed:
-        """Undistort and mask the frame (``camera`` lens, ``capture.mask``), rectify it with its telemetry, resize it to the working size and track it (a
-        new keyframe snapped to the map when ``mapping.map_relative``); ``t0`` (perf_counter s)
-        is when the frame's work began."""
+        """Undistort and mask the frame (``camera`` lens, ``capture.mask``), rectify it with its
+        telemetry, resize it to the working size and track it (a new keyframe snapped to the map
+        when ``mapping.map_relative``); ``t0`` (perf_counter s) is when the frame's work began."""
         timing = self.stats.timing
         image = frame.image
         sample = self.telemetry.sample(frame) if self.telemetry else None
