@@ -15,8 +15,8 @@ import argparse
 import time
 from pathlib import Path
 
-from photomap.cli.wiring import (add_telemetry_arguments, add_viewer_argument, map_source, open_capture,
-                                 open_telemetry, print_summary)
+from photomap.cli.wiring import (add_map_server_argument, add_telemetry_arguments, add_viewer_argument, map_source,
+                                 open_capture, open_telemetry, print_summary)
 from photomap.config import Config
 from photomap.errors import OutputError
 
@@ -28,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="output folder (default: a time-stamped folder under output.data_dir)")
     add_telemetry_arguments(parser)
     add_viewer_argument(parser)
+    add_map_server_argument(parser)
 
 
 def flight_folder(data_dir: str | Path) -> Path:
@@ -53,7 +54,8 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         source = open_capture(args.camera, cfg.capture)
         print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")
         summary = map_source(source, cfg, out, input_name=str(args.camera), telemetry=join, reader=reader,
-                             viewer=args.viewer, status_interval=getattr(args, "status_interval", 0.0))
+                             viewer=args.viewer, status_interval=getattr(args, "status_interval", 0.0),
+                             map_server=args.map_server)
     finally:
         if reader is not None:
             reader.stop()

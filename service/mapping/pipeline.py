@@ -58,6 +58,7 @@ from photomap.io.tilestore import DiskTileStore, WriteBehindTileStore
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import FrameEvent, FrameSink
+from photomap.mapping.events import GeoreferenceSink
 from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.memory import frozen_heap, limit_heap_growth, trimmed_heap
@@ -282,6 +283,8 @@ class MappingPipeline:
         self._spilling: set[int] = set()  # segments left by the camera whose tiles go to the store
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
+        # told each live GPS fit of the main map (writer thread) and the final one: (segment, fit)
+        self.on_georeference: GeoreferenceSink | None = None
 
     @property
     def rows(self) -> tuple[RowView, ...]:
@@ -875,6 +878,8 @@ class MappingPipeline:
             fit = self._gps_fit(rows, main)  # no georeference below georef.min_fixes GPS fixes
             if fit.geo is None or fit.problem is not None:
                 return
+            if self.on_georeference is not None:
+                self.on_georeference(main, fit.geo)
             try:
                 refresh_track_files(self.out_dir, self._first.paced(rows), self.frame_size,
                                     {main: (fit.geo.map_to_crs[:2], fit.geo.epsg)},
@@ -913,6 +918,8 @@ class MappingPipeline:
                 log.info("segment %d not georeferenced: %s", seg, fit.problem)
             entry: dict = {"metres_per_pixel": fit.metres_per_px if trusted else None}
             if geo is not None:
+                if seg == main and self.on_georeference is not None:
+                    self.on_georeference(seg, geo)
                 world_file = write_sidecars(self.out_dir, info, geo)
                 entry.update({"crs": f"EPSG:{geo.epsg}", "map_to_crs": geo.map_to_crs.tolist(),
                               "origin_lat": geo.origin_lat, "origin_lon": geo.origin_lon,
