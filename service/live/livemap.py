@@ -80,6 +80,7 @@ class Snapshot:
     """What the server reads of the live map at one moment (immutable; tiles are shared)."""
 
     frames_in: int
+    frame: int | None  # index of the latest frame
     registered: int
     segments: int
     segment: int | None  # of the latest frame
@@ -142,6 +143,7 @@ class LiveMap:
         self._strides: dict[int, int] = {}
         self._counts: dict[int, int] = {}
         self._frames_in = 0
+        self._frame: int | None = None
         self._registered = 0
         self._segments: set[int] = set()
         self._segment: int | None = None
@@ -185,6 +187,7 @@ class LiveMap:
         sample = event.telemetry
         with self._lock:
             self._frames_in += 1
+            self._frame = int(event.index)
             if event.status in ("reference", "registered"):
                 self._registered += 1
             self._segments.add(seg)
@@ -274,7 +277,7 @@ class LiveMap:
                 telemetry = "georeferenced"
             else:
                 telemetry = "gps" if self._gps is not None else "no_fix"
-            return Snapshot(self._frames_in, self._registered, len(self._segments), self._segment, fps,
+            return Snapshot(self._frames_in, self._frame, self._registered, len(self._segments), self._segment, fps,
                             self._frame_size, self._pose, self._pose_segment, self._gps, self._gps_footprint,
                             telemetry, georef, self._geo_version, self._tile_size,
                             dict(self._tiles.get(served, {})) if served is not None else {},
@@ -446,7 +449,7 @@ def status(snap: Snapshot, extra: dict | None = None) -> dict:
         else:
             bounds = [float(x), float(y), float(x + w), float(y + h)]
     geo = snap.georeference[1] if snap.georeference is not None else None
-    out = {"frames_in": snap.frames_in, "registered": snap.registered, "segments": snap.segments,
+    out = {"frames_in": snap.frames_in, "frame": snap.frame, "registered": snap.registered, "segments": snap.segments,
            "segment": snap.segment, "fps": round(snap.fps, 2), "telemetry": snap.telemetry,
            "georeferenced": geo is not None, "position": position(snap),
            "bounds": bounds, "bounds_frame": "wgs84" if geo is not None else "map_pixels",
