@@ -31,7 +31,7 @@ import math
 import threading
 import time
 from collections import OrderedDict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import cv2
@@ -40,7 +40,7 @@ import numpy as np
 from photomap.geo import webmercator as wm
 from photomap.geo.georef import Georeference, utm_forward
 from photomap.geometry import frame_centre
-from photomap.io.mapsource import MapRaster, _render_pieces
+from photomap.io.mapsource import MapRaster
 from photomap.io.xyz_tiles import render_tile
 from photomap.live.viewer import frame_outline, geo_footprint
 
@@ -62,17 +62,39 @@ def _empty_png() -> bytes:
 EMPTY_PNG = _empty_png()
 
 
+def _premultiplied(bgra: np.ndarray) -> np.ndarray:
+    a = bgra[..., 3:4].astype(np.float32) * (1.0 / 255.0)
+    return np.concatenate([bgra[..., :3].astype(np.float32) * a, a], axis=2)
+
+
+def _unpremultiplied(pre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(bgr uint8, alpha uint8) of a premultiplied float BGRA image (alpha 0..1)."""
+    cover = pre[..., 3:4]
+    colour = np.divide(pre[..., :3], cover, out=np.zeros(pre.shape[:2] + (3,), np.float32), where=cover > 1e-6)
+    image = np.clip(np.rint(colour), 0, 255).astype(np.uint8)
+    return image, np.clip(np.rint(cover[..., 0] * 255.0), 0, 255).astype(np.uint8)
+
+
 @dataclass(frozen=True)
 class _Tile:
-    """A copied map tile: colour (BGR or grey), alpha, and its version (grows with every copy)."""
+    """A copied map tile: BGRA uint8, its version (grows with every copy), and its halvings
+    (``level(n)``: side ``ts >> n``, alpha-weighted 2x2 means; made on first use)."""
 
-    image: np.ndarray
-    alpha: np.ndarray
+    bgra: np.ndarray
     version: int
+    mips: dict = field(default_factory=dict, compare=False, repr=False)
 
-    def bgra(self) -> np.ndarray:
-        image = self.image if self.image.ndim == 3 else cv2.cvtColor(self.image, cv2.COLOR_GRAY2BGR)
-        return np.dstack([image, self.alpha])
+    def level(self, n: int) -> np.ndarray:
+        if n == 0:
+            return self.bgra
+        got = self.mips.get(n)
+        if got is None:
+            prev = self.level(n - 1)
+            h, w = prev.shape[:2]
+            half = cv2.resize(_premultiplied(prev), (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_AREA)
+            image, alpha = _unpremultiplied(half)
+            got = self.mips[n] = np.dstack([image, alpha])
+        return got
 
 
 @dataclass(frozen=True)
@@ -213,12 +235,16 @@ class LiveMap:
             reader = self._readers.get(seg)
             if reader is None or not keys:
                 continue
-            copies: dict[TileKey, tuple[np.ndarray, np.ndarray] | None] = {}
+            copies: dict[TileKey, np.ndarray | None] = {}
             for key in keys:
                 try:
-                    copies[key] = reader.tile_image(key)  # copies
+                    image, alpha = reader.tile_image(key)  # copies
                 except KeyError:  # cleared (re-rendered later) or never covered
                     copies[key] = None
+                    continue
+                if image.ndim == 2:
+                    image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+                copies[key] = np.dstack([image, alpha])
             keys.clear()
             with self._lock:
                 store = self._tiles.setdefault(seg, {})
@@ -228,7 +254,7 @@ class LiveMap:
                             self._version += 1
                         continue
                     self._version += 1
-                    store[key] = _Tile(pixels[0], pixels[1], self._version)
+                    store[key] = _Tile(pixels, self._version)
 
     def flush(self) -> None:
         """Copy every tile changed so far (the worker thread, e.g. at the end of the run)."""
@@ -298,13 +324,36 @@ def _keys_in(snap: Snapshot, x0: float, y0: float, x1: float, y1: float) -> dict
 
 
 def _render_fn(snap: Snapshot):
-    """A render function (:mod:`photomap.io.mapsource`) over the snapshot's tiles."""
+    """A render function (:mod:`photomap.io.mapsource`) over the snapshot's tiles. At ``scale``
+    < 1 it composes the tiles' halvings at the level just finer than ``scale`` and samples that
+    bilinearly (alpha-weighted): work in proportion to the output, whatever the region's size."""
     ts = snap.tile_size
+    max_level = max(0, int(math.log2(ts)))
 
     def render(x: int, y: int, w: int, h: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
-        keys = _keys_in(snap, x, y, x + w, y + h)
-        pieces = [(k[0] * ts, k[1] * ts, ts, ts, snap.tiles[k].bgra) for k in keys]
-        return _render_pieces(pieces, x, y, w, h, min(1.0, float(scale)))
+        scale = min(1.0, float(scale))
+        level = 0 if scale >= 1.0 else min(max_level, int(math.floor(math.log2(1.0 / scale) + 1e-9)))
+        f = 1 << level
+        lx0, ly0 = x // f, y // f
+        lx1, ly1 = -(-(x + w) // f), -(-(y + h) // f)
+        comp = np.zeros((ly1 - ly0, lx1 - lx0, 4), np.uint8)
+        lts = ts // f
+        for k in _keys_in(snap, x, y, x + w, y + h):
+            tile = snap.tiles[k].level(level)
+            ox, oy = k[0] * lts, k[1] * lts
+            mx0, mx1 = max(ox, lx0), min(ox + lts, lx1)
+            my0, my1 = max(oy, ly0), min(oy + lts, ly1)
+            if mx0 < mx1 and my0 < my1:
+                comp[my0 - ly0:my1 - ly0, mx0 - lx0:mx1 - lx0] = tile[my0 - oy:my1 - oy, mx0 - ox:mx1 - ox]
+        if scale >= 1.0:
+            return comp[..., :3].copy(), comp[..., 3].copy()
+        ow, oh = max(1, round(w * scale)), max(1, round(h * scale))
+        # output pixel u covers source x + [u, u + 1) w / ow; its centre in comp pixel coordinates
+        sx, sy = w / ow / f, h / oh / f
+        m = np.array([[sx, 0.0, x / f + 0.5 * sx - lx0 - 0.5], [0.0, sy, y / f + 0.5 * sy - ly0 - 0.5]])
+        pre = cv2.warpAffine(_premultiplied(comp), m, (ow, oh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+        return _unpremultiplied(pre)
 
     return render
 
@@ -338,7 +387,7 @@ def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int) -> bytes:
         tile = (image, alpha) if alpha.any() else None
     if tile is None:
         return EMPTY_PNG
-    ok, buf = cv2.imencode(".png", np.dstack(tile), [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    ok, buf = cv2.imencode(".png", np.dstack(tile), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     return buf.tobytes() if ok else EMPTY_PNG
 
 

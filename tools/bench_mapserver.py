@@ -1,0 +1,222 @@
+"""Map server benchmark: what a ground station's client costs the mapping.
+
+A simulated 640x480 flight with its telemetry (``simulate_flight``, aukerman, MJPG video) is
+mapped by ``photomap replay`` (:func:`photomap.cli.replay.replay`, as fast as possible) in three
+conditions, interleaved pass by pass (A B C A B C ...) so that the machine's load hits them alike:
+
+- *no server*;
+- *server, no client*: ``--map-server`` on loopback, nobody asking;
+- *server + client at 5 Hz*: a client thread that, five times a second, fetches ``/status.json``
+  and the 3 x 3 tiles around the vehicle's position at ``max_zoom`` (``tiles_url`` of the status:
+  pixel-frame tiles before the georeference, web-mercator ones after), as a map view following
+  the flight does.
+
+Reported per condition: the median over the passes of the pipeline's own fps (``run.json``
+``fps``), its spread, and for the client the requests answered, their median and largest
+latency, and the server's renders and cache hits. Target: no measurable slowdown (the client's
+median fps within the spread of the runs without it).
+
+    python -m tools.bench_mapserver [--frames 300] [--passes 3] [--hz 5] [--out FILE]
+
+Replaces the section between ``<!-- mapserver:start -->`` and ``<!-- mapserver:end -->`` of
+``docs/benchmarks.md`` (``--out -``: print only). The 1-minute load average before and after is
+reported: run it on a quiet machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import logging
+import math
+import os
+import platform
+import socket
+import statistics
+import sys
+import tempfile
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+from photomap.cli.replay import replay
+from photomap.config import load_config
+from photomap.geo import webmercator as wm
+from photomap.sim.simulate import simulate_flight
+from tools.report import replace_section
+
+REPO = Path(__file__).resolve().parents[1]
+SIZE = (640, 480)
+CONDITIONS = ("no server", "server, no client", "server + client")
+log = logging.getLogger("bench_mapserver")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def load_average() -> float:
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return float("nan")
+
+
+class Client(threading.Thread):
+    """Fetches the status and the 3 x 3 tiles around the vehicle ``hz`` times a second."""
+
+    def __init__(self, base: str, hz: float) -> None:
+        super().__init__(name="bench-client", daemon=True)
+        self.base, self.period = base, 1.0 / hz
+        self.stop = threading.Event()
+        self.latencies: list[float] = []
+        self.failed = 0
+        self.tiles = 0
+        self.last_status: dict | None = None
+
+    def _get(self, path: str) -> bytes | None:
+        t0 = time.perf_counter()
+        try:
+            with urllib.request.urlopen(self.base + path, timeout=5.0) as r:
+                body = r.read()
+        except (urllib.error.URLError, OSError):
+            self.failed += 1
+            return None
+        self.latencies.append(time.perf_counter() - t0)
+        return body
+
+    def _tick(self) -> None:
+        body = self._get("status.json")
+        if body is None:
+            return
+        st = json.loads(body)
+        self.last_status = st
+        pos, z = st.get("position"), st["max_zoom"]
+        if not pos:
+            return
+        if "lat" in pos:
+            cx, cy = wm.tile_of(pos["lat"], pos["lon"], z)
+        else:
+            cx, cy = math.floor(pos["x"] / 256), math.floor(pos["y"] / 256)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                url = st["tiles_url"].lstrip("/").format(z=z, x=cx + dx, y=cy + dy)
+                if self._get(url) is not None:
+                    self.tiles += 1
+
+    def run(self) -> None:
+        due = time.monotonic()
+        while not self.stop.is_set():
+            self._tick()
+            due += self.period
+            self.stop.wait(max(0.0, due - time.monotonic()))
+
+
+def one_pass(flight: Path, out: Path, condition: str, hz: float) -> dict:
+    cfg = load_config().updated({"output": {"checkpoint_interval": 2.0}})
+    port = _free_port()
+    server = None if condition == "no server" else str(port)
+    client = Client(f"http://127.0.0.1:{port}/", hz) if condition == "server + client" else None
+    result: dict = {}
+
+    def run() -> None:
+        result["summary"] = replay(str(flight / "video.avi"), out, cfg, mavlink=str(flight / "telemetry.tlog"),
+                                   map_server=server)
+
+    worker = threading.Thread(target=run)
+    worker.start()
+    if client is not None:
+        client.start()
+    worker.join()
+    if client is not None:
+        client.stop.set()
+        client.join()
+    s = result["summary"]
+    row = {"fps": float(s["fps"]), "frames": s["frames_in"], "registered": s["registered"]}
+    if client is not None:
+        lat = sorted(client.latencies)
+        row.update({"requests": len(lat), "failed": client.failed, "tiles": client.tiles,
+                    "median_ms": 1000 * statistics.median(lat) if lat else float("nan"),
+                    "max_ms": 1000 * lat[-1] if lat else float("nan"),
+                    "server": (client.last_status or {}).get("server"),
+                    "renders": (client.last_status or {}).get("tile_renders"),
+                    "hits": (client.last_status or {}).get("tile_hits")})
+    return row
+
+
+def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, float]) -> str:
+    lines = [f"## Map server (`python -m tools.bench_mapserver --frames {args.frames} --passes {args.passes} "
+             f"--hz {args.hz:g}`)", "",
+             f"{datetime.date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} cores, Python "
+             f"{platform.python_version()}; {args.frames} frames of {SIZE[0]}x{SIZE[1]} (simulated, with "
+             f"telemetry) mapped by `photomap replay` as fast as possible, {args.passes} passes per condition, "
+             f"interleaved; 1-minute load {loads[0]:.1f} before, {loads[1]:.1f} after; {took / 60:.1f} min.", "",
+             "| condition | median fps | fps of the passes | client requests (tiles) | latency median / max ms "
+             "| tile renders / hits |", "|---|---|---|---|---|---|"]
+    base = statistics.median(r["fps"] for r in rows["no server"])
+    for cond in CONDITIONS:
+        rs = rows[cond]
+        fps = [r["fps"] for r in rs]
+        med = statistics.median(fps)
+        rel = f" ({100 * (med / base - 1):+.1f} %)" if cond != "no server" else ""
+        if cond == "server + client":
+            req = f"{statistics.median(r['requests'] for r in rs):.0f} ({statistics.median(r['tiles'] for r in rs):.0f})"
+            if any(r["failed"] for r in rs):
+                req += f", {sum(r['failed'] for r in rs)} failed"
+            latency = (f"{statistics.median(r['median_ms'] for r in rs):.1f} / "
+                       f"{max(r['max_ms'] for r in rs):.0f}")
+            cache = f"{statistics.median(r['renders'] or 0 for r in rs):.0f} / {statistics.median(r['hits'] or 0 for r in rs):.0f}"
+        else:
+            req = latency = cache = "-"
+        lines.append(f"| {cond} | {med:.1f}{rel} | {', '.join(f'{v:.1f}' for v in fps)} | {req} | {latency} | {cache} |")
+    spread = max(r["fps"] for r in rows["no server"]) - min(r["fps"] for r in rows["no server"])
+    client = statistics.median(r["fps"] for r in rows["server + client"])
+    verdict = "met" if client >= base - max(spread, 0.02 * base) else "NOT met"
+    lines += ["", f"Target (no measurable slowdown with a client at {args.hz:g} Hz: its median fps within the "
+              f"spread of the runs without a server, or 2 %): **{verdict}** ({client:.1f} against {base:.1f}, "
+              f"spread {spread:.1f} fps). The client asks for the status and the 3 x 3 tiles around the vehicle "
+              f"at `max_zoom` {args.hz:g} times a second (up to {10 * args.hz:g} requests/s); latencies are "
+              f"those it saw on loopback while the mapping ran flat out."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=300, help="frames of the flight (default 300)")
+    ap.add_argument("--passes", type=int, default=3, help="passes per condition (default 3)")
+    ap.add_argument("--hz", type=float, default=5.0, help="client rounds per second (default 5)")
+    ap.add_argument("--out", default=str(REPO / "docs" / "benchmarks.md"),
+                    help="markdown file whose mapserver section is replaced (- = print only)")
+    args = ap.parse_args(argv)
+    if args.frames < 30 or args.passes < 1 or not args.hz > 0:
+        print("error: --frames >= 30, --passes >= 1, --hz > 0", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    logging.getLogger("photomap").setLevel(logging.WARNING)
+    start, load0 = time.perf_counter(), load_average()
+    rows: dict[str, list[dict]] = {c: [] for c in CONDITIONS}
+    with tempfile.TemporaryDirectory(prefix="bench-mapserver-") as tmp:
+        tmp_dir = Path(tmp)
+        log.info("simulating %d frames of %dx%d", args.frames, *SIZE)
+        flight = simulate_flight(tmp_dir / "flight", n_frames=args.frames, size=SIZE, seed=2, video_codec="mjpg")
+        for k in range(args.passes):
+            for cond in CONDITIONS:
+                row = one_pass(flight, tmp_dir / f"out{k}-{CONDITIONS.index(cond)}", cond, args.hz)
+                rows[cond].append(row)
+                log.info("pass %d, %s: %.1f fps%s", k + 1, cond, row["fps"],
+                         f", {row['requests']} requests" if "requests" in row else "")
+    body = render(args, rows, time.perf_counter() - start, (load0, load_average()))
+    print(body)
+    if args.out != "-":
+        replace_section(Path(args.out), "mapserver", body)
+        log.info("wrote the mapserver section of %s", args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
