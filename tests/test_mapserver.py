@@ -315,3 +315,49 @@ def test_page_renders_map_pixels_in_chromium(flight, tmp_path):
     served = tile[..., :3][tile[..., 3] > 0].reshape(-1, 3).mean(axis=0)
     shown = page[mapped].reshape(-1, 3).mean(axis=0)
     assert np.abs(served - shown).max() < 30, (served, shown)
+
+
+def _tile_event(index: int, mosaic, touched, pose=np.array([[1.0, 0, 0], [0, 1.0, 0]])):
+    from photomap.mapping.events import FrameEvent
+
+    return FrameEvent(index, index / 10.0, False, np.zeros((64, 64, 3), np.uint8), (64, 64), "registered",
+                      pose, 0.9, 0, touched=frozenset(touched), tiles=mosaic)
+
+
+@pytest.mark.parametrize("interval", [0.0, 3600.0])
+def test_a_painted_tile_renders_again_at_most_once_per_interval(interval):
+    """A served tile follows the map: repainted map tiles reach it (at once with no minimum
+    interval), a busy tile is rendered at most once per min_render_interval_s, and the worker's
+    copy is of the touched tiles only."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.live.livemap import LiveMap, TileCache
+
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    red = np.zeros((64, 64, 3), np.uint8)
+    red[..., 2] = 200
+    full = np.full((64, 64), 255, np.uint8)
+    mosaic.set_tile((0, 0), red, full)
+    mosaic.set_tile((1, 0), red, full)
+    live = LiveMap(tile_hz=1e6)
+    live.on_frame(_tile_event(0, mosaic, {(0, 0), (1, 0)}))
+    cache = TileCache(16, interval)
+    # pixel-frame tile (0, 0) at the pixel zoom holds map pixels 0..255: our two tiles at its top left
+    first = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))
+    assert (first[:64, :128, 2] == 200).all() and (first[:64, :128, 3] == 255).all()
+    assert (first[64:, :, 3] == 0).all() and (first[:, 128:, 3] == 0).all()
+    blue = np.zeros((64, 64, 3), np.uint8)
+    blue[..., 0] = 180
+    mosaic.set_tile((1, 0), blue, full)
+    mosaic.set_tile((0, 0), blue, full)  # changed in the map but not said to be touched: not copied
+    live.on_frame(_tile_event(1, mosaic, {(1, 0)}))
+    again = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))
+    if interval == 0.0:
+        assert (again[:64, 64:128, 0] == 180).all() and (again[:64, 64:128, 2] == 0).all()
+        assert (again[:64, :64, 2] == 200).all()
+        assert cache.renders == 2
+    else:
+        assert (again == first).all() and cache.renders == 1  # the busy tile waits for its interval
+    # an unchanged map: the cached tile, no render
+    cache.get(live.snapshot(), "pixel", 0, 0, 8)
+    assert cache.renders == (2 if interval == 0.0 else 1) and cache.hits >= 1

@@ -178,6 +178,7 @@ class LiveMap:
         self._had_telemetry = False
         self._georef: tuple[int, Georeference] | None = None
         self._geo_version = 0
+        self._shown: tuple[tuple | None, dict[TileKey, _Tile]] = (None, {})  # the snapshots' tiles, by version
         self.errors = 0
 
     # ------------------------------------------------------------------ worker thread
@@ -303,11 +304,13 @@ class LiveMap:
                 telemetry = "georeferenced"
             else:
                 telemetry = "gps" if self._gps is not None else "no_fix"
+            shown = (served, self._version)
+            if self._shown[0] != shown:  # copied once per change (at most tile_hz a second), not per request
+                self._shown = (shown, dict(self._tiles.get(served, {})) if served is not None else {})
             return Snapshot(self._frames_in, self._frame, self._registered, len(self._segments), self._segment, fps,
                             self._frame_size, self._pose, self._pose_segment, self._gps, self._gps_footprint,
-                            telemetry, georef, self._geo_version, self._tile_size,
-                            dict(self._tiles.get(served, {})) if served is not None else {},
-                            list(self._paths.get(served, [])) if served is not None else [],
+                            telemetry, georef, self._geo_version, self._tile_size, self._shown[1],
+                            self._paths.get(served, []) if served is not None else [],  # never changed in place
                             self._version)
 
 

@@ -7,8 +7,9 @@ never reads the pipeline's state). It serves:
 
 ``/tiles/{z}/{x}/{y}.png``
     XYZ web-mercator tiles of the georeferenced live map, 256 px RGBA, transparent where nothing
-    is mapped, zoom 0 .. ``max_zoom`` (404 beyond, and before a georeference): the custom map URL
-    form of QGroundControl, Mission Planner, QGIS "XYZ Tiles" and Leaflet.
+    is mapped, zoom 0 .. ``max_zoom`` (the map's resolution) and :data:`OVERZOOM` more
+    (upsampled; 404 beyond, and before a georeference): the custom map URL form of
+    QGroundControl, Mission Planner, QGIS "XYZ Tiles" and Leaflet.
 ``/pixel/{z}/{x}/{y}.png``
     The same in the map's own pixel frame (:mod:`photomap.live.livemap`), before a georeference.
 ``/status.json``
@@ -49,6 +50,7 @@ from typing import Callable
 
 from photomap.config import MapServerConfig
 from photomap.errors import ConfigError, InputError, PhotomapError
+from photomap.geo import webmercator as wm
 from photomap.live.livemap import EMPTY_PNG, PIXEL_ZOOM, LiveMap, TileCache, footprint_geojson, status, \
     track_geojson
 from photomap.live.viewer import parse_serve_address
@@ -58,6 +60,7 @@ from photomap.mapping.threads import lower_priority
 log = logging.getLogger(__name__)
 
 MAX_REQUEST_BYTES = 8192
+OVERZOOM = 3  # web tiles are served this many zooms beyond the map's resolution (upsampled)
 _TILE_PATH = re.compile(r"^/(tiles|pixel)/(\d{1,2})/(-?\d{1,9})/(-?\d{1,9})\.png$")
 _STATIC = {"leaflet.js": "application/javascript", "leaflet.css": "text/css", "LICENSE": "text/plain",
            "images/layers.png": "image/png", "images/layers-2x.png": "image/png",
@@ -268,7 +271,8 @@ class MapServer:
                     hazards: Hazards | None = None) -> "MapServer | None":
         """The server ``listen`` (``--map-server``; default ``map_server.listen``) asks for, or
         None when it is off (``""``/``none``)."""
-        text = cfg.listen if listen is None else listen
+        configured = cfg.listen
+        text = configured if listen is None else listen
         if text is None or str(text).strip().lower() in ("", "none", "off"):
             return None
         address, port = parse_listen(str(text), cfg.port)
@@ -297,7 +301,7 @@ class MapServer:
         """A tile's PNG, or None when there is no such tile (zoom out of range, no georeference)."""
         snap = self.live.snapshot()
         if kind == "tiles":
-            if snap.georeference is None or not 0 <= z <= snap.max_zoom():
+            if snap.georeference is None or not 0 <= z <= min(wm.MAX_ZOOM, snap.max_zoom() + OVERZOOM):
                 return None
             if not (0 <= x < 2 ** z and 0 <= y < 2 ** z):
                 return None
