@@ -345,7 +345,7 @@ class MapServerConfig(_Section):
     timeout_s: float = _num(5.0, 0.0, 600.0, lo_open=True)
     tile_hz: float = _num(2.0, 0.0, 1000.0, lo_open=True)
     cache_tiles: int = _num(1024, 1, 1_000_000)
-    min_render_interval_s: float = _num(1.0, 0.0, 3600.0)
+    min_render_interval_s: float = _num(2.0, 0.0, 3600.0)
     write_xyz: bool = True
 
 

@@ -111,7 +111,7 @@ class Snapshot:
     pose: np.ndarray | None  # the latest posed frame's, in map pixels of pose_segment
     pose_segment: int | None
     gps: tuple[float, float] | None  # the latest telemetry position (lat, lon)
-    gps_footprint: np.ndarray | None  # (5, 2) lat, lon from the telemetry alone
+    gps_sample: tuple | None  # (the latest sample with a position, the focal length in px)
     telemetry: str  # none | no_fix | gps | georeferenced
     georeference: tuple[int, Georeference] | None
     geo_version: int
@@ -174,7 +174,7 @@ class LiveMap:
         self._pose: np.ndarray | None = None
         self._pose_segment: int | None = None
         self._gps: tuple[float, float] | None = None
-        self._gps_footprint: np.ndarray | None = None
+        self._gps_sample: tuple | None = None
         self._had_telemetry = False
         self._georef: tuple[int, Georeference] | None = None
         self._geo_version = 0
@@ -225,7 +225,7 @@ class LiveMap:
                 self._had_telemetry = True
                 if sample.lat is not None and sample.lon is not None:
                     self._gps = (float(sample.lat), float(sample.lon))
-                    self._gps_footprint = geo_footprint(sample, event.focal_px, *event.frame_size)
+                    self._gps_sample = (sample, event.focal_px)
         if now - self._last_copy >= self._period or event.new_segment:
             self._last_copy = now
             self._copy_dirty()
@@ -308,7 +308,7 @@ class LiveMap:
             if self._shown[0] != shown:  # copied once per change (at most tile_hz a second), not per request
                 self._shown = (shown, dict(self._tiles.get(served, {})) if served is not None else {})
             return Snapshot(self._frames_in, self._frame, self._registered, len(self._segments), self._segment, fps,
-                            self._frame_size, self._pose, self._pose_segment, self._gps, self._gps_footprint,
+                            self._frame_size, self._pose, self._pose_segment, self._gps, self._gps_sample,
                             telemetry, georef, self._geo_version, self._tile_size, self._shown[1],
                             self._paths.get(served, []) if served is not None else [],  # never changed in place
                             self._version)
@@ -405,7 +405,7 @@ class TileCache:
     """Rendered tiles by ``(kind, geo_version, z, x, y)``, least recently used beyond
     ``max_entries``; see the module docstring for when a tile is rendered again."""
 
-    def __init__(self, max_entries: int = 1024, min_interval_s: float = 1.0) -> None:
+    def __init__(self, max_entries: int = 1024, min_interval_s: float = 2.0) -> None:
         self._entries: OrderedDict[tuple, _Entry] = OrderedDict()
         self._lock = threading.Lock()
         self._max = max(1, int(max_entries))
@@ -466,8 +466,11 @@ def footprint_geojson(snap: Snapshot) -> dict:
         ring = frame_outline(snap.pose, *snap.frame_size)
         return _collection([_feature({"type": "Polygon", "coordinates": [_coords(snap, ring)]},
                                      source="map")], snap)
-    if snap.georeference is not None and snap.gps_footprint is not None:
-        ring = [[float(lon), float(lat)] for lat, lon in snap.gps_footprint]
+    outline = None
+    if snap.georeference is not None and snap.gps_sample is not None and snap.frame_size:
+        outline = geo_footprint(snap.gps_sample[0], snap.gps_sample[1], *snap.frame_size)
+    if outline is not None:
+        ring = [[float(lon), float(lat)] for lat, lon in outline]
         return _collection([_feature({"type": "Polygon", "coordinates": [ring]}, source="telemetry")], snap)
     return _collection([], snap)
 
