@@ -19,7 +19,11 @@ not; for the client, the requests answered, their median and largest latency, an
 renders and cache hits. Target: no measurable slowdown (the client's fps ratio within the noise
 that a server with no client shows, or 3 %).
 
-    python -m tools.bench_mapserver [--frames 300] [--passes 3] [--hz 5] [--out FILE]
+    python -m tools.bench_mapserver [--frames 300] [--passes 3] [--hz 5] [--no-live] [--out FILE]
+
+Then (unless ``--no-live``) the live case: the video fed at its frame rate like a camera
+(``tools.bench_pipeline.PacedVideoSource``), without a server and with the server and the
+client: frames mapped and dropped, the worker's ms per frame.
 
 Replaces the section between ``<!-- mapserver:start -->`` and ``<!-- mapserver:end -->`` of
 ``docs/benchmarks.md`` (``--out -``: print only). The 1-minute load average before and after is
@@ -48,13 +52,16 @@ import urllib.request
 from pathlib import Path
 
 from photomap.cli.replay import replay
+from photomap.cli.wiring import map_source
 from photomap.config import load_config
 from photomap.geo import webmercator as wm
 from photomap.sim.simulate import simulate_flight
+from tools.bench_pipeline import PacedVideoSource
 from tools.report import replace_section
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = (640, 480)
+FPS = 30.0  # of the simulated flight; the live passes feed it at this rate
 CONDITIONS = ("no server", "server, no client", "server + client")
 log = logging.getLogger("bench_mapserver")
 
@@ -90,7 +97,7 @@ class Client(threading.Thread):
             with urllib.request.urlopen(self.base + path, timeout=5.0) as r:
                 body = r.read()
         except (urllib.error.URLError, OSError):
-            self.failed += 1
+            self.failed += bool(self.latencies)  # not before the server is up
             return None
         self.latencies.append(time.perf_counter() - t0)
         return body
@@ -125,6 +132,7 @@ class Client(threading.Thread):
 def client_main(base: str, hz: float) -> int:
     """The client process: fetches until its stdin closes, then prints what it saw (JSON)."""
     client = Client(base, hz)
+    print("ready", flush=True)  # imported: the pass starts now (the imports' CPU is not its)
     client.start()
     sys.stdin.read()
     client.stop.set()
@@ -143,9 +151,11 @@ def _cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def one_pass(flight: Path, out: Path, condition: str, hz: float) -> dict:
+def one_pass(flight: Path, out: Path, condition: str, hz: float, live: bool = False) -> dict:
     """One replay in ``condition``: the pipeline's fps and this process's CPU seconds per frame
-    (mapping and server; the client is another process)."""
+    (mapping and server; the client is another process). ``live``: the video fed at its frame
+    rate through a drop-oldest queue, as a camera is (``tools.bench_pipeline.PacedVideoSource``),
+    without telemetry (the server shows the map's pixel frame)."""
     # no xyz/ at the end: an output after the mapping, not what a client costs it
     cfg = load_config().updated({"output": {"checkpoint_interval": 2.0}, "map_server": {"write_xyz": False}})
     port = _free_port()
@@ -155,14 +165,21 @@ def one_pass(flight: Path, out: Path, condition: str, hz: float) -> dict:
         client = subprocess.Popen([sys.executable, "-m", "tools.bench_mapserver", "--client",
                                    f"http://127.0.0.1:{port}/", "--hz", str(hz)], cwd=REPO,
                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        client.stdout.readline()
     cpu0 = _cpu_s()
     try:
-        s = replay(str(flight / "video.avi"), out, cfg, mavlink=str(flight / "telemetry.tlog"), map_server=server)
+        if live:
+            source = PacedVideoSource(flight / "video.avi", FPS, cfg.capture.queue_size)
+            s = map_source(source, cfg, out, input_name="video.avi", map_server=server)
+        else:
+            s = replay(str(flight / "video.avi"), out, cfg, mavlink=str(flight / "telemetry.tlog"),
+                       map_server=server)
     finally:
         cpu = _cpu_s() - cpu0
-        seen = client.communicate("", timeout=60)[0] if client is not None else None
+        seen = client.communicate("", timeout=60)[0] if client is not None else None  # closes its stdin
     row = {"fps": float(s["fps"]), "frames": s["frames_in"], "registered": s["registered"],
-           "cpu_ms": 1000 * cpu / max(1, s["frames_in"])}
+           "cpu_ms": 1000 * cpu / max(1, s["frames_in"]), "dropped": int(s.get("dropped") or 0),
+           "worker_ms": float(s.get("ms_per_frame") or 0.0)}
     if seen:
         row.update(json.loads(seen.strip().splitlines()[-1]))
     return row
@@ -211,6 +228,27 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
               f"within the noise, or 3 %). The client (another process) asks for the status and the 3 x 3 tiles "
               f"around the vehicle at `max_zoom` {args.hz:g} times a second (up to {10 * args.hz:g} requests/s); "
               f"latencies are those it saw on loopback while the mapping ran flat out."]
+    live = rows.get("live")
+    if live:
+        lines += ["", f"Live: the same video fed at {FPS:g} fps through a drop-oldest queue of "
+                  f"`capture.queue_size` frames, as a camera is (the server's Python code waits while the "
+                  f"worker maps a frame, `MappingPipeline.worker_first`), no telemetry (pixel-frame tiles), "
+                  f"{args.passes} passes each, interleaved:", "",
+                  "| live condition | frames mapped (median) | dropped (median) | worker ms per frame (median) "
+                  "| CPU ms per frame (median) | client requests (tiles) | latency median / max ms |",
+                  "|---|---|---|---|---|---|---|"]
+        for cond in ("no server", "server + client"):
+            rs = live[cond]
+            req = latency = "-"
+            if cond == "server + client":
+                req = (f"{statistics.median(r['requests'] for r in rs):.0f} "
+                       f"({statistics.median(r['tiles'] for r in rs):.0f})")
+                latency = (f"{statistics.median(r['median_ms'] for r in rs):.1f} / "
+                           f"{max(r['max_ms'] for r in rs):.0f}")
+            lines.append(f"| {cond} | {statistics.median(r['frames'] for r in rs):.0f} "
+                         f"| {statistics.median(r['dropped'] for r in rs):.0f} "
+                         f"| {statistics.median(r['worker_ms'] for r in rs):.1f} "
+                         f"| {statistics.median(r['cpu_ms'] for r in rs):.2f} | {req} | {latency} |")
     return "\n".join(lines) + "\n"
 
 
@@ -221,6 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hz", type=float, default=5.0, help="client rounds per second (default 5)")
     ap.add_argument("--out", default=str(REPO / "docs" / "benchmarks.md"),
                     help="markdown file whose mapserver section is replaced (- = print only)")
+    ap.add_argument("--no-live", dest="live", action="store_false", help="replays only (no live passes)")
     ap.add_argument("--client", metavar="URL", help=argparse.SUPPRESS)  # internal: the client process
     args = ap.parse_args(argv)
     if args.client:
@@ -231,17 +270,26 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     logging.getLogger("photomap").setLevel(logging.WARNING)
     start, load0 = time.perf_counter(), load_average()
-    rows: dict[str, list[dict]] = {c: [] for c in CONDITIONS}
+    rows: dict = {c: [] for c in CONDITIONS}
     with tempfile.TemporaryDirectory(prefix="bench-mapserver-") as tmp:
         tmp_dir = Path(tmp)
         log.info("simulating %d frames of %dx%d", args.frames, *SIZE)
-        flight = simulate_flight(tmp_dir / "flight", n_frames=args.frames, size=SIZE, seed=2, video_codec="mjpg")
+        flight = simulate_flight(tmp_dir / "flight", n_frames=args.frames, size=SIZE, fps=FPS, seed=2,
+                                 video_codec="mjpg")
         for k in range(args.passes):
             for cond in CONDITIONS:
                 row = one_pass(flight, tmp_dir / f"out{k}-{CONDITIONS.index(cond)}", cond, args.hz)
                 rows[cond].append(row)
                 log.info("pass %d, %s: %.1f fps%s", k + 1, cond, row["fps"],
                          f", {row['requests']} requests" if "requests" in row else "")
+        if args.live:
+            rows["live"] = {"no server": [], "server + client": []}
+            for k in range(args.passes):
+                for cond in rows["live"]:
+                    row = one_pass(flight, tmp_dir / f"live{k}-{CONDITIONS.index(cond)}", cond, args.hz, live=True)
+                    rows["live"][cond].append(row)
+                    log.info("live pass %d, %s: %d mapped, %d dropped, %.1f worker ms/frame", k + 1, cond,
+                             row["frames"], row["dropped"], row["worker_ms"])
     body = render(args, rows, time.perf_counter() - start, (load0, load_average()))
     print(body)
     if args.out != "-":

@@ -229,6 +229,7 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
     pipeline = MappingPipeline(source, cfg, out_dir, sinks=sinks, input_name=input_name, telemetry=telemetry)
     if server is not None:
         pipeline.on_georeference = server.on_georeference
+        server.gate = pipeline.worker_first
     previous = {}
     if status is not None:
         status.start()

@@ -32,7 +32,7 @@ import threading
 import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import cv2
 import numpy as np
@@ -378,8 +378,11 @@ def pixel_source_rect(x: int, y: int, z: int) -> tuple[int, int, int, int]:
     return x * f, y * f, (x + 1) * f, (y + 1) * f
 
 
-def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int) -> bytes:
-    """The PNG of tile ``(x, y, z)``: ``kind`` ``xyz`` (georeferenced) or ``pixel``."""
+def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callable[[], None] = lambda: None
+               ) -> bytes:
+    """The PNG of tile ``(x, y, z)``: ``kind`` ``xyz`` (georeferenced) or ``pixel``; ``pause``
+    is called between the steps (rendering, encoding)."""
+    pause()
     if kind == "xyz":
         raster = MapRaster(_render_fn(snap), snap.bounds_px(), np.asarray(snap.georeference[1].map_to_crs)[:2],
                            snap.georeference[1].epsg)
@@ -390,6 +393,7 @@ def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int) -> bytes:
         tile = (image, alpha) if alpha.any() else None
     if tile is None:
         return EMPTY_PNG
+    pause()
     ok, buf = cv2.imencode(".png", np.dstack(tile), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     return buf.tobytes() if ok else EMPTY_PNG
 
@@ -405,7 +409,7 @@ class TileCache:
     """Rendered tiles by ``(kind, geo_version, z, x, y)``, least recently used beyond
     ``max_entries``; see the module docstring for when a tile is rendered again."""
 
-    def __init__(self, max_entries: int = 1024, min_interval_s: float = 2.0) -> None:
+    def __init__(self, max_entries: int = 256, min_interval_s: float = 2.0) -> None:
         self._entries: OrderedDict[tuple, _Entry] = OrderedDict()
         self._lock = threading.Lock()
         self._max = max(1, int(max_entries))
@@ -413,7 +417,9 @@ class TileCache:
         self.renders = 0
         self.hits = 0
 
-    def get(self, snap: Snapshot, kind: str, x: int, y: int, z: int) -> bytes:
+    def get(self, snap: Snapshot, kind: str, x: int, y: int, z: int,
+            pause: Callable[[], None] = lambda: None) -> bytes:
+        """The tile's PNG (``pause``: see :func:`render_png`)."""
         rect = xyz_source_rect(snap, x, y, z) if kind == "xyz" else pixel_source_rect(x, y, z)
         deps = _keys_in(snap, *rect)
         key = (kind, snap.geo_version if kind == "xyz" else 0, z, x, y)
@@ -424,7 +430,7 @@ class TileCache:
                 self._entries.move_to_end(key)
                 self.hits += 1
                 return entry.png
-        png = render_png(snap, kind, x, y, z) if deps else EMPTY_PNG
+        png = render_png(snap, kind, x, y, z, pause) if deps else EMPTY_PNG
         with self._lock:
             self.renders += 1
             self._entries[key] = _Entry(png, deps, now)

@@ -23,7 +23,9 @@ never reads the pipeline's state). It serves:
     A page (Leaflet, shipped in the package: no internet needed) with all of it, following the
     flight.
 
-Bounds: ``threads`` threads answer (at a lowered priority), at most ``max_connections``
+Bounds: ``threads`` threads answer (live, their Python code waits while the worker maps a frame:
+:attr:`MapServer.gate`; not at a lowered priority: a thread holding the interpreter lock while the
+kernel runs others would keep the worker waiting), at most ``max_connections``
 connections are open at once (more are closed at once), a request (line and headers) must arrive
 whole within ``timeout_s`` and within 8 KiB, only GET and HEAD are answered, one request per
 connection. The mapping worker never waits for any of it.
@@ -55,7 +57,7 @@ from photomap.live.livemap import EMPTY_PNG, PIXEL_ZOOM, LiveMap, TileCache, foo
     track_geojson
 from photomap.live.viewer import parse_serve_address
 from photomap.mapping.events import FrameEvent
-from photomap.mapping.threads import lower_priority
+from photomap.mapping.threads import WorkerFirst
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +98,7 @@ class _Server(HTTPServer):
         self.address_family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
         self.owner = owner
         self._slots = threading.BoundedSemaphore(max_connections)
-        self._pool = ThreadPoolExecutor(threads, "photomap-mapserver", initializer=lower_priority)
+        self._pool = ThreadPoolExecutor(threads, "photomap-mapserver")
         super().__init__(address, _Handler)
 
     def server_bind(self) -> None:
@@ -200,6 +202,7 @@ class _Handler(BaseHTTPRequestHandler):
     def _answer(self, head: bool) -> None:
         owner = self.server.owner
         owner.stats["requests"] += 1
+        owner.pause()
         path = self.path.split("?", 1)[0].split("#", 1)[0]
         try:
             m = _TILE_PATH.match(path)
@@ -253,6 +256,9 @@ class MapServer:
         self.timeout_s = float(cfg.timeout_s)
         self.stats = {"requests": 0, "refused": 0, "timeouts": 0, "too_large": 0, "errors": 0}
         self._warned: set[str] = set()
+        # live: the answers' Python code waits while the worker maps a frame (the pipeline's
+        # MappingPipeline.worker_first); None: never waits
+        self.gate: WorkerFirst | None = None
         self.page = _static("index.html")
         try:
             self._server = _Server((address, cfg.port if port is None else int(port)), self, cfg.threads,
@@ -291,6 +297,12 @@ class MapServer:
     def on_georeference(self, segment: int, geo) -> None:
         self.live.on_georeference(segment, geo)
 
+    def pause(self) -> None:
+        """A pause point of the server threads (see :attr:`gate`)."""
+        gate = self.gate
+        if gate is not None:
+            gate.wait()
+
     def warn_once(self, key: str, text: str) -> None:
         if key not in self._warned:
             self._warned.add(key)
@@ -305,12 +317,12 @@ class MapServer:
                 return None
             if not (0 <= x < 2 ** z and 0 <= y < 2 ** z):
                 return None
-            return self.cache.get(snap, "xyz", x, y, z)
+            return self.cache.get(snap, "xyz", x, y, z, pause=self.pause)
         if not 0 <= z <= PIXEL_ZOOM:
             return None
         if snap.served_segment is None:
             return EMPTY_PNG
-        return self.cache.get(snap, "pixel", x, y, z)
+        return self.cache.get(snap, "pixel", x, y, z, pause=self.pause)
 
     def status(self) -> dict:
         return status(self.live.snapshot(), {"server": dict(self.stats),

@@ -287,6 +287,11 @@ class MappingPipeline:
         self.on_georeference: GeoreferenceSink | None = None
 
     @property
+    def worker_first(self) -> WorkerFirst:
+        """The gate other threads' Python code waits at while the worker maps a frame (live)."""
+        return self._first
+
+    @property
     def rows(self) -> tuple[RowView, ...]:
         """The trajectory so far, one row per input frame (read only: the pipeline writes them)."""
         return tuple(self._rows)
