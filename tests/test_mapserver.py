@@ -361,3 +361,22 @@ def test_a_painted_tile_renders_again_at_most_once_per_interval(interval):
     # an unchanged map: the cached tile, no render
     cache.get(live.snapshot(), "pixel", 0, 0, 8)
     assert cache.renders == (2 if interval == 0.0 else 1) and cache.hits >= 1
+
+
+def test_answers_wait_while_the_worker_maps_a_frame():
+    """Live, the server's Python code gives way to the worker's frame (its gate), then answers."""
+    from photomap.mapping.threads import WorkerFirst
+
+    server = MapServer(load_config().map_server, "127.0.0.1", 0)
+    server.gate = WorkerFirst(enabled=True, max_wait_s=60.0)
+    got: dict = {}
+    try:
+        with server.gate.frame():  # the worker is mapping a frame
+            asker = threading.Thread(target=lambda: got.update(st=_status(f"http://127.0.0.1:{server.port}/")))
+            asker.start()
+            asker.join(timeout=1.0)
+            assert asker.is_alive() and "st" not in got  # waiting at the gate, not answered
+        asker.join(timeout=30.0)  # the frame is done: answered
+        assert got["st"]["frames_in"] == 0
+    finally:
+        server.close()
