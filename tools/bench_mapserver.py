@@ -219,13 +219,18 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
                      f"| {cache} |")
     noise = abs(ratios["server, no client"] - 1.0)
     drop = 1.0 - ratios["server + client"]
+    if noise > 0.1:
+        verdict = (f"not decidable on this machine (a server with no client, which does nothing, moved the "
+                   f"fps by {100 * noise:.0f} %: the load of other processes dominates); the CPU figure is the "
+                   f"measure that holds")
+    else:
+        verdict = "met" if drop <= max(noise, 0.03) else "NOT met"
     cpu_client = statistics.median(r["cpu_ms"] for r in rows["server + client"])
     lines += ["", f"Mapping fps with a client at {args.hz:g} Hz, pass by pass against the run without a server "
               f"just before it: median ratio {ratios['server + client']:.3f} (a server with no client: "
               f"{ratios['server, no client']:.3f}, the noise of this machine). The server's CPU: "
               f"{cpu_client - base_cpu:+.2f} ms per frame with the client ({cpu_client:.2f} against {base_cpu:.2f}). "
-              f"Target (no measurable slowdown): **{'met' if drop <= max(noise, 0.03) else 'NOT met'}** (fps ratio "
-              f"within the noise, or 3 %). The client (another process) asks for the status and the 3 x 3 tiles "
+              f"Target (no measurable slowdown: the fps ratio within the noise, or 3 %): **{verdict}**. The client (another process) asks for the status and the 3 x 3 tiles "
               f"around the vehicle at `max_zoom` {args.hz:g} times a second (up to {10 * args.hz:g} requests/s); "
               f"latencies are those it saw on loopback while the mapping ran flat out."]
     live = rows.get("live")
@@ -249,6 +254,13 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
                          f"| {statistics.median(r['dropped'] for r in rs):.0f} "
                          f"| {statistics.median(r['worker_ms'] for r in rs):.1f} "
                          f"| {statistics.median(r['cpu_ms'] for r in rs):.2f} | {req} | {latency} |")
+        mapped = {c: statistics.median(r["frames"] for r in live[c]) for c in live}
+        cpu = {c: statistics.median(r["cpu_ms"] for r in live[c]) for c in live}
+        ok = mapped["server + client"] >= 0.98 * mapped["no server"]
+        lines += ["", f"Live target (the frames mapped with the client within 2 % of those without): "
+                  f"**{'met' if ok else 'NOT met'}** ({mapped['server + client']:.0f} against "
+                  f"{mapped['no server']:.0f}); the server's CPU {cpu['server + client'] - cpu['no server']:+.2f} ms "
+                  f"per frame."]
     return "\n".join(lines) + "\n"
 
 
