@@ -169,20 +169,6 @@ def test_live_tile_at_the_vehicle_is_mapped_during_a_realtime_replay(flight, tmp
                         cv2.cvtColor(live[..., :3], cv2.COLOR_BGR2GRAY).astype(float), both) > 0.8
 
 
-def _mapped_server(flight: Path, tmp_path: Path, **server_cfg) -> tuple[MapServer, dict]:
-    """A server fed by a (fast) replay of the flight with its telemetry; it stays up after."""
-    cfg = load_config().updated({"output": {"checkpoint_interval": 0.5}, "map_server": server_cfg})
-    server = MapServer(cfg.map_server, "127.0.0.1", 0)
-    source = open_capture(str(flight / "video.mp4"), cfg.capture)
-    join, _, cfg = open_telemetry(str(flight / "telemetry.tlog"), cfg, source=source,
-                                  input_spec=str(flight / "video.mp4"))
-    pipeline = MappingPipeline(source, cfg, tmp_path / "run", sinks=[server.on_frame], telemetry=join)
-    pipeline.on_georeference = server.on_georeference
-    summary = pipeline.run()
-    server.live.flush()
-    return server, summary
-
-
 def test_hostile_clients_cost_the_mapping_nothing_and_are_bounded(flight, tmp_path):
     """Slow clients, a huge request and many connections: the map is the same as without the
     server, the server's threads and connections stay within their bounds, and a good client is
@@ -287,32 +273,62 @@ def screenshot(url: str, out: Path, profile: Path, size: tuple[int, int] = (800,
     return subprocess.run(args, capture_output=True, text=True, timeout=120)
 
 
+class _HeldOpen:
+    """A frame source that, after its last frame, waits for ``release`` (at most 120 s) before it
+    ends: the run goes on (and its server with it) while the page is looked at."""
+
+    def __init__(self, source, release: threading.Event) -> None:
+        self._source, self._release = source, release
+
+    def __getattr__(self, name):
+        return getattr(self._source, name)
+
+    def __iter__(self):
+        yield from self._source
+        self._release.wait(120.0)
+
+
 def test_page_renders_map_pixels_in_chromium(flight, tmp_path):
-    """The page at / loads in headless Chromium, uses /tiles/ and shows the map's pixels."""
+    """During a --realtime replay with telemetry, the page at / loads in headless Chromium, uses
+    /tiles/ and shows the map's pixels in the served tiles' colours."""
     if _chromium() is None:
         pytest.skip("chromium is not installed (apt-get install chromium)")
-    server, _ = _mapped_server(flight, tmp_path)
-    base = f"http://127.0.0.1:{server.port}/"
+    from photomap.cli.wiring import map_source
+
+    cfg = load_config().updated({"output": {"checkpoint_interval": 1.0}})
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}/"
+    release = threading.Event()
+    source = _HeldOpen(open_capture(str(flight / "video.mp4"), cfg.capture), release)
+    join, _, cfg = open_telemetry(str(flight / "telemetry.tlog"), cfg, source=source,
+                                  input_spec=str(flight / "video.mp4"), realtime=True)
+    worker = threading.Thread(target=lambda: map_source(source, cfg, tmp_path / "run", realtime=True, telemetry=join,
+                                                        map_server=str(port)))
+    worker.start()
     try:
-        st = _status(base)
-        assert st["georeferenced"]
-        renders = server.cache.renders
+        st = _wait(lambda: (s := _status(base)) and s["georeferenced"] and s["frames_in"] >= 100 and s)
+        assert st is not None, "no georeferenced status during the replay"
+        before = st["server"]["requests"]
         shot = tmp_path / "page.png"
         proc = screenshot(base, shot, tmp_path / "profile")
         assert shot.is_file(), proc.stderr[-2000:]
-        assert server.cache.renders + server.cache.hits > renders  # the page asked for /tiles/
-        z = st["max_zoom"] - 1
-        x, y = wm.tile_of(st["position"]["lat"], st["position"]["lon"], z)
-        tile = _decode(_get(f"{base}tiles/{z}/{x}/{y}.png")[1])
+        st = _status(base)
+        assert st["tile_renders"] + st["tile_hits"] > 0 and st["server"]["requests"] > before + 3  # /tiles/
+        z = st["max_zoom"] - 1  # the page's first zoom: about the whole map in view
+        west, south, east, north = st["bounds"]
+        tiles = [_decode(_get(f"{base}tiles/{z}/{x}/{y}.png")[1]) for x, y in wm.tiles_covering(south, west, north, east, z)]
     finally:
-        server.close()
+        release.set()
+        worker.join(timeout=120)
     page = cv2.imread(str(shot))
     assert page is not None and page.shape[:2] == (600, 800)
     background = np.abs(page.astype(int) - 0x20).max(axis=2) <= 4  # the page's #202020 where no tile is
     mapped = ~background & (page.max(axis=2) < 250)  # not the info box or a white error page
+    for bgr in ((255, 224, 0), (0, 208, 255), (48, 48, 255)):  # nor the track, footprint, vehicle
+        mapped &= np.abs(page.astype(int) - bgr).max(axis=2) > 60
     assert mapped.mean() > 0.15, f"only {mapped.mean():.0%} of the page shows the map"
     # the colours shown are the tiles' colours
-    served = tile[..., :3][tile[..., 3] > 0].reshape(-1, 3).mean(axis=0)
+    served = np.concatenate([t[..., :3][t[..., 3] > 0].reshape(-1, 3) for t in tiles]).mean(axis=0)
     shown = page[mapped].reshape(-1, 3).mean(axis=0)
     assert np.abs(served - shown).max() < 30, (served, shown)
 
