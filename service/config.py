@@ -344,6 +344,7 @@ class MapServerConfig(_Section):
     max_connections: int = _num(32, 1, 10000)
     timeout_s: float = _num(5.0, 0.0, 600.0, lo_open=True)
     tile_hz: float = _num(2.0, 0.0, 1000.0, lo_open=True)
+    max_raw_tiles: int = _num(256, 0, 10_000_000)
     cache_tiles: int = _num(256, 1, 1_000_000)
     min_render_interval_s: float = _num(2.0, 0.0, 3600.0)
     write_xyz: bool = True

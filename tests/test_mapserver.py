@@ -187,7 +187,7 @@ def test_hostile_clients_cost_the_mapping_nothing_and_are_bounded(flight, tmp_pa
         pipeline = MappingPipeline(source, cfg, tmp_path / "with", sinks=[server.on_frame])
         with_server = pipeline.run()
         threads = [t for t in threading.enumerate() if t.name.startswith("photomap-mapserver")]
-        assert len(threads) <= 2 + 1  # the pool and the accepting thread
+        assert len(threads) <= 2 + 2  # the pool, the accepting and the packing thread
         # beyond max_connections a connection is closed at once
         assert server.stats["refused"] >= 12 - 4
         # the slow ones were cut off after the timeout; then a good client is answered
@@ -396,3 +396,32 @@ def test_answers_wait_while_the_worker_maps_a_frame():
         assert got["st"]["frames_in"] == 0
     finally:
         server.close()
+
+
+def test_tiles_the_flight_left_are_packed_and_still_served():
+    """Beyond max_raw_tiles the oldest copies are packed (a fraction of the bytes); what is
+    served from them is the same picture (JPEG quality), the alpha exactly."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.live.livemap import LiveMap, render_png
+
+    terrain = cv2.GaussianBlur(load_terrain("aukerman"), (0, 0), 1.0)[:256, :256]  # real imagery
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    alpha = np.full((64, 64), 255, np.uint8)
+    alpha[40:, 50:] = 0  # a map edge
+    keys = [(tx, ty) for ty in range(4) for tx in range(4)]
+    for tx, ty in keys:
+        mosaic.set_tile((tx, ty), terrain[64 * ty:64 * ty + 64, 64 * tx:64 * tx + 64], alpha)
+    live = LiveMap(tile_hz=1e6)
+    live.on_frame(_tile_event(0, mosaic, set(keys)))
+    before = _decode(render_png(live.snapshot(), "pixel", 0, 0, 8))
+    low_before = _decode(render_png(live.snapshot(), "pixel", 0, 0, 6))  # from the tiles' quarter halvings
+    raw_bytes = live.nbytes()
+    assert live.pack(max_raw=4) == 12 and live.pack(max_raw=4) == 0
+    assert live.nbytes() < 0.4 * raw_bytes
+    after = _decode(render_png(live.snapshot(), "pixel", 0, 0, 8))
+    assert (after[..., 3] == before[..., 3]).all()
+    covered = before[..., 3] > 0
+    assert np.abs(after[..., :3].astype(int) - before[..., :3].astype(int))[covered].mean() < 3
+    # lower zooms come from the halvings kept as pixels: exactly as before
+    assert (_decode(render_png(live.snapshot(), "pixel", 0, 0, 6)) == low_before).all()

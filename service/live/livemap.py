@@ -27,11 +27,12 @@ tile many times a second gets one render per interval).
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 import time
 from collections import OrderedDict, deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 import cv2
@@ -75,14 +76,44 @@ def _unpremultiplied(pre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return image, np.clip(np.rint(cover[..., 0] * 255.0), 0, 255).astype(np.uint8)
 
 
-@dataclass(frozen=True)
-class _Tile:
-    """A copied map tile: BGRA uint8, its version (grows with every copy), and its halvings
-    (``level(n)``: side ``ts >> n``, alpha-weighted 2x2 means; made on first use)."""
+_PACK_JPEG_QUALITY = 90
 
-    bgra: np.ndarray
-    version: int
-    mips: dict = field(default_factory=dict, compare=False, repr=False)
+
+class _Tile:
+    """A copied map tile: BGRA uint8 pixels, its version (grows with every copy), and its
+    halvings (``level(n)``: side ``ts >> n``, alpha-weighted 2x2 means; made on first use).
+
+    A *packed* tile (:meth:`packed`, for tiles the flight has left) keeps its colour as JPEG and
+    its alpha as PNG (about a tenth of the pixels' bytes) and its halvings from ``ts / 4`` down;
+    its full-size pixels are decoded when asked for. Never changed once shared: packing makes a
+    new tile."""
+
+    __slots__ = ("version", "_bgra", "_jpeg", "_alpha", "mips")
+
+    def __init__(self, bgra: np.ndarray | None, version: int, packed: tuple[bytes, bytes] | None = None,
+                 mips: dict | None = None) -> None:
+        self.version = version
+        self._bgra = bgra
+        self._jpeg, self._alpha = packed if packed is not None else (None, None)
+        self.mips: dict[int, np.ndarray] = mips if mips is not None else {}
+
+    @property
+    def is_packed(self) -> bool:
+        return self._bgra is None
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held (pixels or their encodings, and the halvings)."""
+        own = self._bgra.nbytes if self._bgra is not None else len(self._jpeg) + len(self._alpha)
+        return own + sum(m.nbytes for m in self.mips.values())
+
+    @property
+    def bgra(self) -> np.ndarray:
+        if self._bgra is not None:
+            return self._bgra
+        colour = cv2.imdecode(np.frombuffer(self._jpeg, np.uint8), cv2.IMREAD_COLOR)
+        alpha = cv2.imdecode(np.frombuffer(self._alpha, np.uint8), cv2.IMREAD_GRAYSCALE)
+        return np.dstack([colour, alpha])
 
     def level(self, n: int) -> np.ndarray:
         if n == 0:
@@ -95,6 +126,22 @@ class _Tile:
             image, alpha = _unpremultiplied(half)
             got = self.mips[n] = np.dstack([image, alpha])
         return got
+
+    def packed(self) -> "_Tile":
+        """This tile packed (see the class docstring); itself when already packed."""
+        if self._bgra is None:
+            return self
+        side = self._bgra.shape[0]
+        levels = max(0, int(math.log2(side)))
+        for n in range(2, levels + 1):
+            self.level(n)
+        ok1, jpeg = cv2.imencode(".jpg", np.ascontiguousarray(self._bgra[..., :3]),
+                                 [cv2.IMWRITE_JPEG_QUALITY, _PACK_JPEG_QUALITY])
+        ok2, alpha = cv2.imencode(".png", np.ascontiguousarray(self._bgra[..., 3]), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not (ok1 and ok2):
+            return self
+        return _Tile(None, self.version, (jpeg.tobytes(), alpha.tobytes()),
+                     {n: m for n, m in self.mips.items() if n >= 2})
 
 
 @dataclass(frozen=True)
@@ -156,6 +203,7 @@ class LiveMap:
         self._period = 1.0 / float(tile_hz)
         self._max_path = max(2, int(max_path))
         self._tiles: dict[int, dict[TileKey, _Tile]] = {}  # segment -> its copied tiles
+        self._raw: OrderedDict[tuple[int, TileKey], None] = OrderedDict()  # unpacked tiles, oldest copy first
         self._tile_size = 256
         self._version = 0
         self._dirty: dict[int, set[TileKey]] = {}  # segment -> tiles changed since their copy
@@ -251,11 +299,14 @@ class LiveMap:
                 store = self._tiles.setdefault(seg, {})
                 for key, pixels in copies.items():
                     if pixels is None:
+                        self._raw.pop((seg, key), None)
                         if store.pop(key, None) is not None:
                             self._version += 1
                         continue
                     self._version += 1
                     store[key] = _Tile(pixels, self._version)
+                    self._raw[(seg, key)] = None
+                    self._raw.move_to_end((seg, key))
 
     def flush(self) -> None:
         """Copy every tile changed so far (the worker thread, e.g. at the end of the run)."""
@@ -289,6 +340,36 @@ class LiveMap:
             self._georef = (int(segment), geo)
             self._geo_version += 1
             self._version += 1
+
+    # ------------------------------------------------------------------ the packing thread
+    def pack(self, max_raw: int, pause: Callable[[], None] = lambda: None) -> int:
+        """Pack the least recently copied tiles beyond ``max_raw`` unpacked ones (all segments);
+        ``pause`` is called between tiles. Returns how many were packed."""
+        with self._lock:
+            excess = len(self._raw) - max(0, int(max_raw))
+            if excess <= 0:
+                return 0
+            oldest = [(seg, key, self._tiles[seg][key]) for seg, key in itertools.islice(self._raw, excess)]
+        done = 0
+        for seg, key, tile in oldest:
+            pause()
+            packed = tile.packed()
+            with self._lock:
+                store = self._tiles.get(seg)
+                if store is not None and store.get(key) is tile:  # not copied again meanwhile
+                    store[key] = packed
+                    self._raw.pop((seg, key), None)
+                    done += 1
+        if done:
+            with self._lock:
+                self._shown = (None, {})  # the next snapshot holds the packed tiles, not the raw ones
+        return done
+
+    def nbytes(self) -> int:
+        """Bytes the copied tiles hold."""
+        with self._lock:
+            tiles = [t for store in self._tiles.values() for t in store.values()]
+        return sum(t.nbytes for t in tiles)
 
     # ------------------------------------------------------------------ server threads
     def snapshot(self) -> Snapshot:

@@ -271,6 +271,10 @@ class MapServer:
         self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.2},
                                         name="photomap-mapserver-accept", daemon=True)
         self._thread.start()
+        self._max_raw = int(cfg.max_raw_tiles)
+        self._closing = threading.Event()
+        self._packer = threading.Thread(target=self._pack, name="photomap-mapserver-pack", daemon=True)
+        self._packer.start()
 
     @classmethod
     def from_config(cls, cfg: MapServerConfig, listen: str | None = None, *,
@@ -338,8 +342,18 @@ class MapServer:
             return {"type": "FeatureCollection", "features": []}
         return spots if isinstance(spots, dict) else {"type": "FeatureCollection", "features": []}
 
+    def _pack(self) -> None:
+        """Once a second, pack the tiles beyond ``map_server.max_raw_tiles`` (the oldest copies)."""
+        while not self._closing.wait(1.0):
+            try:
+                self.live.pack(self._max_raw, self.pause)
+            except Exception as exc:  # memory, not the map: say it once and go on
+                self.warn_once("pack", f"map server: tiles not packed: {type(exc).__name__}: {exc}")
+
     def close(self) -> None:
         """Stop answering and close the port."""
+        self._closing.set()
+        self._packer.join(timeout=5.0)
         self._server.shutdown()
         self._server.server_close()
         self._thread.join(timeout=5.0)
