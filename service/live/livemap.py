@@ -7,7 +7,9 @@ since the last copy (``touched``) at most ``tile_hz`` times a second (each a cop
 pixels, ~50 us). Each copy replaces the tile in a dictionary under a lock held for that
 assignment only, so the worker never waits on a request. The server threads read only this
 copy, never the pipeline's maps. :meth:`LiveMap.on_georeference` is told the main map's GPS fit
-(:data:`~photomap.mapping.events.GeoreferenceSink`).
+(:data:`~photomap.mapping.events.GeoreferenceSink`). :meth:`LiveMap.pack` (the server's packing
+thread) packs the oldest copies beyond a count, so that the copy of a long flight's map stays
+small.
 
 Tiles (rendered on request, :class:`TileCache`):
 
