@@ -23,7 +23,7 @@ import yaml
 from photomap.errors import ConfigError
 
 __all__ = ["Config", "RegistrationConfig", "MappingConfig", "OutputConfig", "CaptureConfig",
-           "TelemetryConfig", "MosaicConfig", "SimulateConfig", "ViewerConfig", "CameraConfig",
+           "TelemetryConfig", "MosaicConfig", "SimulateConfig", "ViewerConfig", "MapServerConfig", "CameraConfig",
            "GeorefConfig", "PosegraphConfig", "HazardsConfig", "load_config", "parse_set", "default_config_path"]
 
 
@@ -343,6 +343,23 @@ class ViewerConfig(_Section):
 
 
 @dataclass(frozen=True)
+class MapServerConfig(_Section):
+    """The live map over HTTP: XYZ tiles, status, GeoJSON and a page (:mod:`photomap.live.mapserver`)."""
+
+    _name = "map_server"
+    listen: str = ""
+    port: int = _num(8765, 1, 65535)
+    threads: int = _num(4, 1, 64)
+    max_connections: int = _num(32, 1, 10000)
+    timeout_s: float = _num(5.0, 0.0, 600.0, lo_open=True)
+    tile_hz: float = _num(2.0, 0.0, 1000.0, lo_open=True)
+    max_raw_tiles: int = _num(256, 0, 10_000_000)
+    cache_tiles: int = _num(256, 1, 1_000_000)
+    min_render_interval_s: float = _num(2.0, 0.0, 3600.0)
+    write_xyz: bool = True
+
+
+@dataclass(frozen=True)
 class CameraConfig(_Section):
     """The camera model of the input frames (metric scale, tilt rectification)."""
 
@@ -450,6 +467,7 @@ class Config:
     mosaic: MosaicConfig = field(default_factory=MosaicConfig)
     simulate: SimulateConfig = field(default_factory=SimulateConfig)
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
+    map_server: MapServerConfig = field(default_factory=MapServerConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     georef: GeorefConfig = field(default_factory=GeorefConfig)
     posegraph: PosegraphConfig = field(default_factory=PosegraphConfig)

@@ -112,6 +112,9 @@ def test_every_config_key_is_read(tmp_path, monkeypatch):
             "--mavlink", str(flight / "telemetry.tlog"), "--viewer", f"save={tmp_path / 'view.rrd'}", "--hazards",
             "--set", "mosaic.max_tiles_in_memory=64", "--set", "mapping.map_relative=true",
             "--set", "output.checkpoint_interval=0.000001"]
+    with socket.socket() as s:  # and the live map served on loopback
+        s.bind(("127.0.0.1", 0))
+        args += ["--map-server", str(s.getsockname()[1])]
     assert cli.main(args) == 0
     assert json.loads((tmp_path / "run" / "run.json").read_text())["loop_closure"]["corrections"] >= 1
     # a live run: the camera is missing, but everything it reads before opening it is read

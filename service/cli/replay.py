@@ -14,9 +14,9 @@ import argparse
 from pathlib import Path
 
 from photomap.cli.wiring import add_hazards_argument, hazards_config
-from photomap.cli.wiring import (add_mask_argument, add_telemetry_arguments, add_viewer_argument, map_source,
-                                 open_capture, open_stills_telemetry, open_telemetry, print_summary,
-                                 telemetry_beside, with_mask_argument)
+from photomap.cli.wiring import (add_map_server_argument, add_mask_argument, add_telemetry_arguments,
+                                 add_viewer_argument, map_source, open_capture, open_stills_telemetry,
+                                 open_telemetry, print_summary, telemetry_beside, with_mask_argument)
 from photomap.config import Config
 from photomap.errors import OutputError
 
@@ -31,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_mask_argument(parser)
     add_viewer_argument(parser)
     add_hazards_argument(parser)
+    add_map_server_argument(parser)
     parser.add_argument("--geo", metavar="FILE",
                         help="positions of the stills in OpenDroneMap's geo.txt format (default: the "
                              "stills' own EXIF GPS / DJI XMP, when they carry it)")
@@ -42,13 +43,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool = False,
            realtime: bool = False, mavlink: str | None = None,
            video_start: float | None = None, viewer: str | None = None, geo: str | None = None,
-           status_interval: float = 0.0) -> dict:
+           status_interval: float = 0.0, map_server: str | None = None) -> dict:
     """Map a video file or a folder/glob of images into ``out_dir``; returns the run summary.
 
     ``mavlink`` (default ``telemetry.source``) joins telemetry: a .tlog, a DJI .SRT, or a live link
     (then use ``realtime``; the command finds a video's .SRT beside it). Without it, stills use
     their own telemetry (EXIF GPS, DJI XMP, or ``geo``, a geo.txt file). ``status_interval`` > 0: a status line every that many seconds when no
-    progress bar is shown (see :func:`photomap.cli.wiring.map_source`).
+    progress bar is shown; ``map_server``: ``[ADDR:]PORT`` of the live map server (see
+    :func:`photomap.cli.wiring.map_source`).
     """
     source = open_capture(str(input_spec), cfg.capture)
     total = getattr(source, "frame_count", None) or len(getattr(source, "paths", ()) or ()) or None
@@ -62,7 +64,7 @@ def replay(input_spec: str, out_dir: str | Path, cfg: Config, *, progress: bool 
     try:
         return map_source(source, cfg, out_dir, input_name=str(input_spec), progress=progress,
                           total=total, realtime=realtime, telemetry=join, reader=reader, viewer=viewer,
-                          status_interval=status_interval)
+                          status_interval=status_interval, map_server=map_server)
     finally:
         if reader is not None:
             reader.stop()
@@ -78,7 +80,8 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         mavlink = telemetry_beside(args.input)   # DJI_0001.SRT beside DJI_0001.MP4
     summary = replay(args.input, args.out, cfg, progress=not (args.no_progress or args.quiet),
                      realtime=args.realtime, mavlink=mavlink, video_start=args.video_start,
-                     viewer=args.viewer, geo=args.geo, status_interval=getattr(args, "status_interval", 0.0))
+                     viewer=args.viewer, geo=args.geo, status_interval=getattr(args, "status_interval", 0.0),
+                     map_server=args.map_server)
     print_summary(summary, args.out)
     if summary.get("write_errors"):
         return OutputError.exit_code

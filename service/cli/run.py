@@ -16,8 +16,9 @@ import time
 from pathlib import Path
 
 from photomap.cli.wiring import add_hazards_argument, hazards_config
-from photomap.cli.wiring import (add_mask_argument, add_telemetry_arguments, add_viewer_argument, map_source,
-                                 open_capture, open_telemetry, print_summary, with_mask_argument)
+from photomap.cli.wiring import (add_map_server_argument, add_mask_argument, add_telemetry_arguments,
+                                 add_viewer_argument, map_source, open_capture, open_telemetry, print_summary,
+                                 with_mask_argument)
 from photomap.config import Config
 from photomap.errors import OutputError
 
@@ -31,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_mask_argument(parser)
     add_viewer_argument(parser)
     add_hazards_argument(parser)
+    add_map_server_argument(parser)
 
 
 def flight_folder(data_dir: str | Path) -> Path:
@@ -58,7 +60,8 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         source = open_capture(args.camera, cfg.capture)
         print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")
         summary = map_source(source, cfg, out, input_name=str(args.camera), telemetry=join, reader=reader,
-                             viewer=args.viewer, status_interval=getattr(args, "status_interval", 0.0))
+                             viewer=args.viewer, status_interval=getattr(args, "status_interval", 0.0),
+                             map_server=args.map_server)
     finally:
         if reader is not None:
             reader.stop()

@@ -29,6 +29,7 @@ from photomap.drivers.stills_telemetry import open_stills_telemetry as stills_te
 from photomap.errors import InputError
 from photomap.io.preflight import check_output_dir
 from photomap.io.trajectory_files import write_json
+from photomap.live.mapserver import MapServer, write_run_tiles
 from photomap.live.viewer import Viewer
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.hazards import HazardTracker
@@ -80,6 +81,14 @@ def with_mask_argument(args: argparse.Namespace, cfg: Config) -> Config:
     """``cfg`` with ``--mask`` as ``capture.mask`` when it was given."""
     mask = getattr(args, "mask", None)
     return cfg.updated({"capture": {"mask": str(mask)}}) if mask else cfg
+
+
+def add_map_server_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--map-server", metavar="[ADDR:]PORT", nargs="?", const="127.0.0.1",
+                        help="serve the live map over HTTP (web tiles for QGroundControl, Mission Planner, "
+                             "QGIS, a browser page; docs/live-map.md) on 127.0.0.1:PORT, or ADDR:PORT (e.g. "
+                             "0.0.0.0:8765: open to the network, no authentication); alone: "
+                             "127.0.0.1:map_server.port (default: map_server.listen)")
 
 
 # ---------------------------------------------------------------------------------- frames
@@ -258,7 +267,7 @@ def hazard_tracker(cfg: Config, out_dir: str | Path, reader: TelemetryReader | N
 def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_name: str = "",
                progress: bool = False, total: int | None = None, realtime: bool = False,
                telemetry: TelemetryJoin | None = None, reader: TelemetryReader | None = None,
-               viewer: str | None = None, status_interval: float = 0.0) -> dict:
+               viewer: str | None = None, status_interval: float = 0.0, map_server: str | None = None) -> dict:
     """Run the mapping pipeline over ``source`` and write the outputs; returns the run summary.
 
     SIGINT/SIGTERM (when called from the main thread) stop capture, drain the queue and write
@@ -267,12 +276,18 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
     ``progress``: a progress bar, on a terminal only. ``status_interval`` > 0: a status line at
     INFO every that many seconds (:class:`~photomap.cli.oplog.StatusReporter`), unless the
     progress bar is shown. At the end the run's counts are logged at INFO (as fields in JSON lines).
+    ``map_server``: ``--map-server``'s ``[ADDR:]PORT`` (default ``map_server.listen``; see
+    :class:`~photomap.live.mapserver.MapServer`); it serves until the outputs (and its ``xyz/``
+    tiles) are written.
     """
     check_output_dir(out_dir, expected_frames=total, min_free_mb=cfg.output.min_free_mb)  # before any frame
     view = Viewer.from_config(cfg.viewer, viewer)
     if view.url:
         hint = f" ({view.connect_hint})" if view.connect_hint else ""
         print(f"viewer: connect with `rerun --connect {view.url}`{hint}")
+    server = MapServer.from_config(cfg.map_server, map_server)
+    if server is not None:
+        print(f"map server: {server.url} (tiles {server.url}tiles/{{z}}/{{x}}/{{y}}.png)")
     bar_shown = progress and stderr_is_terminal()
     tick, close_bar = progress_sink(total, progress)
     sinks = [tick]
@@ -288,9 +303,16 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
         sinks.append(view.on_frame)
     if cfg.telemetry.send_statustext and reader is not None and source.live:
         sinks.append(statustext_sink(reader.send_status))
+    if server is not None:
+        sinks.append(server.on_frame)
+        if hazards is not None:
+            server.hazards = hazards.hazards  # /hazards.geojson and the page's markers
     if realtime:
         sinks.append(pacing_sink())
     pipeline = MappingPipeline(source, cfg, out_dir, sinks=sinks, input_name=input_name, telemetry=telemetry)
+    if server is not None:
+        pipeline.on_georeference = server.on_georeference
+        server.gate = pipeline.worker_first
     previous = {}
     if status is not None:
         status.start()
@@ -302,11 +324,15 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
             previous[sig] = signal.signal(sig, handler)
     try:
         summary = pipeline.run()
+        if server is not None and cfg.map_server.write_xyz and summary.get("georeference"):
+            write_run_tiles(out_dir)
     finally:
         if status is not None:
             status.close()
         close_bar()
         view.close()
+        if server is not None:
+            server.close()
         for sig, old in previous.items():
             signal.signal(sig, old)
     if hazards is not None:  # from the final poses and georeference; run.json says what was found

@@ -111,9 +111,9 @@ def render_tile(raster: MapRaster, x: int, y: int, z: int) -> tuple[np.ndarray, 
     cover = warped[..., 3]
     if not (cover > 0.5 / 255).any():
         return None
-    out = np.zeros((n, n, 3), np.uint8)
-    ok = cover > 1e-6
-    out[ok] = np.clip(np.rint(warped[..., :3][ok] / cover[ok][:, None]), 0, 255).astype(np.uint8)
+    colour = np.divide(warped[..., :3], cover[..., None], out=np.zeros((n, n, 3), np.float32),
+                       where=cover[..., None] > 1e-6)
+    out = np.clip(np.rint(colour), 0, 255).astype(np.uint8)
     return out, np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
 
 

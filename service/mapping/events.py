@@ -14,6 +14,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from photomap.geo.georef import Georeference
 from photomap.telemetry.samples import TelemetrySample
 
 TileKey = tuple[int, int]
@@ -80,3 +81,7 @@ class FrameEvent:
 
 
 FrameSink = Callable[[FrameEvent], None]
+
+GeoreferenceSink = Callable[[int, Georeference], None]
+"""Told the main map's georeference ``(segment, fit)``: each live GPS fit (from the writer thread,
+at the checkpoints) and the final one (``finish``). Must be quick and must not raise."""

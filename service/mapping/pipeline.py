@@ -50,7 +50,7 @@ from photomap.geometry import frame_centre
 from photomap.errors import PhotomapError
 from photomap.io.keyframestore import KeyframeStore
 from photomap.mapping.checkpoint import state_folder
-from photomap.mapping.events import FrameEvent, FrameSink
+from photomap.mapping.events import FrameEvent, FrameSink, GeoreferenceSink
 from photomap.mapping.frameprep import FramePrep
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.memory import frozen_heap, limit_heap_growth, trimmed_heap
@@ -264,6 +264,20 @@ class MappingPipeline:
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
         self._prep = FramePrep.from_config(cfg)  # lens undistortion and frame mask (None: neither)
+
+    @property
+    def on_georeference(self) -> GeoreferenceSink | None:
+        """Told each live GPS fit of the main map (writer thread) and the final one: (segment, fit)."""
+        return self.outputs.on_georeference
+
+    @on_georeference.setter
+    def on_georeference(self, sink: GeoreferenceSink | None) -> None:
+        self.outputs.on_georeference = sink
+
+    @property
+    def worker_first(self) -> WorkerFirst:
+        """The gate other threads' Python code waits at while the worker maps a frame (live)."""
+        return self._first
 
     @property
     def rows(self) -> tuple[RowView, ...]:

@@ -32,6 +32,7 @@ from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
 from photomap.mapping.checkpoint import Checkpointer, state_folder
+from photomap.mapping.events import GeoreferenceSink
 from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import LoopCloser
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
@@ -97,6 +98,8 @@ class RunOutputs:
         self._state: Checkpointer | None = None  # the checkpointed full-resolution map
         self._state_refused = False
         self._write_errors: dict[str, str] = {}  # output -> why it could not be written (once each)
+        # told each live GPS fit of the main map (writer thread) and the final one: (segment, fit)
+        self.on_georeference: GeoreferenceSink | None = None
         # a checkpoint's trajectory.csv (10,000 rows take ~0.25 s to format: a stall in the worker)
         # and run.json are written by this thread; the worker hands it the rows' fields
         self._writer: ThreadPoolExecutor | None = None
@@ -233,6 +236,8 @@ class RunOutputs:
             fit = self._gps_fit(rows, main)  # no georeference below georef.min_fixes GPS fixes
             if fit.geo is None or fit.problem is not None:
                 return
+            if self.on_georeference is not None:
+                self.on_georeference(main, fit.geo)
             try:
                 refresh_track_files(self.out_dir, self._first.paced(rows), self._frame_size,
                                     {main: (fit.geo.map_to_crs[:2], fit.geo.epsg)},
@@ -271,6 +276,8 @@ class RunOutputs:
                 log.info("segment %d not georeferenced: %s", seg, fit.problem)
             entry: dict = {"metres_per_pixel": fit.metres_per_px if trusted else None}
             if geo is not None:
+                if seg == main and self.on_georeference is not None:
+                    self.on_georeference(seg, geo)
                 world_file = write_sidecars(self.out_dir, info, geo)
                 entry.update({"crs": f"EPSG:{geo.epsg}", "map_to_crs": geo.map_to_crs.tolist(),
                               "origin_lat": geo.origin_lat, "origin_lon": geo.origin_lon,

@@ -1,0 +1,427 @@
+"""The live map server (photomap.live.mapserver): on loopback, during replays of simulated flights."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import subprocess
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from photomap.cli.replay import replay
+from photomap.cli.wiring import open_capture, open_telemetry
+from photomap.config import load_config
+from photomap.errors import ConfigError
+from photomap.geo import webmercator as wm
+from photomap.io.trajectory_files import read_groundtruth
+from photomap.live.mapserver import MapServer, parse_listen
+from photomap.mapping.pipeline import MappingPipeline
+from photomap.sim.flight import latlon_to_pixel, pixel_to_latlon
+from photomap.sim.simulate import simulate_flight
+from photomap.sim.terrain import load_terrain
+
+W, H = 640, 480
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory) -> Path:
+    return simulate_flight(tmp_path_factory.mktemp("mapserver") / "flight", n_frames=160, size=(W, H), fps=20.0,
+                           seed=2)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _get(url: str, timeout: float = 10.0) -> tuple[int, bytes, str]:
+    try:
+        with urllib.request.urlopen(url, timeout=timeout) as r:
+            return r.status, r.read(), r.headers.get("Content-Type", "")
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read(), exc.headers.get("Content-Type", "")
+
+
+def _status(base: str) -> dict | None:
+    try:
+        code, body, _ = _get(base + "status.json", timeout=5.0)
+    except OSError:
+        return None
+    return json.loads(body) if code == 200 else None
+
+
+def _wait(predicate, timeout: float = 60.0):
+    """Poll ``predicate`` until it gives something truthy (a generous bound on a busy machine)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        got = predicate()
+        if got:
+            return got
+        time.sleep(0.2)
+    return None
+
+
+def _decode(png: bytes) -> np.ndarray:
+    tile = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert tile is not None, "not a PNG"
+    return tile
+
+
+def _terrain_under(tile_xyz: tuple[int, int, int], flight: Path) -> np.ndarray:
+    """The simulator's terrain (grey) at each pixel centre of an XYZ tile: the truth it shows."""
+    meta = yaml.safe_load((flight / "meta.yaml").read_text())
+    terrain = cv2.cvtColor(load_terrain(meta["terrain"]["name"], zoom=meta["terrain"]["zoom"]), cv2.COLOR_BGR2GRAY)
+    x, y, z = tile_xyz
+    u = np.arange(wm.TILE_PX) + 0.5
+    lat, _ = wm.pixel_to_latlon(0.0, y * wm.TILE_PX + u, z)
+    _, lon = wm.pixel_to_latlon(x * wm.TILE_PX + u, 0.0, z)
+    lon_g, lat_g = np.meshgrid(lon, lat)
+    px, py = latlon_to_pixel(lat_g, lon_g, meta["gsd"], meta["origin"]["lat"], meta["origin"]["lon"])
+    blurred = cv2.GaussianBlur(terrain, (0, 0), 1.0)  # the tile's pixels are ~2 terrain pixels
+    return cv2.remap(blurred, px.astype(np.float32), py.astype(np.float32), cv2.INTER_LINEAR).astype(float)
+
+
+def _correlation(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    a, b = a[mask] - a[mask].mean(), b[mask] - b[mask].mean()
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def test_parse_listen():
+    assert parse_listen("8000", 8765) == ("127.0.0.1", 8000)
+    assert parse_listen("127.0.0.1", 8765) == ("127.0.0.1", 8765)
+    assert parse_listen("0.0.0.0:9000", 8765) == ("0.0.0.0", 9000)
+    for bad in ("http://x", "99999", "host:1", "1.2.3.4:0"):
+        with pytest.raises(ConfigError, match="map server"):
+            parse_listen(bad, 8765)
+    assert MapServer.from_config(load_config().map_server) is None  # off by default
+
+
+def test_live_tile_at_the_vehicle_is_mapped_during_a_realtime_replay(flight, tmp_path):
+    """During a --realtime replay with telemetry: status answers, the tile at the vehicle's
+    position at max_zoom is a 256x256 PNG more than half mapped, showing the true terrain, and
+    stays so as frames come in; the run ends with the same tiles in xyz/."""
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}/"
+    cfg = load_config().updated({"output": {"checkpoint_interval": 1.0}})
+    out = tmp_path / "run"
+    result: dict = {}
+
+    def run() -> None:
+        result["summary"] = replay(str(flight / "video.mp4"), out, cfg, realtime=True,
+                                   mavlink=str(flight / "telemetry.tlog"), map_server=str(port))
+
+    worker = threading.Thread(target=run)
+    worker.start()
+    truth = read_groundtruth(flight / "groundtruth.csv")
+    meta = yaml.safe_load((flight / "meta.yaml").read_text())
+    samples = []
+    try:
+        st = _wait(lambda: (s := _status(base)) and s["georeferenced"] and s["position"] and s)
+        assert st is not None, "no georeferenced status during the replay"
+        assert st["tiles_url"] == "/tiles/{z}/{x}/{y}.png" and st["telemetry"] == "georeferenced"
+        for due in (60, 95, 130):  # of the 160 frames
+            st = _wait(lambda: (s := _status(base)) and s["frames_in"] >= due and s, timeout=30.0)
+            if st is None:
+                break
+            z = st["max_zoom"]
+            x, y = wm.tile_of(st["position"]["lat"], st["position"]["lon"], z)
+            code, png, ctype = _get(f"{base}tiles/{z}/{x}/{y}.png")
+            assert code == 200 and ctype == "image/png"
+            samples.append((st, (x, y, z), _decode(png)))
+            # the position is the latest frame's centre (truth: the simulator's matrix)
+            k = st["frame"]
+            c = truth.H[k] @ np.array([(W - 1) / 2, (H - 1) / 2, 1.0])
+            lat, lon = pixel_to_latlon(c[0] / c[2], c[1] / c[2], meta["gsd"], meta["origin"]["lat"],
+                                       meta["origin"]["lon"])
+            err = np.hypot((st["position"]["lat"] - lat) * 111_320.0,
+                           (st["position"]["lon"] - lon) * 111_320.0 * np.cos(np.radians(lat)))
+            assert err < 3.0, f"position {err:.1f} m from the truth at frame {k}"
+    finally:
+        worker.join(timeout=120)
+    assert not worker.is_alive()
+    assert len(samples) == 3 and samples[0][0]["frames_in"] < samples[1][0]["frames_in"] < samples[2][0]["frames_in"]
+    for st, xyz, tile in samples:
+        assert tile.shape == (256, 256, 4)
+        covered = tile[..., 3] > 0
+        assert covered.mean() > 0.5, f"tile {xyz} at {st['frames_in']} frames: {covered.mean():.0%} mapped"
+        grey = cv2.cvtColor(tile[..., :3], cv2.COLOR_BGR2GRAY).astype(float)
+        assert _correlation(grey, _terrain_under(xyz, flight), covered) > 0.6  # the terrain that is there
+    assert result["summary"]["registered"] == 160
+    # the same tiles on disk, as `photomap export --tiles` writes them
+    info = json.loads((out / "xyz" / "tiles.json").read_text())
+    assert info["zooms"][1] == samples[-1][0]["max_zoom"]
+    x, y, z = samples[-1][1]
+    disk = cv2.imread(str(out / "xyz" / str(z) / str(x) / f"{y}.png"), cv2.IMREAD_UNCHANGED)
+    live = samples[-1][2]
+    both = (disk[..., 3] > 0) & (live[..., 3] > 0)
+    assert both.mean() > 0.4
+    assert _correlation(cv2.cvtColor(disk[..., :3], cv2.COLOR_BGR2GRAY).astype(float),
+                        cv2.cvtColor(live[..., :3], cv2.COLOR_BGR2GRAY).astype(float), both) > 0.8
+
+
+def test_hostile_clients_cost_the_mapping_nothing_and_are_bounded(flight, tmp_path):
+    """Slow clients, a huge request and many connections: the map is the same as without the
+    server, the server's threads and connections stay within their bounds, and a good client is
+    answered once the slow ones are cut off."""
+    cfg = load_config().updated({"map_server": {"threads": 2, "max_connections": 4, "timeout_s": 1.0}})
+    server = MapServer(cfg.map_server, "127.0.0.1", 0)
+    base = f"http://127.0.0.1:{server.port}/"
+    slow = []
+    try:
+        for _ in range(12):  # more than max_connections, each sending half a request line
+            s = socket.create_connection(("127.0.0.1", server.port))
+            s.sendall(b"GET /status.j")
+            slow.append(s)
+        huge = socket.create_connection(("127.0.0.1", server.port))
+        source = open_capture(str(flight / "video.mp4"), cfg.capture)
+        pipeline = MappingPipeline(source, cfg, tmp_path / "with", sinks=[server.on_frame])
+        with_server = pipeline.run()
+        threads = [t for t in threading.enumerate() if t.name.startswith("photomap-mapserver")]
+        assert len(threads) <= 2 + 2  # the pool, the accepting and the packing thread
+        # beyond max_connections a connection is closed at once
+        assert server.stats["refused"] >= 12 - 4
+        # the slow ones were cut off after the timeout; then a good client is answered
+        assert _wait(lambda: server.stats["timeouts"] >= 2, timeout=30.0)
+        try:
+            huge.sendall(b"GET /" + b"a" * 20000 + b" HTTP/1.0\r\n\r\n")
+        except OSError:
+            pass  # refused at once: the pool was full
+        got = _wait(lambda: _status(base), timeout=30.0)
+        assert got is not None and got["frames_in"] == with_server["frames_in"]
+        s = socket.create_connection(("127.0.0.1", server.port))
+        s.sendall(b"GET /" + b"a" * 20000 + b" HTTP/1.0\r\n\r\n")
+        s.settimeout(10)
+        answer = b""
+        try:
+            while chunk := s.recv(4096):
+                answer += chunk
+        except OSError:
+            pass
+        assert answer.startswith(b"HTTP/1.0 431")
+        assert server.stats["too_large"] >= 1
+    finally:
+        for s in slow:
+            s.close()
+        server.close()
+    without = MappingPipeline(open_capture(str(flight / "video.mp4"), cfg.capture), cfg, tmp_path / "without").run()
+    assert with_server["registered"] == without["registered"] == 160
+    a = (tmp_path / "with" / "trajectory.csv").read_text()
+    b = (tmp_path / "without" / "trajectory.csv").read_text()
+    assert a == b  # the same map, frame by frame
+
+
+def test_pixel_frame_without_telemetry(flight, tmp_path):
+    """Without a georeference: no web-mercator tiles, the map in its own pixel frame."""
+    cfg = load_config()
+    server = MapServer(cfg.map_server, "127.0.0.1", 0)
+    base = f"http://127.0.0.1:{server.port}/"
+    try:
+        pipeline = MappingPipeline(open_capture(str(flight / "video.mp4"), cfg.capture), cfg, tmp_path / "run",
+                                   sinks=[server.on_frame])
+        pipeline.run()
+        server.live.flush()
+        st = _status(base)
+        assert st["telemetry"] == "none" and not st["georeferenced"] and st["tiles_url"].startswith("/pixel/")
+        assert _get(f"{base}tiles/19/0/0.png")[0] == 404
+        pz = st["pixel_zoom"]
+        x, y = (int(v // 256) for v in (st["position"]["x"], st["position"]["y"]))
+        code, png, _ = _get(f"{base}pixel/{pz}/{x}/{y}.png")
+        tile = _decode(png)
+        mosaic = cv2.imread(str(tmp_path / "run" / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+        run = json.loads((tmp_path / "run" / "run.json").read_text())
+        ox, oy = run["mosaics"][0]["origin_xy"]
+        assert run["mosaics"][0]["scale"] == 1.0
+        # tile (x, y) at the pixel zoom is map pixels 256 x .. 256 x + 255: the mosaic's there
+        crop = mosaic[256 * y - oy:256 * y - oy + 256, 256 * x - ox:256 * x - ox + 256]
+        both = (tile[..., 3] > 0) & (crop[..., 3] > 0 if crop.shape[2] == 4 else True)
+        assert crop.shape[:2] == (256, 256) and both.mean() > 0.5
+        assert np.abs(tile[..., :3][both].astype(int) - crop[..., :3][both].astype(int)).mean() < 3
+        track = json.loads(_get(base + "track.geojson")[1])
+        assert track["frame"] == "map_pixels" and len(track["features"][0]["geometry"]["coordinates"]) == 160
+        hazards = json.loads(_get(base + "hazards.geojson")[1])
+        assert hazards == {"type": "FeatureCollection", "features": []}
+    finally:
+        server.close()
+
+
+def _chromium() -> str | None:
+    for name in ("chromium", "chromium-browser"):
+        path = shutil.which(name) or (f"/usr/bin/{name}" if Path(f"/usr/bin/{name}").exists() else None)
+        if path:
+            return path
+    return None
+
+
+def screenshot(url: str, out: Path, profile: Path, size: tuple[int, int] = (800, 600),
+               budget_ms: int = 8000) -> subprocess.CompletedProcess:
+    """Headless Chromium's screenshot of ``url`` (no network beyond it, a fresh profile)."""
+    exe = _chromium()
+    args = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+            "--disable-background-networking", "--disable-component-update", "--disable-sync",
+            "--hide-scrollbars", f"--user-data-dir={profile}", f"--screenshot={out}",
+            f"--window-size={size[0]},{size[1]}", f"--virtual-time-budget={budget_ms}", url]
+    return subprocess.run(args, capture_output=True, text=True, timeout=120)
+
+
+class _HeldOpen:
+    """A frame source that, after its last frame, waits for ``release`` (at most 120 s) before it
+    ends: the run goes on (and its server with it) while the page is looked at."""
+
+    def __init__(self, source, release: threading.Event) -> None:
+        self._source, self._release = source, release
+
+    def __getattr__(self, name):
+        return getattr(self._source, name)
+
+    def __iter__(self):
+        yield from self._source
+        self._release.wait(120.0)
+
+
+def test_page_renders_map_pixels_in_chromium(flight, tmp_path):
+    """During a --realtime replay with telemetry, the page at / loads in headless Chromium, uses
+    /tiles/ and shows the map's pixels in the served tiles' colours."""
+    if _chromium() is None:
+        pytest.skip("chromium is not installed (apt-get install chromium)")
+    from photomap.cli.wiring import map_source
+
+    cfg = load_config().updated({"output": {"checkpoint_interval": 1.0}})
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}/"
+    release = threading.Event()
+    source = _HeldOpen(open_capture(str(flight / "video.mp4"), cfg.capture), release)
+    join, _, cfg = open_telemetry(str(flight / "telemetry.tlog"), cfg, source=source,
+                                  input_spec=str(flight / "video.mp4"), realtime=True)
+    worker = threading.Thread(target=lambda: map_source(source, cfg, tmp_path / "run", realtime=True, telemetry=join,
+                                                        map_server=str(port)))
+    worker.start()
+    try:
+        st = _wait(lambda: (s := _status(base)) and s["georeferenced"] and s["frames_in"] >= 100 and s)
+        assert st is not None, "no georeferenced status during the replay"
+        before = st["server"]["requests"]
+        shot = tmp_path / "page.png"
+        proc = screenshot(base, shot, tmp_path / "profile")
+        assert shot.is_file(), proc.stderr[-2000:]
+        st = _status(base)
+        assert st["tile_renders"] + st["tile_hits"] > 0 and st["server"]["requests"] > before + 3  # /tiles/
+        z = st["max_zoom"] - 1  # the page's first zoom: about the whole map in view
+        west, south, east, north = st["bounds"]
+        tiles = [_decode(_get(f"{base}tiles/{z}/{x}/{y}.png")[1]) for x, y in wm.tiles_covering(south, west, north, east, z)]
+    finally:
+        release.set()
+        worker.join(timeout=120)
+    page = cv2.imread(str(shot))
+    assert page is not None and page.shape[:2] == (600, 800)
+    background = np.abs(page.astype(int) - 0x20).max(axis=2) <= 4  # the page's #202020 where no tile is
+    mapped = ~background & (page.max(axis=2) < 250)  # not the info box or a white error page
+    for bgr in ((255, 224, 0), (0, 208, 255), (48, 48, 255)):  # nor the track, footprint, vehicle
+        mapped &= np.abs(page.astype(int) - bgr).max(axis=2) > 60
+    assert mapped.mean() > 0.15, f"only {mapped.mean():.0%} of the page shows the map"
+    # the colours shown are the tiles' colours
+    served = np.concatenate([t[..., :3][t[..., 3] > 0].reshape(-1, 3) for t in tiles]).mean(axis=0)
+    shown = page[mapped].reshape(-1, 3).mean(axis=0)
+    assert np.abs(served - shown).max() < 30, (served, shown)
+
+
+def _tile_event(index: int, mosaic, touched, pose=np.array([[1.0, 0, 0], [0, 1.0, 0]])):
+    from photomap.mapping.events import FrameEvent
+
+    return FrameEvent(index, index / 10.0, False, np.zeros((64, 64, 3), np.uint8), (64, 64), "registered",
+                      pose, 0.9, 0, touched=frozenset(touched), tiles=mosaic)
+
+
+@pytest.mark.parametrize("interval", [0.0, 3600.0])
+def test_a_painted_tile_renders_again_at_most_once_per_interval(interval):
+    """A served tile follows the map: repainted map tiles reach it (at once with no minimum
+    interval), a busy tile is rendered at most once per min_render_interval_s, and the worker's
+    copy is of the touched tiles only."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.live.livemap import LiveMap, TileCache
+
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    red = np.zeros((64, 64, 3), np.uint8)
+    red[..., 2] = 200
+    full = np.full((64, 64), 255, np.uint8)
+    mosaic.set_tile((0, 0), red, full)
+    mosaic.set_tile((1, 0), red, full)
+    live = LiveMap(tile_hz=1e6)
+    live.on_frame(_tile_event(0, mosaic, {(0, 0), (1, 0)}))
+    cache = TileCache(16, interval)
+    # pixel-frame tile (0, 0) at the pixel zoom holds map pixels 0..255: our two tiles at its top left
+    first = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))
+    assert (first[:64, :128, 2] == 200).all() and (first[:64, :128, 3] == 255).all()
+    assert (first[64:, :, 3] == 0).all() and (first[:, 128:, 3] == 0).all()
+    blue = np.zeros((64, 64, 3), np.uint8)
+    blue[..., 0] = 180
+    mosaic.set_tile((1, 0), blue, full)
+    mosaic.set_tile((0, 0), blue, full)  # changed in the map but not said to be touched: not copied
+    live.on_frame(_tile_event(1, mosaic, {(1, 0)}))
+    again = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))
+    if interval == 0.0:
+        assert (again[:64, 64:128, 0] == 180).all() and (again[:64, 64:128, 2] == 0).all()
+        assert (again[:64, :64, 2] == 200).all()
+        assert cache.renders == 2
+    else:
+        assert (again == first).all() and cache.renders == 1  # the busy tile waits for its interval
+    # an unchanged map: the cached tile, no render
+    cache.get(live.snapshot(), "pixel", 0, 0, 8)
+    assert cache.renders == (2 if interval == 0.0 else 1) and cache.hits >= 1
+
+
+def test_answers_wait_while_the_worker_maps_a_frame():
+    """Live, the server's Python code gives way to the worker's frame (its gate), then answers."""
+    from photomap.mapping.threads import WorkerFirst
+
+    server = MapServer(load_config().map_server, "127.0.0.1", 0)
+    server.gate = WorkerFirst(enabled=True, max_wait_s=60.0)
+    got: dict = {}
+    try:
+        with server.gate.frame():  # the worker is mapping a frame
+            asker = threading.Thread(target=lambda: got.update(st=_status(f"http://127.0.0.1:{server.port}/")))
+            asker.start()
+            asker.join(timeout=1.0)
+            assert asker.is_alive() and "st" not in got  # waiting at the gate, not answered
+        asker.join(timeout=30.0)  # the frame is done: answered
+        assert got["st"]["frames_in"] == 0
+    finally:
+        server.close()
+
+
+def test_tiles_the_flight_left_are_packed_and_still_served():
+    """Beyond max_raw_tiles the oldest copies are packed (a fraction of the bytes); what is
+    served from them is the same picture (JPEG quality), the alpha exactly."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.live.livemap import LiveMap, render_png
+
+    terrain = cv2.GaussianBlur(load_terrain("aukerman"), (0, 0), 1.0)[:256, :256]  # real imagery
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    alpha = np.full((64, 64), 255, np.uint8)
+    alpha[40:, 50:] = 0  # a map edge
+    keys = [(tx, ty) for ty in range(4) for tx in range(4)]
+    for tx, ty in keys:
+        mosaic.set_tile((tx, ty), terrain[64 * ty:64 * ty + 64, 64 * tx:64 * tx + 64], alpha)
+    live = LiveMap(tile_hz=1e6)
+    live.on_frame(_tile_event(0, mosaic, set(keys)))
+    before = _decode(render_png(live.snapshot(), "pixel", 0, 0, 8))
+    low_before = _decode(render_png(live.snapshot(), "pixel", 0, 0, 6))  # from the tiles' quarter halvings
+    raw_bytes = live.nbytes()
+    assert live.pack(max_raw=4) == 12 and live.pack(max_raw=4) == 0
+    assert live.nbytes() < 0.4 * raw_bytes
+    after = _decode(render_png(live.snapshot(), "pixel", 0, 0, 8))
+    assert (after[..., 3] == before[..., 3]).all()
+    covered = before[..., 3] > 0
+    assert np.abs(after[..., :3].astype(int) - before[..., :3].astype(int))[covered].mean() < 3
+    # lower zooms come from the halvings kept as pixels: exactly as before
+    assert (_decode(render_png(live.snapshot(), "pixel", 0, 0, 6)) == low_before).all()
