@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
 from photomap.config import MappingConfig, PosegraphConfig
-from photomap.core.ifmi import Prior, Registrar
+from photomap.core.features import MIN_OVERLAP, MIN_SCORE, OverlapCheck, ifmi_confirmed, verify_overlap
+from photomap.core.ifmi import Prior, Registrar, Registration
 from photomap.core.posegraph import PoseGraph, correction, optimize
 from photomap.geometry import pose_angle_deg, pose_scale, scaling
 
@@ -44,12 +45,16 @@ class KeyframePriors:
 class LoopCandidate:
     """Keyframe ``new`` to be registered against the older keyframe ``ref``: ``predicted`` is the
     3x3 input px of ``new`` -> input px of ``ref`` from the current poses, ``prior`` its
-    registration prior (at the working resolution)."""
+    registration prior (at the working resolution). ``by_appearance``: found by its place
+    signature, not near the predicted position (drift may have carried the estimate anywhere):
+    registered without a prior, kept only when the overlap check confirms it, and never held to
+    the prediction."""
 
     ref: int
     new: int
     predicted: np.ndarray
-    prior: Prior
+    prior: Prior | None
+    by_appearance: bool = False
 
 
 @dataclass(frozen=True)
@@ -85,7 +90,8 @@ class KeyframeGraph:
         The ``mapping`` settings used here: a loop closure links keyframes at least
         ``loop_min_gap`` keyframes apart; candidates are the keyframes whose centre lies within
         ``loop_radius`` frame diagonals of the new one, at most ``loop_candidates`` (nearest
-        first); an edge needs a registration confidence of ``loop_min_confidence``.
+        first); an edge needs a registration confidence of ``loop_min_confidence``; a loop found
+        by appearance on periodic ground needs ``trust_confidence``.
     graph_params : PosegraphConfig
         The ``posegraph`` settings: edge noise, robust loss, solver, prior sigmas.
     """
@@ -104,6 +110,7 @@ class KeyframeGraph:
         self.radius = params.loop_radius
         self.min_confidence = params.loop_min_confidence
         self.max_candidates = params.loop_candidates
+        self.trust_confidence = params.trust_confidence
         self.graph_params = graph_params
         self.graph = PoseGraph(frame_size, graph_params)
         self.keyframes: list[Keyframe] = []
@@ -157,6 +164,17 @@ class KeyframeGraph:
             out.append(LoopCandidate(old[i].index, new.index, predicted, prior))
         return out
 
+    def recent(self) -> list[int]:
+        """The newest ``loop_min_gap`` keyframes (frame indices): too near in the chain to close a loop."""
+        return [kf.index for kf in self.keyframes[-self.min_gap:]]
+
+    def appearance_candidates(self, refs: list[int]) -> list[LoopCandidate]:
+        """Candidates of the newest keyframe against the old keyframes ``refs`` (found by their
+        place signatures): the predicted pose from the current poses, no registration prior."""
+        new = self.keyframes[-1]
+        return [LoopCandidate(ref, new.index, np.linalg.inv(self.pose_of(ref)) @ new.pose, None, True)
+                for ref in refs if ref in self._node and ref != new.index]
+
     def measure_loops(self, image: np.ndarray, candidates: list[LoopCandidate],
                       registrar: Registrar | None = None,
                       callback: Callable[[], object] | None = None) -> list[LoopMeasurement]:
@@ -170,19 +188,40 @@ class KeyframeGraph:
         for cand in candidates:
             if callback is not None:
                 callback()
-            reg = registrar.register(registrar.prepare(self.load_small(cand.ref)), prepared, cand.prior)
+            ref = registrar.prepare(self.load_small(cand.ref))
+            reg = registrar.register(ref, prepared, cand.prior)
+            ok = reg.confidence >= self.min_confidence
+            if ok and cand.by_appearance:  # nothing predicted it: the images must confirm it
+                ok = not ref.blank and not prepared.blank and \
+                    self._confirmed(reg, verify_overlap(ref.gray, prepared.gray, reg.matrix))
             measured = None
-            if reg.confidence >= self.min_confidence:
+            if ok:
                 measured = self._from_small @ np.vstack([reg.matrix, [0, 0, 1]]) @ self._to_small
             out.append(LoopMeasurement(cand, measured, float(reg.confidence)))
         return out
 
+    def _confirmed(self, reg: Registration, check: OverlapCheck) -> bool:
+        """Whether the images confirm a loop found by appearance: the overlap check passes; on
+        periodic ground (the check aligns as well one period away: it passes but for its ratio)
+        iFMI's own choice of peak stands when it is strong (``trust_confidence``) and unambiguous
+        (the pose graph's robust loss is the last judge)."""
+        if ifmi_confirmed(reg, check):
+            return True
+        return reg.confidence >= self.trust_confidence and not reg.ambiguous \
+            and check.passes(MIN_SCORE, math.inf, MIN_OVERLAP)
+
     def add_loops(self, measurements: list[LoopMeasurement]) -> int:
         """Loop edges from confident measurements that agree with their prediction (a revisit
-        after drift may differ from it, but not wildly); returns how many were added."""
+        after drift may differ from it, but not wildly; one found by appearance is not held to
+        it: the robust loss of the pose graph judges it); returns how many were added."""
         added = 0
         for m in measurements:
             if m.measured is None:
+                continue
+            if m.candidate.by_appearance:
+                self.graph.add_edge(self._node[m.candidate.ref], self._node[m.candidate.new], m.measured,
+                                    m.confidence, kind="loop")
+                added += 1
                 continue
             jump = np.linalg.norm((m.measured - m.candidate.predicted) @ self.centre)
             if jump > 0.25 * self.diagonal:
@@ -194,10 +233,10 @@ class KeyframeGraph:
         self.loops += added
         return added
 
-    def close_loops(self, image: np.ndarray) -> int:
-        """Try the newest keyframe (``image`` at the working resolution) against old ones nearby;
-        returns the loop edges added."""
-        return self.add_loops(self.measure_loops(image, self.loop_candidates()))
+    def close_loops(self, image: np.ndarray, extra: Sequence[LoopCandidate] = ()) -> int:
+        """Try the newest keyframe (``image`` at the working resolution) against old ones nearby
+        (and the ``extra`` candidates); returns the loop edges added."""
+        return self.add_loops(self.measure_loops(image, self.loop_candidates() + list(extra)))
 
     def absorb(self, other: KeyframeGraph, transform: np.ndarray,
                edge: tuple[int, int, np.ndarray, float]) -> None:

@@ -39,8 +39,8 @@ import numpy as np
 from photomap.config import MappingConfig, PosegraphConfig
 from photomap.core.matching import PairMatcher
 from photomap.core.ifmi import Registrar
-from photomap.core.keyframes import KeyframeGraph, KeyframePriors, LoopMeasurement
-from photomap.core.places import place_signature, place_similarities
+from photomap.core.keyframes import KeyframeGraph, KeyframePriors, LoopCandidate, LoopMeasurement
+from photomap.core.places import PlaceIndex, place_signature, place_similarities
 from photomap.core.tracking import TrackStep
 from photomap.geo.georef import enu_from_latlon
 from photomap.geometry import scaling, to_h
@@ -215,6 +215,7 @@ class LoopCloser:
         self._merged_into: dict[int, int] = {}  # joined segment -> the segment it joined
         self._segment_of: dict[int, int] = {}  # keyframe -> its segment (after joins)
         self._signature: dict[int, np.ndarray] = {}  # keyframe -> place signature
+        self._places = PlaceIndex()  # the same signatures, by segment: loops by appearance
         self._position: dict[int, tuple[float, float]] = {}  # keyframe -> (east, north) m, with GPS
         self._to_small = scaling(working_scale)
         self._from_small = np.linalg.inv(self._to_small)
@@ -273,6 +274,7 @@ class LoopCloser:
         self.store.put(index, small)  # the image that re-renders the map: the painter keeps it
         self._segment_of[index] = segment
         self._signature[index] = place_signature(small)
+        self._places.add(index, self._signature[index], segment)
         if priors is not None and priors.east_north is not None:
             self._position[index] = priors.east_north
 
@@ -311,14 +313,29 @@ class LoopCloser:
             graph = self.graphs[join.into]
         segment = join.into if join is not None else step.segment
         if self._loop_executor is None:
-            self._added(segment, graph.close_loops(small))
+            self._added(segment, graph.close_loops(small, self._by_appearance(index, segment, graph, [])))
         else:
             candidates = graph.loop_candidates()
+            candidates += self._by_appearance(index, segment, graph, candidates)
             if candidates:
                 self._loop_jobs.append((index, index, self._loop_executor.submit(
                     graph.measure_loops, small, candidates, self._loop_registrar, self._first.wait)))
         self._collect_loops()
         return updates + self._collected_join() + self._polled(keyframe=True)
+
+    def _by_appearance(self, index: int, segment: int, graph: KeyframeGraph,
+                       nearby: list[LoopCandidate]) -> list[LoopCandidate]:
+        """Loop candidates of keyframe ``index`` found by its place signature among the older
+        keyframes of ``segment`` (not the newest ``loop_min_gap``): the best
+        ``loop_appearance_candidates`` scoring at least ``loop_appearance_min_score``. One that is
+        also ``nearby`` is tried again without a prior: that prior comes from the drifted
+        estimate and may exclude the true placement."""
+        if not self.params.loop_appearance or index not in self._signature:
+            return []
+        found = self._places.search(self._signature[index], segment, self.params.loop_appearance_candidates,
+                                    set(graph.recent()))
+        return graph.appearance_candidates([k for k, score in found
+                                            if score >= self.params.loop_appearance_min_score])
 
     def _added(self, segment: int, added: int) -> None:
         if added:
@@ -446,6 +463,7 @@ class LoopCloser:
         for k, s in self._segment_of.items():
             if s == segment:
                 self._segment_of[k] = into
+        self._places.regroup(segment, into)
         self._wanted = {into if s == segment else s for s in self._wanted}
         self._merged_into[segment] = into
         join = Join(segment, into, transform, index, match, confidence)
@@ -524,6 +542,7 @@ class LoopCloser:
         for k in [k for k, s in self._segment_of.items() if s == segment]:
             del self._segment_of[k]
             self._signature.pop(k, None)
+            self._places.remove(k)
             self._position.pop(k, None)
             self.store.discard(k)
 
