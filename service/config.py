@@ -172,7 +172,7 @@ class MappingConfig(_Section):
     loop_min_confidence: float = _num(0.25, 0.0, 1.0)
     loop_candidates: int = _num(2, 1, 1000)
     loop_appearance: bool = True
-    loop_appearance_candidates: int = _num(4, 1, 1000)
+    loop_appearance_candidates: int = _num(2, 1, 1000)
     loop_appearance_min_score: float = _num(0.0, -1.0, 1.0)
     optimize_in_background: bool = True
 

@@ -164,5 +164,7 @@ class PlaceIndex:
         idx = np.flatnonzero(ok)
         if not len(idx):
             return []
-        best = idx[np.argsort(-scores[idx], kind="stable")[:k]]
+        if len(idx) > k:  # the k best (ties at the cut: any), then those in order, ties by the older row
+            idx = np.sort(idx[np.argpartition(-scores[idx], k - 1)[:k]])
+        best = idx[np.argsort(-scores[idx], kind="stable")]
         return [(int(self._keys[i]), float(scores[i])) for i in best]

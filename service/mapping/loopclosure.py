@@ -12,6 +12,15 @@ the worker never waits for it; a finished solution is returned by the next call.
 registrations of a new keyframe (against up to ``loop_candidates`` old keyframes read back from
 the store) run in another background thread; their edges join the graph when they are done.
 
+Loops by appearance: drift can carry the estimate of a revisit past ``loop_radius``, where no
+candidate is looked for. Each new keyframe's place signature is therefore also searched among
+the older keyframes of its segment (:class:`photomap.core.places.PlaceIndex`: one matrix product
+over the segment's signatures, the newest ``loop_min_gap`` keyframes left out); the best
+``loop_appearance_candidates`` are registered without a prior, in the same background job as the
+nearby candidates, and kept when the overlap check confirms them. Their edges are not held to the
+drifted prediction: the pose graph's robust loss judges them (a wrong one loses its pull and is
+dropped). At the end of the run the last tracked frame is searched the same way.
+
 Segments rejoin: a new map segment (started when the link to the map was lost) is not forever.
 Each of its new keyframes is also registered against keyframes of the other segments: the
 nearest by GPS when the keyframes carry a fix, else the most similar by their place signature
@@ -251,6 +260,9 @@ class LoopCloser:
         self._deferred = False  # the last frame left a finished solve to this one
         self._flushing = False  # the run has ended: solves move every keyframe
         self._wanted: set[int] = set()  # segments with loop edges not optimised yet
+        # the latest tracked frame when it is no keyframe: (index, segment, its keyframe, 3x3 input
+        # px of it -> of its keyframe, confidence, working image); the end of the run searches it
+        self._last_frame: tuple[int, int, int, np.ndarray, float, np.ndarray] | None = None
 
     def _graph(self, segment: int) -> KeyframeGraph:
         if segment not in self.graphs:
@@ -294,6 +306,9 @@ class LoopCloser:
         self._frame = index
         if step.pose is not None and step.reference is not None:
             self.relative.setdefault(step.segment, RelativePoses()).add(index, step.reference, step.relative)
+        if step.pose is not None:
+            self._last_frame = None if step.keyframe or step.reference is None else \
+                (index, step.segment, step.reference, step.relative, step.confidence, small)
         if step.pose is None or not step.keyframe:
             self._collect_loops()
             return self._collected_join() + self._polled()
@@ -336,6 +351,31 @@ class LoopCloser:
                                     set(graph.recent()))
         return graph.appearance_candidates([k for k, score in found
                                             if score >= self.params.loop_appearance_min_score])
+
+    def _close_last_frame(self) -> None:
+        """A flight often ends where it began (a drone flies home): the run's last tracked frame,
+        when it is no keyframe, is searched by appearance too; a confirmed match becomes a loop
+        edge of its keyframe (the match composed with the frame's measured pose relative to it)."""
+        last, self._last_frame = self._last_frame, None
+        if last is None or not self.params.loop_appearance:
+            return
+        index, segment, ref, rel, confidence, small = last
+        if self._segment_of.get(ref) != segment or segment not in self.graphs:
+            return  # its keyframe was joined into another segment or forgotten meanwhile
+        graph = self.graphs[segment]
+        found = self._places.search(place_signature(small), segment, self.params.loop_appearance_candidates,
+                                    set(graph.recent()) | {ref})
+        refs = [k for k, score in found if score >= self.params.loop_appearance_min_score]
+        candidates = [LoopCandidate(k, index, np.linalg.inv(graph.pose_of(k)) @ graph.pose_of(ref) @ rel, None, True)
+                      for k in refs]
+        back = np.linalg.inv(rel)  # input px of the keyframe -> of the frame
+        measured = []
+        for m in graph.measure_loops(small, candidates):
+            c = m.candidate
+            measured.append(LoopMeasurement(
+                LoopCandidate(c.ref, ref, c.predicted @ back, None, True),
+                None if m.measured is None else m.measured @ back, min(m.confidence, confidence)))
+        self._added(segment, graph.add_loops(measured))
 
     def _added(self, segment: int, added: int) -> None:
         if added:
@@ -561,6 +601,7 @@ class LoopCloser:
         if self.settle_on_priors:
             self._wanted |= {s for s, g in self.graphs.items() if len(g.keyframes) >= 2 and g.graph.has_priors}
         self._collect_loops(wait=True)
+        self._close_last_frame()
         # solves while mapping moved only the newest keyframes of a long graph: once more, all
         newest = self.graph_params.max_solve_nodes
         self._wanted |= {s for s, g in self.graphs.items() if newest is not None and g.loops
