@@ -267,7 +267,7 @@ class SimulateConfig(_Section):
     fps: float = _num(30.0, 0.0, 1000.0, lo_open=True)
     seed: int = 0
     hfov_deg: float = _num(60.0, 0.0, 179.0, lo_open=True)
-    pattern: str = _choice("random", "random", "lawnmower", "figure8")
+    pattern: str = _choice("random", "random", "lawnmower", "figure8", "circle")
     speed: float = _num(8.0, 0.0, 1000.0)
     yaw_mode: str = _choice("random", "random", "constant", "heading", "fixed")
     yaw_rate: float = _num(15.0, 0.0, 3600.0)
