@@ -75,6 +75,21 @@ def test_a_flight_that_never_comes_back_gets_no_loop(tmp_path, ground):
     assert found["loop_closure"]["loop_edges"] == 0 and found["loop_closure"]["rejected_loops"] == 0
 
 
+def test_a_strictly_periodic_floor_gets_no_wrong_loop_by_appearance(tmp_path):
+    """Identical tiles: every view looks like many others, a period apart, and no placement
+    between them can be confirmed; the appearance search must not make the map worse."""
+    terrain = procedural_terrain("tiles", (2048, 2048), seed=3, period=40, variation=0.0, stain=0.0)
+    seq = simulate_sequence(terrain, 160, SIZE, seed=1, gsd=0.05, fps=10.0, altitude=(20.0, 24.0), speed=3.0,
+                            pattern="random", yaw_mode="heading", yaw_rate=0.0)
+    ate = {}
+    for on in (False, True):
+        out = tmp_path / str(on)
+        cfg = load_config(overrides=[f"mapping.loop_appearance={str(on).lower()}"])
+        MappingPipeline(ListSource(seq.frames), cfg, out).run()
+        ate[on] = evaluate(out, seq)["ate"]["pct"]
+    assert ate[True] <= 1.05 * ate[False] + 0.05
+
+
 def _first(truth, n):
     import dataclasses
     return dataclasses.replace(truth, **{f.name: getattr(truth, f.name)[:n] for f in dataclasses.fields(truth)})

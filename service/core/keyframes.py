@@ -28,6 +28,10 @@ from photomap.core.posegraph import PoseGraph, correction, optimize
 from photomap.geometry import pose_angle_deg, pose_scale, scaling
 
 
+# a loop found by appearance on periodic ground: no other iFMI candidate above this fraction of the best
+PERIODIC_CLEAR = 0.5
+
+
 @dataclass(frozen=True)
 class KeyframePriors:
     """Telemetry of a keyframe for the pose graph (each None when unknown).
@@ -201,14 +205,19 @@ class KeyframeGraph:
         return out
 
     def _confirmed(self, reg: Registration, check: OverlapCheck) -> bool:
-        """Whether the images confirm a loop found by appearance: the overlap check passes; on
-        periodic ground (the check aligns as well one period away: it passes but for its ratio)
-        iFMI's own choice of peak stands when it is strong (``trust_confidence``) and unambiguous
-        (the pose graph's robust loss is the last judge)."""
+        """Whether the images confirm a loop found by appearance: the overlap check passes. On
+        periodic ground the check aligns as well one period away (it passes but for its ratio);
+        there iFMI's own peak stands only when it is strong (``trust_confidence``) and stands
+        clear: every other candidate at most half as high (one period away the floor is nearly
+        the same ground, so only a true match of tiles that differ stands out; a strictly
+        periodic floor never does). The pose graph's robust loss is the last judge."""
         if ifmi_confirmed(reg, check):
             return True
-        return reg.confidence >= self.trust_confidence and not reg.ambiguous \
-            and check.passes(MIN_SCORE, math.inf, MIN_OVERLAP)
+        if reg.confidence < self.trust_confidence or not check.passes(MIN_SCORE, math.inf, MIN_OVERLAP):
+            return False
+        best = reg.candidates[0] if reg.candidates else None
+        others = [c.peak for c in reg.candidates[1:] if best is not None and not Registrar._same(c, best)]
+        return best is not None and max(others, default=0.0) <= PERIODIC_CLEAR * reg.confidence
 
     def add_loops(self, measurements: list[LoopMeasurement]) -> int:
         """Loop edges from confident measurements that agree with their prediction (a revisit
