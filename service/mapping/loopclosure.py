@@ -260,9 +260,9 @@ class LoopCloser:
         self._deferred = False  # the last frame left a finished solve to this one
         self._flushing = False  # the run has ended: solves move every keyframe
         self._wanted: set[int] = set()  # segments with loop edges not optimised yet
-        # the latest tracked frame when it is no keyframe: (index, segment, its keyframe, 3x3 input
-        # px of it -> of its keyframe, confidence, working image); the end of the run searches it
-        self._last_frame: tuple[int, int, int, np.ndarray, float, np.ndarray] | None = None
+        # the latest tracked frame when it is no keyframe: (index, its keyframe, 3x3 input px of it
+        # -> of its keyframe, confidence, working image); the end of the run searches it
+        self._last_frame: tuple[int, int, np.ndarray, float, np.ndarray] | None = None
 
     def _graph(self, segment: int) -> KeyframeGraph:
         if segment not in self.graphs:
@@ -308,7 +308,7 @@ class LoopCloser:
             self.relative.setdefault(step.segment, RelativePoses()).add(index, step.reference, step.relative)
         if step.pose is not None:
             self._last_frame = None if step.keyframe or step.reference is None else \
-                (index, step.segment, step.reference, step.relative, step.confidence, small)
+                (index, step.reference, step.relative, step.confidence, small)
         if step.pose is None or not step.keyframe:
             self._collect_loops()
             return self._collected_join() + self._polled()
@@ -328,22 +328,21 @@ class LoopCloser:
             graph = self.graphs[join.into]
         segment = join.into if join is not None else step.segment
         if self._loop_executor is None:
-            self._added(segment, graph.close_loops(small, self._by_appearance(index, segment, graph, [])))
+            self._added(segment, graph.close_loops(small, self._by_appearance(index, segment, graph)))
         else:
             candidates = graph.loop_candidates()
-            candidates += self._by_appearance(index, segment, graph, candidates)
+            candidates += self._by_appearance(index, segment, graph)
             if candidates:
                 self._loop_jobs.append((index, index, self._loop_executor.submit(
                     graph.measure_loops, small, candidates, self._loop_registrar, self._first.wait)))
         self._collect_loops()
         return updates + self._collected_join() + self._polled(keyframe=True)
 
-    def _by_appearance(self, index: int, segment: int, graph: KeyframeGraph,
-                       nearby: list[LoopCandidate]) -> list[LoopCandidate]:
+    def _by_appearance(self, index: int, segment: int, graph: KeyframeGraph) -> list[LoopCandidate]:
         """Loop candidates of keyframe ``index`` found by its place signature among the older
         keyframes of ``segment`` (not the newest ``loop_min_gap``): the best
         ``loop_appearance_candidates`` scoring at least ``loop_appearance_min_score``. One that is
-        also ``nearby`` is tried again without a prior: that prior comes from the drifted
+        also a nearby candidate is tried again without a prior: that prior comes from the drifted
         estimate and may exclude the true placement."""
         if not self.params.loop_appearance or index not in self._signature:
             return []
@@ -359,9 +358,10 @@ class LoopCloser:
         last, self._last_frame = self._last_frame, None
         if last is None or not self.params.loop_appearance:
             return
-        index, segment, ref, rel, confidence, small = last
-        if self._segment_of.get(ref) != segment or segment not in self.graphs:
-            return  # its keyframe was joined into another segment or forgotten meanwhile
+        index, ref, rel, confidence, small = last
+        segment = self._segment_of.get(ref)  # (after joins)
+        if segment is None or segment not in self.graphs:
+            return  # its keyframe was forgotten meanwhile
         graph = self.graphs[segment]
         found = self._places.search(place_signature(small), segment, self.params.loop_appearance_candidates,
                                     set(graph.recent()) | {ref})
