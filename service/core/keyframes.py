@@ -30,6 +30,8 @@ from photomap.geometry import pose_angle_deg, pose_scale, scaling
 
 # a loop found by appearance on periodic ground: no other iFMI candidate above this fraction of the best
 PERIODIC_CLEAR = 0.5
+# ... and at most this many of them wait for a second one that agrees
+PERIODIC_WAITING = 16
 
 
 @dataclass(frozen=True)
@@ -59,16 +61,25 @@ class LoopCandidate:
     predicted: np.ndarray
     prior: Prior | None
     by_appearance: bool = False
+    seen_from: int | None = None  # the frame registered, when not ``new`` itself (posed relative to it)
+
+    @property
+    def image(self) -> int:
+        """The frame whose image was registered against ``ref``."""
+        return self.new if self.seen_from is None else self.seen_from
 
 
 @dataclass(frozen=True)
 class LoopMeasurement:
     """The registration of a :class:`LoopCandidate`: ``measured`` (3x3, input px of ``new`` -> of
-    ``ref``) or None when its ``confidence`` is below ``loop_min_confidence``."""
+    ``ref``) or None when its ``confidence`` is below ``loop_min_confidence``. ``periodic``: a
+    loop by appearance on periodic ground (confirmed by its own peak, not by the overlap check):
+    it waits for a second one that agrees with it."""
 
     candidate: LoopCandidate
     measured: np.ndarray | None
     confidence: float
+    periodic: bool = False
 
 
 @dataclass
@@ -121,6 +132,7 @@ class KeyframeGraph:
         self._node: dict[int, int] = {}  # frame index -> node
         self.loops = 0
         self.rejected_loops = 0
+        self._periodic: list[LoopMeasurement] = []  # loops by appearance on periodic ground, waiting
 
     def add_keyframe(self, index: int, pose: np.ndarray, edge: tuple[int, np.ndarray, float] | None,
                      priors: KeyframePriors | None = None) -> None:
@@ -194,30 +206,44 @@ class KeyframeGraph:
                 callback()
             ref = registrar.prepare(self.load_small(cand.ref))
             reg = registrar.register(ref, prepared, cand.prior)
-            ok = reg.confidence >= self.min_confidence
+            ok, periodic = reg.confidence >= self.min_confidence, False
             if ok and cand.by_appearance:  # nothing predicted it: the images must confirm it
-                ok = not ref.blank and not prepared.blank and \
-                    self._confirmed(reg, verify_overlap(ref.gray, prepared.gray, reg.matrix))
+                check = None if ref.blank or prepared.blank else verify_overlap(ref.gray, prepared.gray, reg.matrix)
+                ok = check is not None and ifmi_confirmed(reg, check)
+                periodic = not ok and check is not None and self._periodic_peak(reg, check)
+                ok = ok or periodic
             measured = None
             if ok:
                 measured = self._from_small @ np.vstack([reg.matrix, [0, 0, 1]]) @ self._to_small
-            out.append(LoopMeasurement(cand, measured, float(reg.confidence)))
+            out.append(LoopMeasurement(cand, measured, float(reg.confidence), periodic))
         return out
 
-    def _confirmed(self, reg: Registration, check: OverlapCheck) -> bool:
-        """Whether the images confirm a loop found by appearance: the overlap check passes. On
-        periodic ground the check aligns as well one period away (it passes but for its ratio);
-        there iFMI's own peak stands only when it is strong (``trust_confidence``) and stands
-        clear: every other candidate at most half as high (one period away the floor is nearly
-        the same ground, so only a true match of tiles that differ stands out; a strictly
-        periodic floor never does). The pose graph's robust loss is the last judge."""
-        if ifmi_confirmed(reg, check):
-            return True
+    def _periodic_peak(self, reg: Registration, check: OverlapCheck) -> bool:
+        """On periodic ground the overlap check aligns as well one period away (it passes but for
+        its ratio): there iFMI's own peak may stand when it is strong (``trust_confidence``) and
+        stands clear (every other candidate at most ``PERIODIC_CLEAR`` as high). A strictly
+        periodic floor never passes; a floor of tiles that differ often does, wrongly too: such
+        a loop waits for a second that agrees with it (:meth:`add_loops`)."""
         if reg.confidence < self.trust_confidence or not check.passes(MIN_SCORE, math.inf, MIN_OVERLAP):
             return False
         best = reg.candidates[0] if reg.candidates else None
         others = [c.peak for c in reg.candidates[1:] if best is not None and not Registrar._same(c, best)]
         return best is not None and max(others, default=0.0) <= PERIODIC_CLEAR * reg.confidence
+
+    def _implied(self, m: LoopMeasurement) -> np.ndarray:
+        """3x3 map px -> map px: how the loop ``m`` would move the keyframe ``new`` (current poses)."""
+        c = m.candidate
+        return self.pose_of(c.ref) @ m.measured @ np.linalg.inv(self.pose_of(c.new))
+
+    def _agree(self, a: LoopMeasurement, b: LoopMeasurement) -> bool:
+        """Two loops move the map alike where the newer keyframe lies (within 2 % of a frame
+        diagonal, 1 deg, 1 % of scale)."""
+        x = self.pose_of(max(a.candidate.new, b.candidate.new, key=self._node.__getitem__)) @ self.centre
+        ca, cb = self._implied(a), self._implied(b)
+        shift = np.hypot(*((ca - cb) @ x)[:2])
+        rot = cb @ np.linalg.inv(ca)
+        angle = abs(math.degrees(math.atan2(rot[1, 0], rot[0, 0])))
+        return shift <= 0.02 * self.diagonal * pose_scale(ca) and angle <= 1.0 and abs(math.log(pose_scale(rot))) <= 0.01
 
     def add_loops(self, measurements: list[LoopMeasurement]) -> int:
         """Loop edges from confident measurements that agree with their prediction (a revisit
@@ -226,6 +252,20 @@ class KeyframeGraph:
         added = 0
         for m in measurements:
             if m.measured is None:
+                continue
+            if m.periodic:  # in only with a second one, of another keyframe, that agrees with it
+                if m.candidate.ref not in self._node or m.candidate.new not in self._node:
+                    continue
+                partner = next((p for p in self._periodic if p.candidate.image != m.candidate.image
+                                and self._agree(p, m)), None)
+                if partner is None:
+                    self._periodic = (self._periodic + [m])[-PERIODIC_WAITING:]
+                    continue
+                self._periodic.remove(partner)
+                for p in (partner, m):
+                    self.graph.add_edge(self._node[p.candidate.ref], self._node[p.candidate.new], p.measured,
+                                        p.confidence, kind="loop")
+                added += 2
                 continue
             if m.candidate.by_appearance:
                 self.graph.add_edge(self._node[m.candidate.ref], self._node[m.candidate.new], m.measured,

@@ -373,8 +373,8 @@ class LoopCloser:
         for m in graph.measure_loops(small, candidates):
             c = m.candidate
             measured.append(LoopMeasurement(
-                LoopCandidate(c.ref, ref, c.predicted @ back, None, True),
-                None if m.measured is None else m.measured @ back, min(m.confidence, confidence)))
+                LoopCandidate(c.ref, ref, c.predicted @ back, None, True, seen_from=index),
+                None if m.measured is None else m.measured @ back, min(m.confidence, confidence), m.periodic))
         self._added(segment, graph.add_loops(measured))
 
     def _added(self, segment: int, added: int) -> None:
