@@ -8,6 +8,7 @@ the end-to-start error is measured against the truth with and without the appear
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import cv2
@@ -94,7 +95,6 @@ def test_a_strictly_periodic_floor_gets_no_wrong_loop_by_appearance(tmp_path):
 
 
 def _first(truth, n):
-    import dataclasses
     return dataclasses.replace(truth, **{f.name: getattr(truth, f.name)[:n] for f in dataclasses.fields(truth)})
 
 
