@@ -171,6 +171,9 @@ class MappingConfig(_Section):
     loop_radius: float = _num(0.35, 0.0, 100.0, lo_open=True)
     loop_min_confidence: float = _num(0.25, 0.0, 1.0)
     loop_candidates: int = _num(2, 1, 1000)
+    loop_appearance: bool = True
+    loop_appearance_candidates: int = _num(2, 1, 1000)
+    loop_appearance_min_score: float = _num(0.0, -1.0, 1.0)
     optimize_in_background: bool = True
 
 
@@ -265,7 +268,7 @@ class SimulateConfig(_Section):
     fps: float = _num(30.0, 0.0, 1000.0, lo_open=True)
     seed: int = 0
     hfov_deg: float = _num(60.0, 0.0, 179.0, lo_open=True)
-    pattern: str = _choice("random", "random", "lawnmower", "figure8")
+    pattern: str = _choice("random", "random", "lawnmower", "figure8", "circle")
     speed: float = _num(8.0, 0.0, 1000.0)
     yaw_mode: str = _choice("random", "random", "constant", "heading", "fixed")
     yaw_rate: float = _num(15.0, 0.0, 3600.0)

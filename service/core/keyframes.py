@@ -17,14 +17,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
 from photomap.config import MappingConfig, PosegraphConfig
-from photomap.core.ifmi import Prior, Registrar
+from photomap.core.features import MIN_OVERLAP, MIN_SCORE, OverlapCheck, ifmi_confirmed, verify_overlap
+from photomap.core.ifmi import Prior, Registrar, Registration
 from photomap.core.posegraph import PoseGraph, correction, optimize
 from photomap.geometry import pose_angle_deg, pose_scale, scaling
+
+
+# a loop found by appearance on periodic ground: no other iFMI candidate above this fraction of the best
+PERIODIC_CLEAR = 0.5
+# ... and at most this many of them wait for a second one that agrees
+PERIODIC_WAITING = 16
 
 
 @dataclass(frozen=True)
@@ -44,22 +51,35 @@ class KeyframePriors:
 class LoopCandidate:
     """Keyframe ``new`` to be registered against the older keyframe ``ref``: ``predicted`` is the
     3x3 input px of ``new`` -> input px of ``ref`` from the current poses, ``prior`` its
-    registration prior (at the working resolution)."""
+    registration prior (at the working resolution). ``by_appearance``: found by its place
+    signature, not near the predicted position (drift may have carried the estimate anywhere):
+    registered without a prior, kept only when the overlap check confirms it, and never held to
+    the prediction."""
 
     ref: int
     new: int
     predicted: np.ndarray
-    prior: Prior
+    prior: Prior | None
+    by_appearance: bool = False
+    seen_from: int | None = None  # the frame registered, when not ``new`` itself (posed relative to it)
+
+    @property
+    def image(self) -> int:
+        """The frame whose image was registered against ``ref``."""
+        return self.new if self.seen_from is None else self.seen_from
 
 
 @dataclass(frozen=True)
 class LoopMeasurement:
     """The registration of a :class:`LoopCandidate`: ``measured`` (3x3, input px of ``new`` -> of
-    ``ref``) or None when its ``confidence`` is below ``loop_min_confidence``."""
+    ``ref``) or None when its ``confidence`` is below ``loop_min_confidence``. ``periodic``: a
+    loop by appearance on periodic ground (confirmed by its own peak, not by the overlap check):
+    it waits for a second one that agrees with it."""
 
     candidate: LoopCandidate
     measured: np.ndarray | None
     confidence: float
+    periodic: bool = False
 
 
 @dataclass
@@ -85,7 +105,8 @@ class KeyframeGraph:
         The ``mapping`` settings used here: a loop closure links keyframes at least
         ``loop_min_gap`` keyframes apart; candidates are the keyframes whose centre lies within
         ``loop_radius`` frame diagonals of the new one, at most ``loop_candidates`` (nearest
-        first); an edge needs a registration confidence of ``loop_min_confidence``.
+        first); an edge needs a registration confidence of ``loop_min_confidence``; a loop found
+        by appearance on periodic ground needs ``trust_confidence``.
     graph_params : PosegraphConfig
         The ``posegraph`` settings: edge noise, robust loss, solver, prior sigmas.
     """
@@ -104,12 +125,14 @@ class KeyframeGraph:
         self.radius = params.loop_radius
         self.min_confidence = params.loop_min_confidence
         self.max_candidates = params.loop_candidates
+        self.trust_confidence = params.trust_confidence
         self.graph_params = graph_params
         self.graph = PoseGraph(frame_size, graph_params)
         self.keyframes: list[Keyframe] = []
         self._node: dict[int, int] = {}  # frame index -> node
         self.loops = 0
         self.rejected_loops = 0
+        self._periodic: list[LoopMeasurement] = []  # loops by appearance on periodic ground, waiting
 
     def add_keyframe(self, index: int, pose: np.ndarray, edge: tuple[int, np.ndarray, float] | None,
                      priors: KeyframePriors | None = None) -> None:
@@ -157,6 +180,17 @@ class KeyframeGraph:
             out.append(LoopCandidate(old[i].index, new.index, predicted, prior))
         return out
 
+    def recent(self) -> list[int]:
+        """The newest ``loop_min_gap`` keyframes (frame indices): too near in the chain to close a loop."""
+        return [kf.index for kf in self.keyframes[-self.min_gap:]]
+
+    def appearance_candidates(self, refs: list[int]) -> list[LoopCandidate]:
+        """Candidates of the newest keyframe against the old keyframes ``refs`` (found by their
+        place signatures): the predicted pose from the current poses, no registration prior."""
+        new = self.keyframes[-1]
+        return [LoopCandidate(ref, new.index, np.linalg.inv(self.pose_of(ref)) @ new.pose, None, True)
+                for ref in refs if ref in self._node and ref != new.index]
+
     def measure_loops(self, image: np.ndarray, candidates: list[LoopCandidate],
                       registrar: Registrar | None = None,
                       callback: Callable[[], object] | None = None) -> list[LoopMeasurement]:
@@ -170,19 +204,73 @@ class KeyframeGraph:
         for cand in candidates:
             if callback is not None:
                 callback()
-            reg = registrar.register(registrar.prepare(self.load_small(cand.ref)), prepared, cand.prior)
+            ref = registrar.prepare(self.load_small(cand.ref))
+            reg = registrar.register(ref, prepared, cand.prior)
+            ok, periodic = reg.confidence >= self.min_confidence, False
+            if ok and cand.by_appearance:  # nothing predicted it: the images must confirm it
+                check = None if ref.blank or prepared.blank else verify_overlap(ref.gray, prepared.gray, reg.matrix)
+                ok = check is not None and ifmi_confirmed(reg, check)
+                periodic = not ok and check is not None and self._periodic_peak(reg, check)
+                ok = ok or periodic
             measured = None
-            if reg.confidence >= self.min_confidence:
+            if ok:
                 measured = self._from_small @ np.vstack([reg.matrix, [0, 0, 1]]) @ self._to_small
-            out.append(LoopMeasurement(cand, measured, float(reg.confidence)))
+            out.append(LoopMeasurement(cand, measured, float(reg.confidence), periodic))
         return out
+
+    def _periodic_peak(self, reg: Registration, check: OverlapCheck) -> bool:
+        """On periodic ground the overlap check aligns as well one period away (it passes but for
+        its ratio): there iFMI's own peak may stand when it is strong (``trust_confidence``) and
+        stands clear (every other candidate at most ``PERIODIC_CLEAR`` as high). A strictly
+        periodic floor never passes; a floor of tiles that differ often does, wrongly too: such
+        a loop waits for a second that agrees with it (:meth:`add_loops`)."""
+        if reg.confidence < self.trust_confidence or not check.passes(MIN_SCORE, math.inf, MIN_OVERLAP):
+            return False
+        best = reg.candidates[0] if reg.candidates else None
+        others = [c.peak for c in reg.candidates[1:] if best is not None and not Registrar._same(c, best)]
+        return best is not None and max(others, default=0.0) <= PERIODIC_CLEAR * reg.confidence
+
+    def _implied(self, m: LoopMeasurement) -> np.ndarray:
+        """3x3 map px -> map px: how the loop ``m`` would move the keyframe ``new`` (current poses)."""
+        c = m.candidate
+        return self.pose_of(c.ref) @ m.measured @ np.linalg.inv(self.pose_of(c.new))
+
+    def _agree(self, a: LoopMeasurement, b: LoopMeasurement) -> bool:
+        """Two loops move the map alike where the newer keyframe lies (within 2 % of a frame
+        diagonal, 1 deg, 1 % of scale)."""
+        x = self.pose_of(max(a.candidate.new, b.candidate.new, key=self._node.__getitem__)) @ self.centre
+        ca, cb = self._implied(a), self._implied(b)
+        shift = np.hypot(*((ca - cb) @ x)[:2])
+        rot = cb @ np.linalg.inv(ca)
+        angle = abs(math.degrees(math.atan2(rot[1, 0], rot[0, 0])))
+        return shift <= 0.02 * self.diagonal * pose_scale(ca) and angle <= 1.0 and abs(math.log(pose_scale(rot))) <= 0.01
 
     def add_loops(self, measurements: list[LoopMeasurement]) -> int:
         """Loop edges from confident measurements that agree with their prediction (a revisit
-        after drift may differ from it, but not wildly); returns how many were added."""
+        after drift may differ from it, but not wildly; one found by appearance is not held to
+        it: the robust loss of the pose graph judges it); returns how many were added."""
         added = 0
         for m in measurements:
             if m.measured is None:
+                continue
+            if m.periodic:  # in only with a second one, of another keyframe, that agrees with it
+                if m.candidate.ref not in self._node or m.candidate.new not in self._node:
+                    continue
+                partner = next((p for p in self._periodic if p.candidate.image != m.candidate.image
+                                and self._agree(p, m)), None)
+                if partner is None:
+                    self._periodic = (self._periodic + [m])[-PERIODIC_WAITING:]
+                    continue
+                self._periodic.remove(partner)
+                for p in (partner, m):
+                    self.graph.add_edge(self._node[p.candidate.ref], self._node[p.candidate.new], p.measured,
+                                        p.confidence, kind="loop")
+                added += 2
+                continue
+            if m.candidate.by_appearance:
+                self.graph.add_edge(self._node[m.candidate.ref], self._node[m.candidate.new], m.measured,
+                                    m.confidence, kind="loop")
+                added += 1
                 continue
             jump = np.linalg.norm((m.measured - m.candidate.predicted) @ self.centre)
             if jump > 0.25 * self.diagonal:
@@ -194,10 +282,10 @@ class KeyframeGraph:
         self.loops += added
         return added
 
-    def close_loops(self, image: np.ndarray) -> int:
-        """Try the newest keyframe (``image`` at the working resolution) against old ones nearby;
-        returns the loop edges added."""
-        return self.add_loops(self.measure_loops(image, self.loop_candidates()))
+    def close_loops(self, image: np.ndarray, extra: Sequence[LoopCandidate] = ()) -> int:
+        """Try the newest keyframe (``image`` at the working resolution) against old ones nearby
+        (and the ``extra`` candidates); returns the loop edges added."""
+        return self.add_loops(self.measure_loops(image, self.loop_candidates() + list(extra)))
 
     def absorb(self, other: KeyframeGraph, transform: np.ndarray,
                edge: tuple[int, int, np.ndarray, float]) -> None:

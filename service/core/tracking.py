@@ -110,6 +110,8 @@ class Tracker:
         self._velocity: np.ndarray | None = None  # 3x3 motion between the last two posed frames
         self._lost = 0
         self._pending: tuple[int, View, Any] | None = None  # the last frame that failed
+        self._previous: tuple[int, View, np.ndarray] | None = None  # the last posed frame: index, view, 3x3 pose
+        self._chained = False  # the current frame was placed through the previous one
 
     def _new_segment(self, view: View, index: int, events: list[str], sample: Any = None) -> TrackStep:
         self.segment = self.segments
@@ -117,6 +119,7 @@ class Tracker:
         self._ref = _Reference(view, self._map.copy(), index, sample)
         self._last, self._velocity, self._lost = (index, self._map.copy()), None, 0
         self._pending = None
+        self._previous = (index, view, self._map.copy())
         if self.segment > 0:
             events.append(f"link lost: map segment {self.segment} started at frame {index}")
         return TrackStep(REFERENCE, self._map[:2].copy(), 1.0, self.segment, events=events,
@@ -149,6 +152,8 @@ class Tracker:
             self._ref.pose = c @ self._ref.pose
         if self._last is not None:
             self._last = (self._last[0], c @ self._last[1])
+        if self._previous is not None:
+            self._previous = (self._previous[0], self._previous[1], c @ self._previous[2])
 
     def _prior(self, index: int) -> tuple[Prior | None, Expectation | None]:
         """Expected registration against the reference, from a constant-velocity model.
@@ -203,6 +208,10 @@ class Tracker:
         match = self.matcher.match(ref.view, view, motion, expected, second_opinion=not restricted)
         if not match.accepted and restricted:  # a turn the motion model did not expect
             match = self.matcher.match(ref.view, view, None, None)
+            if match.accepted and not expected.agrees(match.matrix, self.matcher.centre):
+                # ... or a jump: on periodic ground a peak one period off wins against a
+                # reference far back; the previous frame, one small step away, decides
+                match = self._through_previous(ref, view, index) or match
         elif restricted and match.how == "confirmed" and match.confidence < self.matcher.min_confidence:
             # the motion model's search found only a weak peak that the overlap check let through:
             # a near miss passes that check too (frames out of order, a sudden turn). A free
@@ -211,6 +220,30 @@ class Tracker:
             if free.accepted and free.confidence > max(match.confidence, self.matcher.min_confidence):
                 match = free
         return match, None
+
+    def _through_previous(self, ref: _Reference, view: View, index: int) -> Match | None:
+        """The frame placed against the previous frame (posed, not the reference) where the
+        constant-velocity model expects it, composed with that frame's pose: a placement
+        against ``ref`` (working px) that the three frames agree on, or None. The frame then
+        becomes the next reference (the old one is too far for this ground)."""
+        if self._previous is None or self._velocity is None or self._previous[0] != index - 1 \
+                or self._previous[0] == ref.index:
+            return None
+        _, prev_view, prev_pose = self._previous
+        step = self._to_small @ self._velocity @ self._from_small  # frame -> previous, working px
+        h, w = self.registrar.shape
+        c = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+        tol = 4.0 + 0.25 * float(np.hypot(*(step @ c - c)[:2]))
+        prior = Prior(angle_deg=pose_angle_deg(step), angle_tol_deg=self.prior_angle_tol_deg, scale=pose_scale(step),
+                      scale_tol=self.prior_scale_tol, shift=(float(step[0, 2]), float(step[1, 2])), shift_tol=tol)
+        expected = Expectation(step[:2].copy(), 2.0 * tol, min(self.prior_angle_tol_deg, 10.0),
+                               min(self.prior_scale_tol, 0.1))
+        placed = self.matcher.match(prev_view, view, prior, expected, second_opinion=False)
+        if not placed.accepted or placed.how != "expected":
+            return None
+        to_ref = self._to_small @ np.linalg.inv(ref.pose) @ prev_pose @ self._from_small
+        self._chained = True
+        return dataclasses.replace(placed, matrix=(to_ref @ to_h(placed.matrix))[:2])
 
     def step(self, frame: np.ndarray, index: int, sample: Any = None, image: np.ndarray | None = None
              ) -> TrackStep:
@@ -222,6 +255,7 @@ class Tracker:
         """
         view = self.matcher.view(frame, image)
         events: list[str] = []
+        self._chained = False
         if self._ref is None:
             return self._new_segment(view, index, events, sample)
         match, disagreement = self._place(self._ref, view, index, sample)
@@ -248,13 +282,14 @@ class Tracker:
         elif self._last is not None:
             self._velocity = None
         self._last = (index, pose)
+        self._previous = (index, view, pose)
         self._lost = 0
         step = TrackStep(REGISTERED, pose[:2].copy(), match.confidence, self.segment, match.registration,
                          events, reference=self._ref.index, relative=rel, disagreement=disagreement,
                          method=match.method, how=match.how)
         if match.method == "ifmi":
             self._ref.best = max(self._ref.best, match.confidence)
-        if not self.keyframes or match.method != "ifmi" \
+        if not self.keyframes or match.method != "ifmi" or self._chained \
                 or match.confidence < self.keyframe_confidence * self._ref.best \
                 or self._next_shift(match.matrix) > self.keyframe_max_shift:
             self._ref = _Reference(view, pose, index, sample)

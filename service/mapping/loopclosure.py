@@ -12,6 +12,15 @@ the worker never waits for it; a finished solution is returned by the next call.
 registrations of a new keyframe (against up to ``loop_candidates`` old keyframes read back from
 the store) run in another background thread; their edges join the graph when they are done.
 
+Loops by appearance: drift can carry the estimate of a revisit past ``loop_radius``, where no
+candidate is looked for. Each new keyframe's place signature is therefore also searched among
+the older keyframes of its segment (:class:`photomap.core.places.PlaceIndex`: one matrix product
+over the segment's signatures, the newest ``loop_min_gap`` keyframes left out); the best
+``loop_appearance_candidates`` are registered without a prior, in the same background job as the
+nearby candidates, and kept when the overlap check confirms them. Their edges are not held to the
+drifted prediction: the pose graph's robust loss judges them (a wrong one loses its pull and is
+dropped). At the end of the run the last tracked frame is searched the same way.
+
 Segments rejoin: a new map segment (started when the link to the map was lost) is not forever.
 Each of its new keyframes is also registered against keyframes of the other segments: the
 nearest by GPS when the keyframes carry a fix, else the most similar by their place signature
@@ -39,8 +48,8 @@ import numpy as np
 from photomap.config import MappingConfig, PosegraphConfig
 from photomap.core.matching import PairMatcher
 from photomap.core.ifmi import Registrar
-from photomap.core.keyframes import KeyframeGraph, KeyframePriors, LoopMeasurement
-from photomap.core.places import place_signature, place_similarities
+from photomap.core.keyframes import KeyframeGraph, KeyframePriors, LoopCandidate, LoopMeasurement
+from photomap.core.places import PlaceIndex, place_signature, place_similarities
 from photomap.core.tracking import TrackStep
 from photomap.geo.georef import enu_from_latlon
 from photomap.geometry import scaling, to_h
@@ -215,6 +224,7 @@ class LoopCloser:
         self._merged_into: dict[int, int] = {}  # joined segment -> the segment it joined
         self._segment_of: dict[int, int] = {}  # keyframe -> its segment (after joins)
         self._signature: dict[int, np.ndarray] = {}  # keyframe -> place signature
+        self._places = PlaceIndex()  # the same signatures, by segment: loops by appearance
         self._position: dict[int, tuple[float, float]] = {}  # keyframe -> (east, north) m, with GPS
         self._to_small = scaling(working_scale)
         self._from_small = np.linalg.inv(self._to_small)
@@ -250,6 +260,9 @@ class LoopCloser:
         self._deferred = False  # the last frame left a finished solve to this one
         self._flushing = False  # the run has ended: solves move every keyframe
         self._wanted: set[int] = set()  # segments with loop edges not optimised yet
+        # the latest tracked frame when it is no keyframe: (index, its keyframe, 3x3 input px of it
+        # -> of its keyframe, confidence, working image); the end of the run searches it
+        self._last_frame: tuple[int, int, np.ndarray, float, np.ndarray] | None = None
 
     def _graph(self, segment: int) -> KeyframeGraph:
         if segment not in self.graphs:
@@ -273,6 +286,7 @@ class LoopCloser:
         self.store.put(index, small)  # the image that re-renders the map: the painter keeps it
         self._segment_of[index] = segment
         self._signature[index] = place_signature(small)
+        self._places.add(index, self._signature[index], segment)
         if priors is not None and priors.east_north is not None:
             self._position[index] = priors.east_north
 
@@ -292,6 +306,9 @@ class LoopCloser:
         self._frame = index
         if step.pose is not None and step.reference is not None:
             self.relative.setdefault(step.segment, RelativePoses()).add(index, step.reference, step.relative)
+        if step.pose is not None:
+            self._last_frame = None if step.keyframe or step.reference is None else \
+                (index, step.reference, step.relative, step.confidence, small)
         if step.pose is None or not step.keyframe:
             self._collect_loops()
             return self._collected_join() + self._polled()
@@ -311,14 +328,54 @@ class LoopCloser:
             graph = self.graphs[join.into]
         segment = join.into if join is not None else step.segment
         if self._loop_executor is None:
-            self._added(segment, graph.close_loops(small))
+            self._added(segment, graph.close_loops(small, self._by_appearance(index, segment, graph)))
         else:
             candidates = graph.loop_candidates()
+            candidates += self._by_appearance(index, segment, graph)
             if candidates:
                 self._loop_jobs.append((index, index, self._loop_executor.submit(
                     graph.measure_loops, small, candidates, self._loop_registrar, self._first.wait)))
         self._collect_loops()
         return updates + self._collected_join() + self._polled(keyframe=True)
+
+    def _by_appearance(self, index: int, segment: int, graph: KeyframeGraph) -> list[LoopCandidate]:
+        """Loop candidates of keyframe ``index`` found by its place signature among the older
+        keyframes of ``segment`` (not the newest ``loop_min_gap``): the best
+        ``loop_appearance_candidates`` scoring at least ``loop_appearance_min_score``. One that is
+        also a nearby candidate is tried again without a prior: that prior comes from the drifted
+        estimate and may exclude the true placement."""
+        if not self.params.loop_appearance or index not in self._signature:
+            return []
+        found = self._places.search(self._signature[index], segment, self.params.loop_appearance_candidates,
+                                    set(graph.recent()))
+        return graph.appearance_candidates([k for k, score in found
+                                            if score >= self.params.loop_appearance_min_score])
+
+    def _close_last_frame(self) -> None:
+        """A flight often ends where it began (a drone flies home): the run's last tracked frame,
+        when it is no keyframe, is searched by appearance too; a confirmed match becomes a loop
+        edge of its keyframe (the match composed with the frame's measured pose relative to it)."""
+        last, self._last_frame = self._last_frame, None
+        if last is None or not self.params.loop_appearance:
+            return
+        index, ref, rel, confidence, small = last
+        segment = self._segment_of.get(ref)  # (after joins)
+        if segment is None or segment not in self.graphs:
+            return  # its keyframe was forgotten meanwhile
+        graph = self.graphs[segment]
+        found = self._places.search(place_signature(small), segment, self.params.loop_appearance_candidates,
+                                    set(graph.recent()) | {ref})
+        refs = [k for k, score in found if score >= self.params.loop_appearance_min_score]
+        candidates = [LoopCandidate(k, index, np.linalg.inv(graph.pose_of(k)) @ graph.pose_of(ref) @ rel, None, True)
+                      for k in refs]
+        back = np.linalg.inv(rel)  # input px of the keyframe -> of the frame
+        measured = []
+        for m in graph.measure_loops(small, candidates):
+            c = m.candidate
+            measured.append(LoopMeasurement(
+                LoopCandidate(c.ref, ref, c.predicted @ back, None, True, seen_from=index),
+                None if m.measured is None else m.measured @ back, min(m.confidence, confidence), m.periodic))
+        self._added(segment, graph.add_loops(measured))
 
     def _added(self, segment: int, added: int) -> None:
         if added:
@@ -446,6 +503,7 @@ class LoopCloser:
         for k, s in self._segment_of.items():
             if s == segment:
                 self._segment_of[k] = into
+        self._places.regroup(segment, into)
         self._wanted = {into if s == segment else s for s in self._wanted}
         self._merged_into[segment] = into
         join = Join(segment, into, transform, index, match, confidence)
@@ -524,6 +582,7 @@ class LoopCloser:
         for k in [k for k, s in self._segment_of.items() if s == segment]:
             del self._segment_of[k]
             self._signature.pop(k, None)
+            self._places.remove(k)
             self._position.pop(k, None)
             self.store.discard(k)
 
@@ -542,6 +601,7 @@ class LoopCloser:
         if self.settle_on_priors:
             self._wanted |= {s for s, g in self.graphs.items() if len(g.keyframes) >= 2 and g.graph.has_priors}
         self._collect_loops(wait=True)
+        self._close_last_frame()
         # solves while mapping moved only the newest keyframes of a long graph: once more, all
         newest = self.graph_params.max_solve_nodes
         self._wanted |= {s for s, g in self.graphs.items() if newest is not None and g.loops

@@ -34,7 +34,7 @@ from photomap.geo.georef import enu_from_latlon, latlon_from_enu
 from photomap.geometry import pose_scale, similarity_matrix
 from photomap.sim.lens import DistortedRender, Overlay
 
-PATTERNS = ("random", "lawnmower", "figure8")
+PATTERNS = ("random", "lawnmower", "figure8", "circle")
 GRAVITY = 9.80665            # m/s^2
 ROLL_RATE_MAX = 90.0         # deg/s: how fast a banking airframe can roll into and out of a turn
 YAW_MODES = ("random", "constant", "heading", "fixed")
@@ -350,6 +350,12 @@ def _curve(pattern: str, rect: tuple[float, float, float, float], spacing: float
     """Dense points of the path inside ``rect`` and whether it is closed."""
     x0, y0, x1, y1 = rect
     cx, cy, hx, hy = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
+    if pattern == "circle":  # a 4096-gon whose perimeter is the flight's length
+        r = length_needed / (2 * 4096 * math.sin(math.pi / 4096))
+        if r > min(hx, hy):
+            raise InputError(f"a circle of {length_needed:.0f} px does not fit the terrain: fewer frames or a lower speed")
+        tau = np.linspace(0.0, 2.0 * np.pi, 4097)[:-1]
+        return np.c_[cx + r * np.sin(tau), cy - r * np.cos(tau)], True
     if pattern == "figure8":
         tau = np.linspace(0.0, 2.0 * np.pi, 4097)[:-1]
         return np.c_[cx + hx * np.sin(tau), cy + hy * np.sin(2.0 * tau)], True
@@ -434,6 +440,8 @@ def plan_flight(valid: np.ndarray, n_frames: int, camera: Camera, fps: float, gs
     mid, half = (math.log(alt_lo) + math.log(alt_hi)) / 2, (math.log(alt_hi) - math.log(alt_lo)) / 2
     phase0 = rng.uniform(0, 2 * np.pi)
     w = motion.scale_rate / half if half > 0 else 0.0
+    if motion.pattern == "circle" and w > 0 and n_frames > 1:  # whole periods: the last frame is the first
+        w = 2 * np.pi * max(1, round(w * t[-1] / (2 * np.pi))) / t[-1]
     alt = np.exp(mid + half * np.sin(phase0 + w * t))
 
     yaw0 = rng.uniform(0.0, 360.0) if motion.yaw0 is None else float(motion.yaw0)
@@ -446,7 +454,7 @@ def plan_flight(valid: np.ndarray, n_frames: int, camera: Camera, fps: float, gs
         rate = motion.yaw_rate * yaw_signal
         yaw = yaw0 + np.concatenate([[0.0], np.cumsum((rate[1:] + rate[:-1]) / 2.0) / fps])
     else:
-        yaw = _heading_yaw(pos, yaw0, motion.yaw_rate / fps)
+        yaw = _heading_yaw(pos, yaw0, motion.yaw_rate / fps, periodic=motion.pattern == "circle")
     yaw = np.mod(yaw + 180.0, 360.0) - 180.0
 
     roll = motion.tilt * _smooth_random(t, motion.period_s, rng) if motion.tilt > 0 else np.zeros(n_frames)
@@ -501,10 +509,13 @@ def coordinated_bank(pos_m: np.ndarray, t: np.ndarray, max_bank: float,
     return roll
 
 
-def _heading_yaw(pos: np.ndarray, yaw0: float, max_step: float) -> np.ndarray:
+def _heading_yaw(pos: np.ndarray, yaw0: float, max_step: float, periodic: bool = False) -> np.ndarray:
     """Yaw following the direction of travel (deg, clockwise from north), turning at most
-    ``max_step`` deg per frame (0 = unlimited); ``yaw0`` while not moving."""
+    ``max_step`` deg per frame (0 = unlimited); ``yaw0`` while not moving. ``periodic``: the
+    path's last position is its first (the direction there is taken across the seam)."""
     d = np.gradient(pos, axis=0) if len(pos) > 1 else np.zeros_like(pos)
+    if periodic and len(pos) > 2:
+        d[0] = d[-1] = (pos[1] - pos[-2]) / 2.0
     moving = np.hypot(d[:, 0], d[:, 1]) > 1e-9
     heading = np.degrees(np.arctan2(d[:, 0], -d[:, 1]))   # east over north (y is south)
     yaw = np.empty(len(pos))
