@@ -35,7 +35,7 @@ FLAGS = {"terrain": "terrain", "zoom": "terrain_zoom", "gsd": "gsd", "frames": "
          "object_height": "object_height", "object_size": "object_size", "max_bank": "max_bank",
          "pitch_offset": "pitch_offset", "mode": "mode", "strips": "strips",
          "stills_per_strip": "stills_per_strip", "forward_overlap": "forward_overlap",
-         "stills_yaw": "stills_yaw"}
+         "stills_yaw": "stills_yaw", "bands": "stills_bands"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -82,6 +82,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--forward-overlap", type=float, metavar="F", help="stills mode: overlap of consecutive stills (0..1)")
     a("--stills-yaw", choices=SURVEY_YAW_MODES, help="stills mode: flip (the picture turns 180 deg between "
       "strips) or hold (a gimbal holds the camera heading; the telemetry yaw flips)")
+    a("--bands", type=int, metavar="N", help="stills mode: bands per capture (2-5: IMG_NNNN_B.tif, 16-bit, "
+      "one lens per band)")
 
 
 def main(args: argparse.Namespace, cfg: Config) -> int:
@@ -105,7 +107,7 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         terrain_stain=s.terrain_stain, objects=s.objects, object_height=s.object_height,
         object_size=s.object_size, object_walls=s.object_walls, mode=s.mode, strips=s.strips,
         stills_per_strip=s.stills_per_strip, forward_overlap=s.forward_overlap, stills_yaw=s.stills_yaw,
-        stills_quality=s.stills_quality, stills_xmp=s.stills_xmp)
+        stills_quality=s.stills_quality, stills_xmp=s.stills_xmp, stills_bands=s.stills_bands)
     if s.mode == "stills":
         n = yaml.safe_load((out / "meta.yaml").read_text(encoding="utf-8"))["frames"]
         print(f"simulated {n} stills into {out}/: stills/, groundtruth.csv, telemetry.tlog, meta.yaml"

@@ -14,6 +14,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 import cv2
+import numpy as np
 import yaml
 
 from photomap.sim.tlog_writer import RATES_HZ, write_tlog
@@ -21,7 +22,9 @@ from photomap.sim.tlog_writer import RATES_HZ, write_tlog
 from photomap.errors import InputError, PhotomapError
 from photomap.sim.flight import PATTERNS, YAW_MODES, Camera, build_pyramid, iter_frames, pixel_to_latlon, plan_flight, split_params
 from photomap.sim.objects import ObjectScene, random_objects
-from photomap.sim.stills import SENSOR_WIDTH_MM, SURVEY_YAW_MODES, focal_35mm, plan_survey, subset, write_still
+from photomap.sim.bands import BANDS, DARK, GAIN, band_image, lens_homography, micasense_xmp, write_band_still
+from photomap.sim.stills import (SENSOR_WIDTH_MM, SURVEY_YAW_MODES, focal_35mm, plan_survey, still_exif, subset,
+                                 write_still)
 from photomap.sim.terrain import DEFAULT_GSD, PERIODIC, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
 from photomap.io.trajectory_files import GROUNDTRUTH_COLUMNS
 
@@ -69,7 +72,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                     object_size: tuple[float, float] = (4.0, 12.0), object_walls: bool = True,
                     mode: str = "video", strips: int = 4, stills_per_strip: int = 10,
                     forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
-                    stills_xmp: bool = True, **params) -> Path:
+                    stills_xmp: bool = True, stills_bands: int = 1, **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
     Parameters
@@ -96,6 +99,9 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         of a video; ``n_frames``, ``fps``, pattern and yaw settings then do not apply.
         ``stills_yaw``: ``flip`` (the picture turns 180 degrees between strips) or ``hold`` (a
         gimbal holds the camera's heading; the telemetry's yaw still flips).
+        ``stills_bands`` > 1: each still is a multi-band capture instead, ``stills/IMG_NNNN_B.tif``
+        (16-bit, one lens per band, :mod:`photomap.sim.bands`; ``meta.yaml`` ``bands`` gives
+        each band's lens homography).
     **params : :class:`photomap.sim.flight.Motion` and :class:`photomap.sim.flight.Effects` fields.
 
     Returns the output folder.
@@ -107,6 +113,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     if mode not in MODES:
         raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
     stills = mode == "stills"
+    if stills_bands > len(BANDS) or stills_bands < 1:
+        raise InputError(f"bands per capture must be 1..{len(BANDS)}, got {stills_bands}")
     if not stills and video_codec not in VIDEO_CODECS:
         raise InputError(f"video codec must be one of {', '.join(VIDEO_CODECS)}, got {video_codec!r}")
     name = str(terrain)
@@ -150,7 +158,20 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     lat, lon = pixel_to_latlon(truth.cam_x, truth.cam_y, gsd_eff, origin_lat, origin_lon)
     pyramid = build_pyramid(img, float(frames_truth.scale.max()) * 1.2)
     frames = iter_frames(img, frames_truth, camera, effects, seed, motion.period_s, pyramid, overlay=overlay)
-    if stills:
+    if stills and stills_bands > 1:
+        media = out / "stills"
+        media.mkdir(exist_ok=True)
+        noise_rng = np.random.default_rng([seed, 33])
+        for k, frame in enumerate(frames):
+            i = int(shots[k])
+            exif = still_exif(t_unix=t0_unix + float(truth.t[i]), lat=float(lat[i]), lon=float(lon[i]),
+                              amsl_m=origin_amsl + float(truth.alt_m[i]), camera=camera)
+            for b in range(stills_bands):
+                write_band_still(media / f"IMG_{k:04d}_{b + 1}.tif", band_image(frame, b, noise_rng), exif,
+                                 micasense_xmp(capture_id=f"sim{seed}-{k:06d}", band=b))
+            if save_frames:
+                cv2.imwrite(str(frames_dir / f"{k:06d}.{frames_format}"), frame)
+    elif stills:
         media = out / "stills"
         media.mkdir(exist_ok=True)
         for k, frame in enumerate(frames):
@@ -209,10 +230,17 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                            "size_m": [float(v) for v in object_size], "walls": bool(object_walls),
                            "count": len(scene_objects),
                            "note": "object tops on a plane height_m above the ground; truth = ground plane"}
+    if stills and stills_bands > 1:
+        meta["bands"] = [{"name": BANDS[b][0], "file": f"stills/IMG_%04d_{b + 1}.tif",
+                          "central_wavelength_nm": BANDS[b][1], "mix_bgr": list(BANDS[b][2]),
+                          "lens_H": lens_homography(b, (camera.width, camera.height)).tolist()}
+                         for b in range(stills_bands)]
+        meta["bands_note"] = ("lens_H maps the band's pixels to the truth camera's (groundtruth.csv H); the band's "
+                              "16-bit value = %g + %g * (mix . frame BGR / 255 + offset) + noise" % (DARK, GAIN))
     if stills:
         meta["frames"] = len(shots)
         meta["fps"] = None
-        meta["files"].update({"video": None, "stills": "stills/%06d.jpg"})
+        meta["files"].update({"video": None, "stills": "stills/%06d.jpg" if stills_bands <= 1 else "stills/IMG_%04d_B.tif"})
         meta["stills"] = {"strips": int(strips), "per_strip": int(stills_per_strip),
                           "forward_overlap": float(forward_overlap), "side_overlap": float(motion.side_overlap),
                           "yaw": stills_yaw,
