@@ -23,6 +23,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Iterable
 
+import cv2
 import numpy as np
 
 from photomap.config import OutputConfig
@@ -32,7 +33,7 @@ from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
 from photomap.mapping.checkpoint import Checkpointer, state_folder
-from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
+from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import LoopCloser
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
@@ -102,6 +103,7 @@ class RunOutputs:
         self._writer: ThreadPoolExecutor | None = None
         self._checkpoint_files: Future | None = None
         self._files_due = 0.0  # monotonic s: the next checkpoint's files not before (_WRITER_SHARE)
+        self.band_source = None  # multi-band stills (their ``captures``): every band's map at the end
 
     def start(self, frame_size: tuple[int, int], loops: LoopCloser | None, painter: Painter) -> None:
         """The first frame came: its size (w, h), the loop closer (its keyframe graphs go into
@@ -299,6 +301,22 @@ class RunOutputs:
                         check["correlation"], join.offset + check["residual_offset_s"])
         self._write_trajectory()
 
+    def _band_maps(self, maps: list[dict]) -> dict | None:
+        """Every band's map of a multi-band flight (:mod:`photomap.mapping.band_maps`), on the main
+        map's final poses; a failure is one line (the main map is written already)."""
+        from photomap.mapping.band_maps import write_band_maps
+        main = maps[0]
+        seg = main["segment"]
+        georef = georefs_from_maps(maps).get(seg)
+        view = self.telemetry.homography if self.telemetry is not None else (lambda index: None)
+        try:
+            return write_band_maps(self.out_dir, self.band_source, self._rows.glued(seg), self._frame_size,
+                                   self.segments.cfg, main, composite=self.cfg.composite, georef=georef,
+                                   geotiff=self.cfg.geotiff, view=view)
+        except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
+            self._write_failed("band maps", exc)
+            return None
+
     def finish(self, summary_of: Callable[[], dict], timing: StageTimes, t0: float) -> dict:
         """Write the final outputs once the map is final; returns the run summary (``summary_of()``
         once the trajectory is written; also in ``run.json``, with ``timing``'s stages, the
@@ -346,6 +364,10 @@ class RunOutputs:
                                     cog=self.cfg.geotiff, footprints=self.cfg.footprints)
             if exports:
                 summary["exports"] = exports
+        if self.band_source is not None and maps:
+            bands = self._band_maps(maps)
+            if bands:
+                summary["bands"] = bands
         summary["mosaics"] = maps
         summary["complete"] = True
         if unwritten:  # the map is not all on disk as outputs: the checkpoint must hold it
