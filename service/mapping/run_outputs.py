@@ -104,6 +104,7 @@ class RunOutputs:
         self._checkpoint_files: Future | None = None
         self._files_due = 0.0  # monotonic s: the next checkpoint's files not before (_WRITER_SHARE)
         self.band_source = None  # multi-band stills (their ``captures``): every band's map at the end
+        self._composite = cfg.composite  # ... and their composite.png's bands
 
     def start(self, frame_size: tuple[int, int], loops: LoopCloser | None, painter: Painter) -> None:
         """The first frame came: its size (w, h), the loop closer (its keyframe graphs go into
@@ -311,7 +312,7 @@ class RunOutputs:
         view = self.telemetry.homography if self.telemetry is not None else (lambda index: None)
         try:
             return write_band_maps(self.out_dir, self.band_source, self._rows.glued(seg), self._frame_size,
-                                   self.segments.cfg, main, composite=self.cfg.composite, georef=georef,
+                                   self.segments.cfg, main, composite=self._composite, georef=georef,
                                    geotiff=self.cfg.geotiff, view=view)
         except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
             self._write_failed("band maps", exc)
