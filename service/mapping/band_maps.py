@@ -47,6 +47,7 @@ from photomap.geometry import pose_scale
 from photomap.io.geotiff import _invert, north_up_grid, rasterio_available, resample_block
 from photomap.io.mapsource import mosaic_source
 from photomap.io.pngstream import PngStreamWriter
+from photomap.io.tilestore import DiskTileStore
 from photomap.mapping.outputs import _bgra
 from photomap.mapping.rows import RowView
 
@@ -145,9 +146,10 @@ def _ranges(captures: Sequence[Capture], names: Sequence[str], indices: Sequence
 
 def _paint_band(name: str, captures: Sequence[Capture], rows: Sequence[RowView], homographies: dict[int, list[np.ndarray]],
                 b: int, value_range: tuple[float, float] | None, frame_size: tuple[int, int], cfg: MosaicConfig,
-                view: Callable[[int], np.ndarray | None]) -> TiledMosaic:
-    """Band ``b`` of every posed capture painted into a gray map of its own."""
-    mosaic = TiledMosaic(replace(cfg, channels=1, exposure="none", max_tiles_in_memory=None))
+                view: Callable[[int], np.ndarray | None], store: DiskTileStore | None) -> TiledMosaic:
+    """Band ``b`` of every posed capture painted into a gray map of its own (spilling to ``store``
+    under ``mosaic.max_tiles_in_memory``, as the run's maps do)."""
+    mosaic = TiledMosaic(replace(cfg, channels=1, exposure="none"), store)
     w, h = frame_size
     for row in rows:
         hs = homographies.get(row.frame)
@@ -269,14 +271,19 @@ def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: 
     ok = True
     try:
         for b, name in enumerate(names):
-            mosaic = _paint_band(name, captures, rows, homographies, b, ranges[name], frame_size, cfg, view)
-            if mosaic.bounds() is None:
-                continue
-            files[name] = band_file_name(name)
-            _write_png(out_dir / files[name], mosaic, bounds, scale)
-            if tif is not None:
-                tif.write_band(b + 1, mosaic)
-            del mosaic
+            store = DiskTileStore() if cfg.max_tiles_in_memory else None  # a temporary folder
+            try:
+                mosaic = _paint_band(name, captures, rows, homographies, b, ranges[name], frame_size, cfg, view,
+                                     store)
+                if mosaic.bounds() is None:
+                    continue
+                files[name] = band_file_name(name)
+                _write_png(out_dir / files[name], mosaic, bounds, scale)
+                if tif is not None:
+                    tif.write_band(b + 1, mosaic)
+            finally:
+                if store is not None:
+                    store.close()
     except BaseException:
         ok = False
         raise

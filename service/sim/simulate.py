@@ -115,6 +115,8 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     stills = mode == "stills"
     if stills_bands > len(BANDS) or stills_bands < 1:
         raise InputError(f"bands per capture must be 1..{len(BANDS)}, got {stills_bands}")
+    if stills_bands > 1 and not stills:
+        raise InputError("multi-band captures are stills: use --mode stills with --bands")
     if not stills and video_codec not in VIDEO_CODECS:
         raise InputError(f"video codec must be one of {', '.join(VIDEO_CODECS)}, got {video_codec!r}")
     name = str(terrain)
