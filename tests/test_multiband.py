@@ -243,3 +243,28 @@ def test_simulated_survey_maps_every_band_registered(survey, tmp_path):
         assert ds.crs is not None and ds.nodata == 0
         nir = ds.read(4)
         assert (nir > 0).mean() > 0.3
+
+
+def test_a_band_that_does_not_align_keeps_the_previous_homography(survey, tmp_path, caplog):
+    """A band image with nothing to align (here: noise) keeps the previous capture's homography:
+    one logged line, counted in run.json, and its band map is still written."""
+    import shutil
+    stills = tmp_path / "stills"
+    shutil.copytree(survey / "stills", stills)
+    bad = stills / "IMG_0004_1.tif"
+    noise = np.random.default_rng(1).integers(0, 65535, (SIZE[1], SIZE[0])).astype(np.uint16)
+    from PIL import Image
+    from photomap.sim.bands import micasense_xmp, write_band_still
+    with Image.open(bad) as im:
+        exif = im.getexif()
+        for tag in (0x8769, 0x8825):
+            exif.get_ifd(tag)  # read the sub-IFDs while the file is open
+    write_band_still(bad, noise, exif, micasense_xmp(capture_id="sim3-000004", band=0))  # same capture, same band
+    run = tmp_path / "run"
+    with caplog.at_level("WARNING"):
+        replay(str(stills), run, load_config())
+    info = json.loads((run / "run.json").read_text())["bands"]
+    assert info["alignment"]["failed"] == 1
+    lines = [r.getMessage() for r in caplog.records if "band alignment failed" in r.getMessage()]
+    assert len(lines) == 1 and "capture 4, Blue" in lines[0] and "no file" not in lines[0]
+    assert (run / info["files"]["Blue"]).is_file()
