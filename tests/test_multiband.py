@@ -268,3 +268,23 @@ def test_a_band_that_does_not_align_keeps_the_previous_homography(survey, tmp_pa
     lines = [r.getMessage() for r in caplog.records if "band alignment failed" in r.getMessage()]
     assert len(lines) == 1 and "capture 4, Blue" in lines[0] and "no file" not in lines[0]
     assert (run / info["files"]["Blue"]).is_file()
+
+
+def test_p4_multispectral_sequential_names_group_by_capture_uuid(tmp_path):
+    """A P4 Multispectral numbers its band files in sequence (DJI_0011.TIF .. DJI_0015.TIF): the
+    XMP (DJI writes attributes) says which capture and band each is."""
+    from PIL import Image
+    bands = ["Blue", "Green", "Red", "RedEdge", "NIR"]
+    for k in range(2):
+        for b, band in enumerate(bands):
+            xmp = ('<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+                   '<rdf:Description rdf:about="" xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
+                   'xmlns:Camera="http://pix4d.com/camera/1.0/" '
+                   f'drone-dji:CaptureUUID="uuid-{k}" Camera:BandName="{band}" Camera:RigCameraIndex="{b + 1}"/>'
+                   '</rdf:RDF></x:xmpmeta>').encode()
+            img = Image.fromarray(np.full((40, 48), 1000 * (b + 1), np.uint16))
+            img.save(tmp_path / f"DJI_{10 + 5 * k + b + 1:04d}.TIF", tiffinfo={700: xmp})
+    caps = group_captures(sorted(tmp_path.iterdir()))
+    assert caps is not None and [c.key for c in caps] == ["uuid-0", "uuid-1"]
+    assert caps[0].bands == ("Blue", "Green", "Red", "Red edge", "NIR")
+    assert [f.path.name for f in caps[1].files] == [f"DJI_{n:04d}.TIF" for n in range(16, 21)]
