@@ -260,6 +260,8 @@ def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: 
     names = list(max((c.bands for c in captures), key=len))
     reference = source.band
     indices = sorted({int(r.frame) for r in rows if 0 <= int(r.frame) < len(captures)})
+    log.info("band maps: aligning the %d other bands of %d captures to %s, then one map per band",
+             len(names) - 1, len(indices), reference)
     homographies, alignment = _align_all(captures, names, reference, indices)
     ranges = _ranges(captures, names, indices, reference, source.band_range)
     bounds = tuple(int(v) for v in main["bounds"])
