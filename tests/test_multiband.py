@@ -288,3 +288,24 @@ def test_p4_multispectral_sequential_names_group_by_capture_uuid(tmp_path):
     assert caps is not None and [c.key for c in caps] == ["uuid-0", "uuid-1"]
     assert caps[0].bands == ("Blue", "Green", "Red", "Red edge", "NIR")
     assert [f.path.name for f in caps[1].files] == [f"DJI_{n:04d}.TIF" for n in range(16, 21)]
+
+
+def test_tilted_captures_band_maps_follow_the_rectified_view(tmp_path):
+    """Captures with a DJI attitude in their XMP (as a P4 Multispectral writes) are rectified to
+    nadir from it: every band goes through the same rectification, so the band maps stay on the
+    registering band's map (mosaic.png) and on each other."""
+    flight = tmp_path / "flight"
+    simulate_flight(flight, mode="stills", stills_bands=5, strips=2, stills_per_strip=5, size=SIZE, seed=3, tilt=4.0)
+    run = tmp_path / "run"
+    replay(str(flight / "stills"), run, load_config())
+    info = json.loads((run / "run.json").read_text())
+    assert info["telemetry"]["rectified"] == 10 and info["segments"] == 1
+    mosaic = cv2.imread(str(run / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+    files = info["bands"]["files"]
+    nir = cv2.imread(str(run / files["NIR"]), cv2.IMREAD_UNCHANGED)
+    blue = cv2.imread(str(run / files["Blue"]), cv2.IMREAD_UNCHANGED)
+    gray = cv2.cvtColor(mosaic[..., :3], cv2.COLOR_BGR2GRAY)
+    on_mosaic = _patch_shift(gray, nir[..., 0], np.minimum(mosaic[..., 3], nir[..., 3]))
+    on_nir = _patch_shift(blue[..., 0], nir[..., 0], np.minimum(blue[..., 3], nir[..., 3]))
+    assert len(on_mosaic) >= 10 and float(np.median(on_mosaic)) < 0.5, on_mosaic
+    assert float(np.median(on_nir)) < 1.0 and float(np.percentile(on_nir, 90)) < 1.0, on_nir

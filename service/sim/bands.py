@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Mapping
 
 import cv2
 import numpy as np
@@ -68,9 +69,16 @@ def band_image(frame_bgr: np.ndarray, band: int, rng: np.random.Generator | None
     return np.clip(np.rint(value), 0, 65535).astype(np.uint16)
 
 
-def micasense_xmp(*, capture_id: str, band: int) -> bytes:
-    """An XMP packet with the MicaSense fields a capture's band file carries."""
+def micasense_xmp(*, capture_id: str, band: int, dji: Mapping[str, str] | None = None) -> bytes:
+    """An XMP packet with the MicaSense fields a capture's band file carries and, given ``dji``
+    (:func:`photomap.sim.stills.dji_attributes`), DJI's attitude and height as a P4 Multispectral
+    writes them beside its band fields."""
     name, wavelength, _, _ = BANDS[band]
+    extra = ""
+    if dji:
+        body = "\n".join(f'   drone-dji:{k}="{v}"' for k, v in dji.items())
+        extra = ('  <rdf:Description rdf:about="DJI Meta Data" xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"\n'
+                 f'{body}/>\n')
     text = ('<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
             '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
             ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
@@ -82,6 +90,7 @@ def micasense_xmp(*, capture_id: str, band: int) -> bytes:
             f'   <Camera:CentralWavelength>{wavelength}</Camera:CentralWavelength>\n'
             f'   <Camera:RigCameraIndex>{band}</Camera:RigCameraIndex>\n'
             '  </rdf:Description>\n'
+            f'{extra}'
             ' </rdf:RDF>\n'
             '</x:xmpmeta>\n'
             '<?xpacket end="w"?>')

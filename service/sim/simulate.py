@@ -23,7 +23,7 @@ from photomap.errors import InputError, PhotomapError
 from photomap.sim.flight import PATTERNS, YAW_MODES, Camera, build_pyramid, iter_frames, pixel_to_latlon, plan_flight, split_params
 from photomap.sim.objects import ObjectScene, random_objects
 from photomap.sim.bands import BANDS, DARK, GAIN, band_image, lens_homography, micasense_xmp, write_band_still
-from photomap.sim.stills import (SENSOR_WIDTH_MM, SURVEY_YAW_MODES, focal_35mm, plan_survey, still_exif, subset,
+from photomap.sim.stills import (SENSOR_WIDTH_MM, SURVEY_YAW_MODES, dji_attributes, focal_35mm, plan_survey, still_exif, subset,
                                  write_still)
 from photomap.sim.terrain import DEFAULT_GSD, PERIODIC, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
 from photomap.io.trajectory_files import GROUNDTRUTH_COLUMNS
@@ -168,9 +168,13 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
             i = int(shots[k])
             exif = still_exif(t_unix=t0_unix + float(truth.t[i]), lat=float(lat[i]), lon=float(lon[i]),
                               amsl_m=origin_amsl + float(truth.alt_m[i]), camera=camera)
+            dji = dji_attributes(rel_alt_m=float(truth.alt_m[i]), amsl_m=origin_amsl + float(truth.alt_m[i]),
+                                 lat=float(lat[i]), lon=float(lon[i]), roll=float(truth.roll_deg[i]),
+                                 pitch=float(truth.pitch_deg[i]), yaw=float(truth.yaw_deg[i]), camera=camera,
+                                 flight_yaw=float(flight_yaw[i])) if stills_xmp else None
             for b in range(stills_bands):
                 write_band_still(media / f"IMG_{k:04d}_{b + 1}.tif", band_image(frame, b, noise_rng), exif,
-                                 micasense_xmp(capture_id=f"sim{seed}-{k:06d}", band=b))
+                                 micasense_xmp(capture_id=f"sim{seed}-{k:06d}", band=b, dji=dji))
             if save_frames:
                 cv2.imwrite(str(frames_dir / f"{k:06d}.{frames_format}"), frame)
     elif stills:

@@ -174,6 +174,23 @@ def focal_35mm(camera: Camera) -> float:
     return camera.fx * FULL_FRAME_DIAGONAL_MM / math.hypot(camera.width, camera.height)
 
 
+def dji_attributes(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: float, pitch: float,
+                   yaw: float, camera: Camera, flight_yaw: float | None = None) -> dict[str, str]:
+    """The ``drone-dji:`` properties of :func:`dji_xmp` (name -> text)."""
+    def f(v: float, nd: int = 2) -> str:
+        return f"{v:+.{nd}f}"
+
+    return {
+        "GpsLatitude": f(lat, 9), "GpsLongitude": f(lon, 9),
+        "AbsoluteAltitude": f(amsl_m, 3), "RelativeAltitude": f(rel_alt_m, 3),
+        "GimbalRollDegree": f(roll), "GimbalYawDegree": f(yaw), "GimbalPitchDegree": f(pitch - 90.0),
+        "FlightRollDegree": f(roll), "FlightYawDegree": f(yaw if flight_yaw is None else flight_yaw),
+        "FlightPitchDegree": f(pitch),
+        "CalibratedFocalLength": f"{camera.fx:.4f}", "CalibratedOpticalCenterX": f"{camera.cx:.4f}",
+        "CalibratedOpticalCenterY": f"{camera.cy:.4f}",
+    }
+
+
 def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: float, pitch: float, yaw: float,
             camera: Camera, flight_yaw: float | None = None) -> bytes:
     """A DJI-style XMP packet (``drone-dji:`` attributes, values like ``"+39.80"``).
@@ -184,18 +201,8 @@ def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: fl
     (default: the camera's).
     ``CalibratedFocalLength`` and ``CalibratedOpticalCenterX/Y`` are in pixels (exact).
     """
-    def f(v: float, nd: int = 2) -> str:
-        return f"{v:+.{nd}f}"
-
-    attrs = {
-        "GpsLatitude": f(lat, 9), "GpsLongitude": f(lon, 9),
-        "AbsoluteAltitude": f(amsl_m, 3), "RelativeAltitude": f(rel_alt_m, 3),
-        "GimbalRollDegree": f(roll), "GimbalYawDegree": f(yaw), "GimbalPitchDegree": f(pitch - 90.0),
-        "FlightRollDegree": f(roll), "FlightYawDegree": f(yaw if flight_yaw is None else flight_yaw),
-        "FlightPitchDegree": f(pitch),
-        "CalibratedFocalLength": f"{camera.fx:.4f}", "CalibratedOpticalCenterX": f"{camera.cx:.4f}",
-        "CalibratedOpticalCenterY": f"{camera.cy:.4f}",
-    }
+    attrs = dji_attributes(rel_alt_m=rel_alt_m, amsl_m=amsl_m, lat=lat, lon=lon, roll=roll, pitch=pitch, yaw=yaw,
+                           camera=camera, flight_yaw=flight_yaw)
     body = "\n".join(f'   drone-dji:{k}="{v}"' for k, v in attrs.items())
     text = ('<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
             '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
