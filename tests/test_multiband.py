@@ -25,7 +25,6 @@ from photomap.drivers.images import ImageFolderSource
 from photomap.drivers.stills_telemetry import stills_telemetry_for
 from photomap.errors import ConfigError, InputError
 from photomap.mapping.band_maps import band_file_name, composite_bands
-from photomap.sim.bands import lens_homography
 from photomap.sim.simulate import simulate_flight
 
 from conftest import shared_data

@@ -27,7 +27,6 @@ Only the main map (the largest segment) is written per band.
 from __future__ import annotations
 
 import logging
-import math
 import os
 import re
 import tempfile
@@ -41,14 +40,13 @@ import numpy as np
 from photomap.config import MosaicConfig
 from photomap.core.bands import BandAlignment, align_capture, corner_shift_px, robust_range_16bit, to_8bit
 from photomap.core.mosaic import TiledMosaic
-from photomap.drivers.captures import Capture, read_band
+from photomap.drivers.captures import BAND_ALIASES, Capture, read_band
 from photomap.geo.georef import compose
 from photomap.geometry import pose_scale
-from photomap.io.geotiff import _invert, north_up_grid, rasterio_available, resample_block
+from photomap.io.geotiff import north_up_grid, rasterio_available, resample_block
 from photomap.io.mapsource import mosaic_source
 from photomap.io.pngstream import PngStreamWriter
 from photomap.io.tilestore import DiskTileStore
-from photomap.mapping.outputs import _bgra
 from photomap.mapping.rows import RowView
 
 log = logging.getLogger(__name__)
@@ -67,7 +65,6 @@ def composite_bands(spec: str, names: Sequence[str]) -> tuple[str, str, str] | N
     ``nir,red,green``; names matched in any case, ``rededge``/``re`` for ``Red edge``) or, when
     empty, false colour NIR/red/green where the camera has them, else red/green/blue, else the first
     three bands. None when fewer than 3 bands (or ``spec`` names a band the camera lacks: logged)."""
-    from photomap.drivers.captures import BAND_ALIASES
     lower = {n.lower(): n for n in names}
 
     def find(text: str) -> str | None:
@@ -173,7 +170,7 @@ def _paint_band(name: str, captures: Sequence[Capture], rows: Sequence[RowView],
 def _write_png(path: Path, mosaic: TiledMosaic, bounds: tuple[int, int, int, int], scale: float) -> None:
     image, alpha, _ = mosaic.render(scale=scale, bounds=bounds)
     with PngStreamWriter(path, alpha.shape[1], alpha.shape[0], channels=4) as png:
-        png.write(_bgra(image, alpha))
+        png.write(np.dstack([cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), alpha]))
 
 
 def _write_composite(out_dir: Path, files: dict[str, str], bands: tuple[str, str, str]) -> str:
@@ -199,7 +196,7 @@ class _BandGeoTiff:
         gsd = pose_scale(map_to_crs)
         west, north, self.width, self.height = north_up_grid(bounds, map_to_crs, gsd)
         out_to_crs = np.array([[gsd, 0.0, west + 0.5 * gsd], [0.0, -gsd, north - 0.5 * gsd]])
-        self.out_to_src = compose(_invert(map_to_crs), out_to_crs)
+        self.out_to_src = compose(cv2.invertAffineTransform(np.asarray(map_to_crs, float)), out_to_crs)
         self.block = 512
         fd, self.tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         os.close(fd)
