@@ -28,13 +28,18 @@ import numpy as np
 
 #: Coarsest pyramid level: about this many pixels across.
 _COARSE_PX = 160
-#: ECC iterations at the coarsest level (halved at each finer one, at least 10) and the increment
-#: of the correlation that ends a level.
+#: ECC iterations at the coarsest level (halved at each finer one, at least 10: the coarse levels
+#: converge from afar, the finer ones refine) and the increment of the correlation that ends a level.
 _ITERATIONS = 100
 _EPSILON = 1e-6
 #: A fitted homography that moves a corner of the image by more than this fraction of the image's
 #: larger side is taken as a failed fit (lenses of one rig are a few pixels apart).
 MAX_SHIFT_FRACTION = 0.05
+#: ... and so is one that scales by more than this fraction or turns by more than this many degrees
+#: (the lenses of a rig have the same focal length and are mounted parallel; a band of another
+#: size is resized to the reference's first).
+MAX_SCALE_CHANGE = 0.02
+MAX_ROTATION_DEG = 2.0
 #: Images wider than this are fitted on a pyramid level of at most this size (see :func:`align_band`).
 MAX_FIT_PX = 2048
 #: ... and so is a fit whose ECC correlation (of the gradient images) is below this.
@@ -151,7 +156,7 @@ def align_band(reference: np.ndarray, band: np.ndarray, *, init: np.ndarray | No
         the reference's first (the scale is part of ``H``).
     init : 3x3 band -> reference homography to start from (the previous capture's), default identity.
     max_shift_fraction, min_correlation : a fit beyond these is refused (``ok`` False).
-    iterations : ECC iterations at the coarsest pyramid level (halved at each finer one).
+    iterations : ECC iterations at the coarsest pyramid level (halved at each finer one, at least 10).
     max_px : the finest level fitted is the first of at most this many pixels across (a 2592-pixel
         Mavic 3M band is fitted at 1296; on the real RedEdge capture a fit at half resolution was
         up to 4 px off the full-resolution one in the blue band, so the default keeps 1280 whole).
@@ -183,17 +188,15 @@ def align_band(reference: np.ndarray, band: np.ndarray, *, init: np.ndarray | No
         finest += 1
     at = levels  # the pyramid level whose pixels W maps
     for level in range(levels, finest - 1, -1):
-        # the coarse levels converge from afar; the finer ones refine (a few iterations each)
         count = max(10, int(iterations) >> (levels - level))
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, count, _EPSILON)
         try:
             cc, Wf = cv2.findTransformECC(pyr_ref[level], pyr_band[level], W.astype(np.float32),
                                           cv2.MOTION_HOMOGRAPHY, criteria, None, 1)
         except cv2.error as exc:
-            if cc is None:  # not even the coarsest level: no fit
-                text = str(exc).strip().splitlines()
-                return BandAlignment(start, None, False, f"ECC did not converge ({text[-1][-60:] if text else 'no fit'})")
-            break  # keep the coarser level's fit
+            text = str(exc).strip().splitlines()  # a coarse fit that a finer level rejects is no fit either
+            return BandAlignment(start, None, False, f"ECC did not converge at pyramid level {level} "
+                                                     f"({text[-1][-60:] if text else 'no fit'})")
         W, at = Wf.astype(np.float64), level
         if level > finest:
             W, at = _scaled(W, 2.0), level - 1
@@ -206,6 +209,12 @@ def align_band(reference: np.ndarray, band: np.ndarray, *, init: np.ndarray | No
     if shift > max_shift_fraction * max(w, h):
         return BandAlignment(start, float(cc), False, f"the fit moves a corner by {shift:.0f} px "
                                                       f"(more than {max_shift_fraction:.0%} of the image)")
+    on_grid = H @ np.linalg.inv(resize)
+    scale = math.sqrt(abs(np.linalg.det(on_grid[:2, :2])))
+    turn = math.degrees(math.atan2(on_grid[1, 0] - on_grid[0, 1], on_grid[0, 0] + on_grid[1, 1]))
+    if abs(scale - 1.0) > MAX_SCALE_CHANGE or abs(turn) > MAX_ROTATION_DEG:
+        return BandAlignment(start, float(cc), False, f"the fit scales by {scale:.3f} and turns by {turn:.2f} deg "
+                                                      "(not a lens of the same rig)")
     if cc < min_correlation:
         return BandAlignment(start, float(cc), False, f"gradient correlation {cc:.2f} below {min_correlation}")
     return BandAlignment(H, float(cc), True)
