@@ -308,3 +308,15 @@ def test_tilted_captures_band_maps_follow_the_rectified_view(tmp_path):
     on_nir = _patch_shift(blue[..., 0], nir[..., 0], np.minimum(blue[..., 3], nir[..., 3]))
     assert len(on_mosaic) >= 10 and float(np.median(on_mosaic)) < 0.5, on_mosaic
     assert float(np.median(on_nir)) < 1.0 and float(np.percentile(on_nir, 90)) < 1.0, on_nir
+
+
+def test_a_fit_beyond_a_rigs_lenses_is_refused():
+    """A band 5 % larger than the reference is no lens of the same rig: the fit is refused."""
+    folder, _ = _capture_rows()
+    ref = cv2.resize(read_band(folder / "IMG_0001_5.tif"), (320, 240), interpolation=cv2.INTER_AREA)
+    zoom = cv2.getRotationMatrix2D((159.5, 119.5), 0.0, 1.05)
+    fit = align_band(ref, cv2.warpAffine(ref, zoom, (320, 240), borderMode=cv2.BORDER_REFLECT))
+    assert not fit.ok and "scales by" in fit.reason
+    ok = align_band(ref, cv2.warpAffine(ref, np.float64([[1, 0, 2.5], [0, 1, -1.5]]), (320, 240),
+                                        borderMode=cv2.BORDER_REFLECT))
+    assert ok.ok and abs(ok.H[0, 2] + 2.5) < 0.2 and abs(ok.H[1, 2] - 1.5) < 0.2
