@@ -8,7 +8,8 @@ telemetry, the live ``track.kml`` / ``track.geojson``. At the end it writes ``tr
 ``trajectory.tum``, ``mosaic.png`` (BGRA, transparent where the map is empty; the largest
 segment; other segments as ``mosaic_segment{N}.png``; full-resolution ``tiles/`` when the PNG is
 downscaled), the georeference (world files, GeoTIFF, track files: :mod:`photomap.mapping.outputs`,
-:mod:`photomap.mapping.geo_outputs`) when the telemetry fits the images, ``run.json`` and
+:mod:`photomap.mapping.geo_outputs`) when the telemetry fits the images, every band's map of
+multi-band captures (:mod:`photomap.mapping.band_maps`), ``run.json`` and
 ``report.html`` (README, "What a run writes"); all atomically. A write that fails (e.g. disk
 full) is logged once per output and listed in ``run.json`` ``write_errors``, never raised: when
 the map itself could not be written the checkpoint keeps it (``photomap recover``).
@@ -32,6 +33,7 @@ from photomap.geometry import pose_angle_deg
 from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
+from photomap.mapping.band_maps import write_band_maps
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import LoopCloser
@@ -305,7 +307,6 @@ class RunOutputs:
     def _band_maps(self, maps: list[dict]) -> dict | None:
         """Every band's map of a multi-band flight (:mod:`photomap.mapping.band_maps`), on the main
         map's final poses; a failure is one line (the main map is written already)."""
-        from photomap.mapping.band_maps import write_band_maps
         main = maps[0]
         seg = main["segment"]
         georef = georefs_from_maps(maps).get(seg)
