@@ -53,6 +53,7 @@ def open_source(
     reconnect_initial: float = 0.5,
     reconnect_max: float = 8.0,
     image_rate: float = 1.0,
+    band: str = "",
     capture_factory: Callable[[str | int], Any] | None = None,
 ) -> FrameSource:
     """Open the frame source that ``spec`` names.
@@ -92,6 +93,6 @@ def open_source(
     except OSError as exc:  # e.g. a parent folder we may not enter
         raise InputError(f"cannot access {text}: {exc.strerror or exc}") from None
     if is_dir or is_glob:
-        return ImageFolderSource(text, rate=image_rate)
+        return ImageFolderSource(text, rate=image_rate, band=band)
     return VideoFileSource(text)
 

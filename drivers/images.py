@@ -15,10 +15,13 @@ from pathlib import Path
 from typing import Iterator
 
 import cv2
+import numpy as np
 
 from photomap.core.stretch import RunningStretch
 from photomap.errors import InputError
 
+from photomap.core.bands import robust_range_16bit, texture_energy, to_8bit
+from photomap.drivers.captures import BAND_ALIASES, Capture, band_folders, group_band_folders, group_captures, read_band
 from photomap.drivers.exif import parse_exif_datetime, read_capture_time
 from photomap.drivers.frames import CaptureStats, Frame, SourceBase
 from photomap.drivers.imread import ImageReader, image_suffixes
@@ -30,6 +33,8 @@ IMAGE_SUFFIXES = image_suffixes()
 _GLOB_CHARS = re.compile(r"[*?\[]")
 #: Stills with a side shorter than this (pixels) are skipped: too small to register.
 MIN_SIDE = 16
+#: Captures whose registering band sets a multi-band flight's 16-bit range (spread over the flight).
+RANGE_SAMPLES = 8
 
 __all__ = ["IMAGE_SUFFIXES", "ImageFolderSource", "exif_time", "list_images", "parse_exif_datetime"]
 
@@ -76,12 +81,23 @@ class ImageFolderSource(SourceBase):
     counted in ``stats.corrupt``, and leaves a gap; so the first *usable* still is the first
     frame (the one that sets the map's frame size).
 
+    Multi-band captures (:mod:`photomap.drivers.captures`: MicaSense, DJI multispectral, Sentera)
+    are one frame each: the frame is the registering band (``band``; default the band with the
+    most texture in the first capture, :func:`photomap.core.bands.texture_energy`), 16-bit bands
+    stretched to 8 bits over one range for the whole flight
+    (:func:`photomap.core.bands.robust_range_16bit` of a few captures spread over it); ``paths``
+    and ``times`` are those of the registering band's files, ``captures`` the captures (the other
+    bands are mapped at the end of the run: :mod:`photomap.mapping.band_maps`).
+
     Parameters
     ----------
     folder_or_glob : str or Path
         A directory or a glob pattern such as ``"flight/*.JPG"``.
     rate : float
         Nominal stills per second, used when the stills carry no EXIF time.
+    band : str
+        Multi-band captures: the band that registers, by name (``NIR``, ``red edge``) or number
+        (1 = the first in the camera's order); "" = the band with the most texture.
 
     Attributes
     ----------
@@ -91,6 +107,12 @@ class ImageFolderSource(SourceBase):
         ``Frame.t`` of each still, in the same order.
     exif_times : bool
         True when ``times`` come from EXIF.
+    captures : list of Capture or None
+        The multi-band captures in frame order (None: single-band stills).
+    band : str or None
+        The registering band's name (multi-band captures).
+    band_range : tuple of float or None
+        The registering band's 16-bit range mapped to 0..255 (None: 8-bit bands, as stored).
 
     Raises
     ------
@@ -100,17 +122,27 @@ class ImageFolderSource(SourceBase):
 
     live = False
 
-    def __init__(self, folder_or_glob: str | Path, *, rate: float = 1.0) -> None:
+    def __init__(self, folder_or_glob: str | Path, *, rate: float = 1.0, band: str = "") -> None:
         if rate <= 0:
             raise InputError(f"image rate must be positive, got {rate}")
         spec = str(folder_or_glob)
         self.stats = CaptureStats()
         self.paths = list_images(spec)
-        if not self.paths:
+        self.captures: list[Capture] | None = None
+        self.band: str | None = None
+        self.band_range: tuple[float, float] | None = None
+        per_band = band_folders(Path(spec), IMAGE_SUFFIXES) if not self.paths and Path(spec).is_dir() else None
+        if per_band:
+            self.captures = group_band_folders(per_band)
+        elif self.paths:
+            self.captures = group_captures(self.paths)
+        if not self.paths and not self.captures:
             if not Path(spec).is_dir() and not _GLOB_CHARS.search(spec):
                 raise InputError(f"image folder not found: {spec}")
             formats = ", ".join(s.lstrip(".") for s in IMAGE_SUFFIXES)
             raise InputError(f"no images in {spec} (formats read: {formats})")
+        if self.captures:
+            self._choose_band(band, spec)
         stamps = [exif_time(p) for p in self.paths]
         missing = sum(s is None for s in stamps)
         self.exif_times = missing == 0
@@ -123,6 +155,43 @@ class ImageFolderSource(SourceBase):
             self.times = [i / rate for i in range(len(self.paths))]
         self._closed = False
         self.stretch = RunningStretch()   # 16-bit / float stills: one range for the flight
+
+    def _choose_band(self, spec: str, where: str) -> None:
+        """The registering band, its files as ``paths``, and its 16-bit range (multi-band)."""
+        names = max((c.bands for c in self.captures), key=len)
+        if spec:
+            self.band = select_band(spec, names)
+        else:
+            first = [(f.band, read_band(f.path)) for f in self.captures[0].files]
+            scored = [(texture_energy(img), name) for name, img in first if img is not None]
+            if not scored:
+                raise InputError(f"{where}: the first capture's band files are unreadable")
+            self.band = max(scored)[1]
+        kept = [c for c in self.captures if c.path(self.band) is not None]
+        if len(kept) < len(self.captures):
+            log.warning("%d of %d captures have no %s band file: left out", len(self.captures) - len(kept),
+                        len(self.captures), self.band)
+        self.captures = kept
+        self.paths = [c.path(self.band) for c in kept]
+        if not self.paths:
+            raise InputError(f"no capture in {where} has a {self.band} band")
+        step = max(1, len(self.paths) // RANGE_SAMPLES)
+        sample = [img for p in self.paths[::step][:RANGE_SAMPLES] if (img := read_band(p)) is not None]
+        if any(img.dtype == np.uint16 for img in sample):
+            self.band_range = robust_range_16bit(sample)
+        log.info("%d captures of %d bands (%s) in %s: %s registers%s", len(kept), len(names), ", ".join(names),
+                 where, self.band, "" if self.band_range is None else
+                 f" (16-bit, {self.band_range[0]:.0f}..{self.band_range[1]:.0f} -> 0..255)")
+
+    def _read(self, path: Path, reader: ImageReader) -> np.ndarray | None:
+        """A still as stored (deep ones are stretched by the caller), or a multi-band capture's
+        registering band in 8 bits."""
+        if self.captures is None:
+            return reader.read(path)
+        image = read_band(path)
+        if image is not None and image.dtype != np.uint8:
+            image = to_8bit(image, self.band_range or (0.0, 65535.0))
+        return image
 
     def __iter__(self) -> Iterator[Frame]:
         reader = ImageReader()
@@ -140,7 +209,7 @@ class ImageFolderSource(SourceBase):
         for index, (path, t) in enumerate(zip(self.paths, self.times)):
             if self._closed:
                 return
-            image = reader.read(path)
+            image = self._read(path, reader)
             if image is None:
                 log.warning("skipping %s: not a readable image", path)
                 self.stats.corrupt += 1
@@ -158,3 +227,22 @@ class ImageFolderSource(SourceBase):
     def close(self) -> None:
         """Stop iteration at the next frame."""
         self._closed = True
+
+
+def select_band(spec: str, names: tuple[str, ...]) -> str:
+    """The band ``spec`` names among ``names``: a name (any case; ``rededge``/``RE`` for
+    ``Red edge``) or a number from 1 in the camera's band order.
+
+    Raises
+    ------
+    InputError
+        No such band (the message names ``capture.band`` and the bands there are).
+    """
+    text = spec.strip()
+    if text.isdigit() and 1 <= int(text) <= len(names):
+        return names[int(text) - 1]
+    want = BAND_ALIASES.get(text.lower(), text).lower()
+    for name in names:
+        if name.lower() in (want, text.lower()):
+            return name
+    raise InputError(f"capture.band: no band {spec!r} in these captures (bands: {', '.join(names)})")

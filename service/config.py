@@ -190,6 +190,13 @@ class OutputConfig(_Section):
     footprints: str = _choice("spaced", "all", "keyframes", "spaced", "none")
     checkpoint_map: bool = True
     min_free_mb: float = _num(50.0, 0.0, None)
+    composite: str = ""
+
+    def _check(self) -> None:
+        names = [n.strip() for n in self.composite.split(",")] if self.composite.strip() else []
+        if names and (len(names) != 3 or not all(names)):
+            self._fail("composite", f"must name 3 bands (red, green, blue of the picture), e.g. nir,red,green, "
+                                    f"or be empty; got {self.composite!r}")
 
 
 @dataclass(frozen=True)
@@ -207,6 +214,7 @@ class CaptureConfig(_Section):
     reconnect_max: float = _num(8.0, 0.0, 3600.0, lo_open=True)
     image_rate: float = _num(1.0, 0.0, 1000.0, lo_open=True)
     mask: str = ""
+    band: str = ""
 
     def _check(self) -> None:
         if len(self.fourcc) not in (0, 4):
@@ -314,6 +322,7 @@ class SimulateConfig(_Section):
     p2: float = 0.0
     k3: float = 0.0
     overlay: bool = False
+    stills_bands: int = _num(1, 1, 5)
 
     def _check(self) -> None:
         if self.object_size[0] > self.object_size[1]:

@@ -36,7 +36,8 @@ FLAGS = {"terrain": "terrain", "zoom": "terrain_zoom", "gsd": "gsd", "frames": "
          "pitch_offset": "pitch_offset", "mode": "mode", "strips": "strips",
          "stills_per_strip": "stills_per_strip", "forward_overlap": "forward_overlap",
          "stills_yaw": "stills_yaw", "hotspots": "hotspots", "hotspot_style": "hotspot_style",
-         "k1": "k1", "k2": "k2", "p1": "p1", "p2": "p2", "k3": "k3", "overlay": "overlay"}
+         "k1": "k1", "k2": "k2", "p1": "p1", "p2": "p2", "k3": "k3", "overlay": "overlay",
+         "bands": "stills_bands"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -88,6 +89,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--hotspots", type=int, metavar="N", help="plant N hot spots along the flight (truth in hotspots.csv)")
     a("--hotspot-style", choices=("thermal", "visible"), help="thermal (grey terrain, hot spots) or visible "
       "(colour terrain, fire-orange spots)")
+    a("--bands", type=int, metavar="N", help="stills mode: bands per capture (2-5: IMG_NNNN_B.tif, 16-bit, "
+      "one lens per band)")
     g = parser.add_argument_group("the camera's lens and overlay")
     a = g.add_argument
     for name in ("k1", "k2", "p1", "p2", "k3"):
@@ -117,7 +120,7 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         terrain_stain=s.terrain_stain, objects=s.objects, object_height=s.object_height,
         object_size=s.object_size, object_walls=s.object_walls, mode=s.mode, strips=s.strips,
         stills_per_strip=s.stills_per_strip, forward_overlap=s.forward_overlap, stills_yaw=s.stills_yaw,
-        stills_quality=s.stills_quality, stills_xmp=s.stills_xmp, hotspots=s.hotspots,
+        stills_quality=s.stills_quality, stills_xmp=s.stills_xmp, stills_bands=s.stills_bands, hotspots=s.hotspots,
         hotspot_style=s.hotspot_style,
         srt=bool(getattr(args, "srt", False)),
         distortion=(s.k1, s.k2, s.p1, s.p2, s.k3), osd=s.overlay)

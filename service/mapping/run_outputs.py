@@ -8,7 +8,8 @@ telemetry, the live ``track.kml`` / ``track.geojson``. At the end it writes ``tr
 ``trajectory.tum``, ``mosaic.png`` (BGRA, transparent where the map is empty; the largest
 segment; other segments as ``mosaic_segment{N}.png``; full-resolution ``tiles/`` when the PNG is
 downscaled), the georeference (world files, GeoTIFF, track files: :mod:`photomap.mapping.outputs`,
-:mod:`photomap.mapping.geo_outputs`) when the telemetry fits the images, ``run.json`` and
+:mod:`photomap.mapping.geo_outputs`) when the telemetry fits the images, every band's map of
+multi-band captures (:mod:`photomap.mapping.band_maps`), ``run.json`` and
 ``report.html`` (README, "What a run writes"); all atomically. A write that fails (e.g. disk
 full) is logged once per output and listed in ``run.json`` ``write_errors``, never raised: when
 the map itself could not be written the checkpoint keeps it (``photomap recover``).
@@ -23,6 +24,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Iterable
 
+import cv2
 import numpy as np
 
 from photomap.config import OutputConfig
@@ -31,9 +33,10 @@ from photomap.geometry import pose_angle_deg
 from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
 from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
+from photomap.mapping.band_maps import write_band_maps
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import GeoreferenceSink
-from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
+from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import LoopCloser
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
@@ -105,6 +108,8 @@ class RunOutputs:
         self._writer: ThreadPoolExecutor | None = None
         self._checkpoint_files: Future | None = None
         self._files_due = 0.0  # monotonic s: the next checkpoint's files not before (_WRITER_SHARE)
+        self.band_source = None  # multi-band stills (their ``captures``): every band's map at the end
+        self._composite = cfg.composite  # ... and their composite.png's bands
 
     def start(self, frame_size: tuple[int, int], loops: LoopCloser | None, painter: Painter) -> None:
         """The first frame came: its size (w, h), the loop closer (its keyframe graphs go into
@@ -306,6 +311,21 @@ class RunOutputs:
                         check["correlation"], join.offset + check["residual_offset_s"])
         self._write_trajectory()
 
+    def _band_maps(self, maps: list[dict]) -> dict | None:
+        """Every band's map of a multi-band flight (:mod:`photomap.mapping.band_maps`), on the main
+        map's final poses; a failure is one line (the main map is written already)."""
+        main = maps[0]
+        seg = main["segment"]
+        georef = georefs_from_maps(maps).get(seg)
+        view = self.telemetry.homography if self.telemetry is not None else (lambda index: None)
+        try:
+            return write_band_maps(self.out_dir, self.band_source, self._rows.glued(seg), self._frame_size,
+                                   self.segments.cfg, main, composite=self._composite, georef=georef,
+                                   geotiff=self.cfg.geotiff, view=view)
+        except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
+            self._write_failed("band maps", exc)
+            return None
+
     def finish(self, summary_of: Callable[[], dict], timing: StageTimes, t0: float) -> dict:
         """Write the final outputs once the map is final; returns the run summary (``summary_of()``
         once the trajectory is written; also in ``run.json``, with ``timing``'s stages, the
@@ -353,6 +373,10 @@ class RunOutputs:
                                     cog=self.cfg.geotiff, footprints=self.cfg.footprints)
             if exports:
                 summary["exports"] = exports
+        if self.band_source is not None and maps:
+            bands = self._band_maps(maps)
+            if bands:
+                summary["bands"] = bands
         summary["mosaics"] = maps
         summary["complete"] = True
         if unwritten:  # the map is not all on disk as outputs: the checkpoint must hold it

@@ -26,7 +26,9 @@ from photomap.sim.hotspots import HOTSPOT_STYLES, paint_hotspots, place_hotspots
 from photomap.geo.lens import LensModel
 from photomap.sim.lens import OVERLAY_BGR, DistortedRender, Overlay
 from photomap.sim.objects import ObjectScene, random_objects
-from photomap.sim.stills import SENSOR_WIDTH_MM, SURVEY_YAW_MODES, focal_35mm, plan_survey, subset, write_still
+from photomap.sim.bands import BANDS, DARK, GAIN, band_image, lens_homography, micasense_xmp, write_band_still
+from photomap.sim.stills import (SENSOR_WIDTH_MM, SURVEY_YAW_MODES, dji_attributes, focal_35mm, plan_survey, still_exif, subset,
+                                 write_still)
 from photomap.sim.terrain import DEFAULT_GSD, PERIODIC, PROCEDURAL, TERRAIN_GSD, TERRAIN_ZOOM, load_terrain, valid_mask
 from photomap.io.trajectory_files import GROUNDTRUTH_COLUMNS
 
@@ -74,7 +76,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                     object_size: tuple[float, float] = (4.0, 12.0), object_walls: bool = True,
                     mode: str = "video", strips: int = 4, stills_per_strip: int = 10,
                     forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
-                    stills_xmp: bool = True, hotspots: int = 0, hotspot_style: str = "thermal",
+                    stills_xmp: bool = True, stills_bands: int = 1, hotspots: int = 0, hotspot_style: str = "thermal",
                     srt: bool = False, distortion: tuple[float, ...] = (), osd: bool = False,
                     **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
@@ -103,6 +105,9 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         of a video; ``n_frames``, ``fps``, pattern and yaw settings then do not apply.
         ``stills_yaw``: ``flip`` (the picture turns 180 degrees between strips) or ``hold`` (a
         gimbal holds the camera's heading; the telemetry's yaw still flips).
+        ``stills_bands`` > 1: each still is a multi-band capture instead, ``stills/IMG_NNNN_B.tif``
+        (16-bit, one lens per band, :mod:`photomap.sim.bands`; ``meta.yaml`` ``bands`` gives
+        each band's lens homography).
     hotspots : number of hot spots planted into the terrain along the flight
         (:mod:`photomap.sim.hotspots`), their truth in ``hotspots.csv``; ``hotspot_style``
         ``thermal`` (grey thermal-looking terrain, hot grey spots) or ``visible`` (colour
@@ -124,6 +129,10 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     if mode not in MODES:
         raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
     stills = mode == "stills"
+    if stills_bands > len(BANDS) or stills_bands < 1:
+        raise InputError(f"bands per capture must be 1..{len(BANDS)}, got {stills_bands}")
+    if stills_bands > 1 and not stills:
+        raise InputError("multi-band captures are stills: use --mode stills with --bands")
     if not stills and video_codec not in VIDEO_CODECS:
         raise InputError(f"video codec must be one of {', '.join(VIDEO_CODECS)}, got {video_codec!r}")
     name = str(terrain)
@@ -184,7 +193,24 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                          lens=distorted, osd=osd_layer)
     if osd_layer is not None and not cv2.imwrite(str(out / "mask.png"), osd_layer.mask()):
         raise PhotomapError(f"cannot write {out / 'mask.png'}")
-    if stills:
+    if stills and stills_bands > 1:
+        media = out / "stills"
+        media.mkdir(exist_ok=True)
+        noise_rng = np.random.default_rng([seed, 33])
+        for k, frame in enumerate(frames):
+            i = int(shots[k])
+            exif = still_exif(t_unix=t0_unix + float(truth.t[i]), lat=float(lat[i]), lon=float(lon[i]),
+                              amsl_m=origin_amsl + float(truth.alt_m[i]), camera=camera)
+            dji = dji_attributes(rel_alt_m=float(truth.alt_m[i]), amsl_m=origin_amsl + float(truth.alt_m[i]),
+                                 lat=float(lat[i]), lon=float(lon[i]), roll=float(truth.roll_deg[i]),
+                                 pitch=float(truth.pitch_deg[i]), yaw=float(truth.yaw_deg[i]), camera=camera,
+                                 flight_yaw=float(flight_yaw[i])) if stills_xmp else None
+            for b in range(stills_bands):
+                write_band_still(media / f"IMG_{k:04d}_{b + 1}.tif", band_image(frame, b, noise_rng), exif,
+                                 micasense_xmp(capture_id=f"sim{seed}-{k:06d}", band=b, dji=dji))
+            if save_frames:
+                cv2.imwrite(str(frames_dir / f"{k:06d}.{frames_format}"), frame)
+    elif stills:
         media = out / "stills"
         media.mkdir(exist_ok=True)
         for k, frame in enumerate(frames):
@@ -264,10 +290,17 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
     if spots:
         meta["hotspots"] = {"count": len(spots), "style": hotspot_style, "file": "hotspots.csv",
                             "note": "discs painted into the terrain; x_px, y_px = terrain px of the centre"}
+    if stills and stills_bands > 1:
+        meta["bands"] = [{"name": BANDS[b][0], "file": f"stills/IMG_%04d_{b + 1}.tif",
+                          "central_wavelength_nm": BANDS[b][1], "mix_bgr": list(BANDS[b][2]),
+                          "lens_H": lens_homography(b, (camera.width, camera.height)).tolist()}
+                         for b in range(stills_bands)]
+        meta["bands_note"] = ("lens_H maps the band's pixels to the truth camera's (groundtruth.csv H); the band's "
+                              "16-bit value = %g + %g * (mix . frame BGR / 255 + offset) + noise" % (DARK, GAIN))
     if stills:
         meta["frames"] = len(shots)
         meta["fps"] = None
-        meta["files"].update({"video": None, "stills": "stills/%06d.jpg"})
+        meta["files"].update({"video": None, "stills": "stills/%06d.jpg" if stills_bands <= 1 else "stills/IMG_%04d_B.tif"})
         meta["stills"] = {"strips": int(strips), "per_strip": int(stills_per_strip),
                           "forward_overlap": float(forward_overlap), "side_overlap": float(motion.side_overlap),
                           "yaw": stills_yaw,

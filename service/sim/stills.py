@@ -174,6 +174,23 @@ def focal_35mm(camera: Camera) -> float:
     return camera.fx * FULL_FRAME_DIAGONAL_MM / math.hypot(camera.width, camera.height)
 
 
+def dji_attributes(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: float, pitch: float,
+                   yaw: float, camera: Camera, flight_yaw: float | None = None) -> dict[str, str]:
+    """The ``drone-dji:`` properties of :func:`dji_xmp` (name -> text)."""
+    def f(v: float, nd: int = 2) -> str:
+        return f"{v:+.{nd}f}"
+
+    return {
+        "GpsLatitude": f(lat, 9), "GpsLongitude": f(lon, 9),
+        "AbsoluteAltitude": f(amsl_m, 3), "RelativeAltitude": f(rel_alt_m, 3),
+        "GimbalRollDegree": f(roll), "GimbalYawDegree": f(yaw), "GimbalPitchDegree": f(pitch - 90.0),
+        "FlightRollDegree": f(roll), "FlightYawDegree": f(yaw if flight_yaw is None else flight_yaw),
+        "FlightPitchDegree": f(pitch),
+        "CalibratedFocalLength": f"{camera.fx:.4f}", "CalibratedOpticalCenterX": f"{camera.cx:.4f}",
+        "CalibratedOpticalCenterY": f"{camera.cy:.4f}",
+    }
+
+
 def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: float, pitch: float, yaw: float,
             camera: Camera, flight_yaw: float | None = None) -> bytes:
     """A DJI-style XMP packet (``drone-dji:`` attributes, values like ``"+39.80"``).
@@ -184,18 +201,8 @@ def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: fl
     (default: the camera's).
     ``CalibratedFocalLength`` and ``CalibratedOpticalCenterX/Y`` are in pixels (exact).
     """
-    def f(v: float, nd: int = 2) -> str:
-        return f"{v:+.{nd}f}"
-
-    attrs = {
-        "GpsLatitude": f(lat, 9), "GpsLongitude": f(lon, 9),
-        "AbsoluteAltitude": f(amsl_m, 3), "RelativeAltitude": f(rel_alt_m, 3),
-        "GimbalRollDegree": f(roll), "GimbalYawDegree": f(yaw), "GimbalPitchDegree": f(pitch - 90.0),
-        "FlightRollDegree": f(roll), "FlightYawDegree": f(yaw if flight_yaw is None else flight_yaw),
-        "FlightPitchDegree": f(pitch),
-        "CalibratedFocalLength": f"{camera.fx:.4f}", "CalibratedOpticalCenterX": f"{camera.cx:.4f}",
-        "CalibratedOpticalCenterY": f"{camera.cy:.4f}",
-    }
+    attrs = dji_attributes(rel_alt_m=rel_alt_m, amsl_m=amsl_m, lat=lat, lon=lon, roll=roll, pitch=pitch, yaw=yaw,
+                           camera=camera, flight_yaw=flight_yaw)
     body = "\n".join(f'   drone-dji:{k}="{v}"' for k, v in attrs.items())
     text = ('<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
             '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
@@ -210,18 +217,8 @@ def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: fl
     return text.encode("utf-8")
 
 
-def write_still(path: str | Path, bgr: np.ndarray, *, t_unix: float, lat: float, lon: float, amsl_m: float,
-                rel_alt_m: float, camera: Camera, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0,
-                flight_yaw: float | None = None, quality: int = 92, xmp: bool = True) -> None:
-    """Write a uint8 BGR still as JPEG with EXIF and, if ``xmp``, DJI-style XMP (Pillow >= 11.1).
-
-    EXIF: Make/Model, Orientation 1, DateTimeOriginal + SubSecTimeOriginal (milliseconds) +
-    OffsetTimeOriginal ``+00:00`` (UTC, ``t_unix``); GPS (WGS84) latitude/longitude, altitude
-    ``amsl_m`` above sea level, GPS date/time stamp; FocalLength (mm, for a
-    :data:`SENSOR_WIDTH_MM` sensor), FocalPlaneX/YResolution (pixels per cm: ``fx`` =
-    FocalLength * FocalPlaneXResolution / 10 exactly), FocalLengthIn35mmFilm (diagonal rule,
-    rounded to whole mm as the tag is an integer).
-    """
+def still_exif(*, t_unix: float, lat: float, lon: float, amsl_m: float, camera: Camera):
+    """The EXIF of a simulated still (see :func:`write_still`), a Pillow ``Image.Exif``."""
     try:
         from PIL import Image
     except ImportError:
@@ -258,10 +255,27 @@ def write_still(path: str | Path, bgr: np.ndarray, *, t_unix: float, lat: float,
     gps[0x07] = (_rational(stamp.hour, 1), _rational(stamp.minute, 1), _rational(stamp.second + (ms % 1000) / 1000.0, 1000))
     gps[0x12] = "WGS-84"                           # GPSMapDatum
     gps[0x1D] = stamp.strftime("%Y:%m:%d")         # GPSDateStamp
+    return exif
+
+
+def write_still(path: str | Path, bgr: np.ndarray, *, t_unix: float, lat: float, lon: float, amsl_m: float,
+                rel_alt_m: float, camera: Camera, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0,
+                flight_yaw: float | None = None, quality: int = 92, xmp: bool = True) -> None:
+    """Write a uint8 BGR still as JPEG with EXIF and, if ``xmp``, DJI-style XMP (Pillow >= 11.1).
+
+    EXIF: Make/Model, Orientation 1, DateTimeOriginal + SubSecTimeOriginal (milliseconds) +
+    OffsetTimeOriginal ``+00:00`` (UTC, ``t_unix``); GPS (WGS84) latitude/longitude, altitude
+    ``amsl_m`` above sea level, GPS date/time stamp; FocalLength (mm, for a
+    :data:`SENSOR_WIDTH_MM` sensor), FocalPlaneX/YResolution (pixels per cm: ``fx`` =
+    FocalLength * FocalPlaneXResolution / 10 exactly), FocalLengthIn35mmFilm (diagonal rule,
+    rounded to whole mm as the tag is an integer).
+    """
+    exif = still_exif(t_unix=t_unix, lat=lat, lon=lon, amsl_m=amsl_m, camera=camera)
     kwargs = {"quality": int(quality), "exif": exif}
     if xmp:
         kwargs["xmp"] = dji_xmp(rel_alt_m=rel_alt_m, amsl_m=amsl_m, lat=lat, lon=lon, roll=roll, pitch=pitch,
                                 yaw=yaw, camera=camera, flight_yaw=flight_yaw)
+    from PIL import Image
     try:
         Image.fromarray(np.ascontiguousarray(bgr[..., ::-1])).save(str(path), "JPEG", **kwargs)
     except OSError as exc:
