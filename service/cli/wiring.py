@@ -59,7 +59,8 @@ def open_capture(spec: str, c: CaptureConfig) -> FrameSource:
     return open_source(spec, width=c.width, height=c.height, fps=c.fps, fourcc=c.fourcc,
                        queue_size=c.queue_size, read_failures=c.read_failures,
                        reconnect_initial=c.reconnect_initial, reconnect_max=c.reconnect_max,
-                       image_rate=c.image_rate)
+                       image_rate=c.image_rate, open_timeout=c.open_timeout,
+                       stream_timeout=c.stream_timeout, rtsp_transport=c.rtsp_transport)
 
 
 # ---------------------------------------------------------------------------------- telemetry
