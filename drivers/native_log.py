@@ -23,11 +23,12 @@ from collections import Counter
 # "[h264 @ 0x55813e5c9880] non-existing PPS 0 referenced"
 _AV_LOG = re.compile(r"^\[([\w:.\-]+) @ (?:0x)?[0-9a-fA-F]+\] ?(.*)$")
 # "[ WARN:0@5.010] global cap_ffmpeg_impl.hpp:453 _opencv_ffmpeg_interrupt_callback Stream timeout ..."
-_CV_LOG = re.compile(r"^\[ ?(?:WARN|ERROR|INFO|DEBUG)[^\]]*\] global (?:cap_ffmpeg\w*|cap_gstreamer\w*)"
-                     r"\.\w+(?::\d+)? (?:\w+ )?(.*)$")
+# (any of OpenCV's videoio sources: cap.cpp, cap_ffmpeg_impl.hpp, cap_gstreamer.cpp, ...)
+_CV_LOG = re.compile(r"^\[ ?(?:WARN|ERROR|INFO|DEBUG)[^\]]*\] global cap\w*\.[ch]pp(?::\d+)? (?:\w+ )?(.*)$")
 # av_log's own repeat suppression: "    Last message repeated 5 times"
 _REPEATED = re.compile(r"^\s*Last message repeated (\d+) times?\s*$")
-_NUMBER = re.compile(r"\d+(?:\.\d+)?")
+# Numbers that change from message to message (times, sizes, addresses), not parts of an address.
+_NUMBER = re.compile(r"(?<![.\d:])(?:0x[0-9a-fA-F]+|\d+\.\d+|\d{3,})(?![.\d:])")
 
 
 def decoder_message(line: str) -> str | None:

@@ -21,8 +21,8 @@ def main() -> None:
     server.set_address("127.0.0.1")
     server.set_service(port)
     factory = GstRtspServer.RTSPMediaFactory()
-    factory.set_launch(f"( filesrc location={path} ! tsdemux ! h264parse config-interval=-1 "
-                       f"! rtph264pay name=pay0 pt=96 config-interval=-1 )")
+    factory.set_launch(f"( filesrc location={path} ! tsdemux ! h264parse "
+                       f"! rtph264pay name=pay0 pt=96 )")
     server.get_mount_points().add_factory("/cam", factory)
     if server.attach(None) == 0:
         sys.exit(f"cannot listen on 127.0.0.1:{port}")
