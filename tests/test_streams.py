@@ -168,6 +168,68 @@ def test_rtsp_stream_whose_server_goes_away_and_comes_back_is_mapped(halves, tmp
             proc.communicate()
 
 
+def test_plain_rtp_through_an_sdp_file_as_qgroundcontrol_sends_it(halves, tmp_path):
+    """H.264 in RTP on a UDP port with no session set-up (QGroundControl's UDP 5600 convention):
+    the .sdp file of docs/streams.md tells FFmpeg what arrives there."""
+    from photomap.drivers.capture import open_source
+    port = _free_port(socket.SOCK_DGRAM)
+    sdp = tmp_path / "video.sdp"
+    sdp.write_text("v=0\no=- 0 0 IN IP4 127.0.0.1\ns=photomap\nc=IN IP4 127.0.0.1\nt=0 0\n"
+                   f"m=video {port} RTP/AVP 96\na=rtpmap:96 H264/90000\n")
+    sender = subprocess.Popen([FFMPEG, "-hide_banner", "-loglevel", "error", "-re", "-i", str(halves[0]),
+                               "-c", "copy", "-an", "-f", "rtp", "-payload_type", "96", f"rtp://127.0.0.1:{port}"],
+                              stdout=subprocess.DEVNULL)
+    try:
+        src = open_source(str(sdp), queue_size=PART)
+        got = []
+        for frame in src:
+            got.append(frame)
+            if len(got) == 60:
+                break
+        src.close()
+    finally:
+        sender.kill()
+        sender.wait()
+    assert len(got) == 60 and all(f.image.shape == (480, 640, 3) for f in got)
+    assert all(a.index + 1 == b.index and a.t <= b.t for a, b in zip(got, got[1:]))
+    assert len({f.image[::40, ::40].tobytes() for f in got}) == 60  # the flight moves: every frame new
+
+
+@pytest.mark.parametrize("kind", ["tcp", "http"])
+def test_mpegts_over_tcp_and_http_mjpeg(halves, kind):
+    """photomap connects to a server: MPEG-TS over TCP, or an IP camera's HTTP MJPEG stream."""
+    from photomap.drivers.capture import open_source
+    port = _free_port(socket.SOCK_STREAM)
+    if kind == "tcp":
+        url, out = f"tcp://127.0.0.1:{port}", ["-c", "copy", "-f", "mpegts", f"tcp://127.0.0.1:{port}?listen=1"]
+    else:
+        url = f"http://127.0.0.1:{port}/video.mjpg"
+        out = ["-an", "-c:v", "mjpeg", "-q:v", "5", "-f", "mpjpeg", "-listen", "1", url]
+    server = subprocess.Popen([FFMPEG, "-hide_banner", "-loglevel", "quiet", "-re", "-i", str(halves[0]), *out],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 20
+        while True:  # the server listens once ffmpeg has started (a one-client server: no probing)
+            try:
+                src = open_source(url, queue_size=PART)
+                break
+            except InputError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        got = []
+        for frame in src:
+            got.append(frame)
+            if len(got) == 45:
+                break
+        src.close()
+    finally:
+        server.kill()
+        server.wait()
+    assert len(got) == 45 and all(f.image.shape == (480, 640, 3) for f in got)
+    assert len({f.image[::40, ::40].tobytes() for f in got}) == 45
+
+
 # ------------------------------------------------------------------------------------ options
 
 
