@@ -311,3 +311,15 @@ def test_decoder_message_keys():
     assert native_log.decoder_message("[tcp @ 0x55a0] Connection to tcp://127.0.0.1:8562?timeout=0 failed") == \
         "tcp: Connection to tcp://127.0.0.1:8562?timeout=0 failed"
     assert native_log.decoder_message("[ WARN:0@1.2] global matrix.cpp:10 something else") is None
+
+
+@pytest.mark.parametrize("how", ["--camera", "capture.device"])
+def test_run_takes_a_url_and_a_silent_one_is_one_clear_line(tmp_path, how):
+    port = _free_port(socket.SOCK_DGRAM)
+    url = f"udp://127.0.0.1:{port}"
+    where = ["--camera", url] if how == "--camera" else ["--set", f"capture.device={url}"]
+    proc = subprocess.run([sys.executable, "-m", "photomap", "run", *where, "--out", str(tmp_path / "run"),
+                           "--set", "capture.open_timeout=1"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 3, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"cannot open camera {url}: nothing decodable arrived within 1 s" in lines[0], lines

@@ -53,7 +53,8 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
     join = reader = None
     if spec:
         join, reader, cfg = open_telemetry(spec, cfg, live=True)
-    camera = args.camera or cfg.capture.device or "/dev/video0"
+    configured = cfg.capture.device
+    camera = args.camera or configured or "/dev/video0"
     try:
         source = open_capture(camera, cfg.capture)
         print(f"mapping from {camera} into {out} (Ctrl-C to stop)")
