@@ -152,7 +152,8 @@ def measure(video: Path, out: Path, frames: int, busy: bool) -> dict:
             to_map.append((t_map - glass[index]) * 1000.0)
             registered += status in ("registered", "reference")
     first = min((p[0] for p in painted if p[0] < len(glass)), default=len(glass))
-    return {"busy": busy, "sent": len(glass), "read": source.stats.read, "mapped": len(painted),
+    rate = (len(glass) - 1) / (glass[-1] - glass[0]) if len(glass) > 1 and glass[-1] > glass[0] else 0.0
+    return {"busy": busy, "sent": len(glass), "rate": rate, "read": source.stats.read, "mapped": len(painted),
             "registered": registered, "dropped": source.stats.dropped,
             "before_first": first, "never_arrived": len(glass) - source.stats.read,
             "arrival": arrival, "to_map": to_map, "ms_per_frame": summary.get("ms_per_frame")}
@@ -181,12 +182,13 @@ def render(runs: list[dict], frames: int, elapsed: float, load: tuple[float, flo
              "the capture thread has it decoded; *map* when the pipeline's sinks get the frame, after "
              f"painting. {frames} frames per run; the first frames go by before the receiver's first key "
              "frame (a key frame a second).", "",
-             "| condition | sent | read | dropped (queue) | before the first key frame | mapped | registered "
+             "| condition | sent (fps) | read | dropped (queue) | before the first key frame | mapped | registered "
              "| arrival median / p95 ms | glass to map median / p95 / max ms |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in runs:
         a, m = _stats(r["arrival"]), _stats(r["to_map"])
-        lines.append(f"| {'busy neighbour' if r['busy'] else 'quiet'} | {r['sent']} | {r['read']} | {r['dropped']} "
+        lines.append(f"| {'busy neighbour' if r['busy'] else 'quiet'} | {r['sent']} ({r['rate']:.1f}) "
+                     f"| {r['read']} | {r['dropped']} "
                      f"| {r['before_first']} | {r['mapped']} | {r['registered']} | {a[0]:.0f} / {a[1]:.0f} "
                      f"| {m[0]:.0f} / {m[1]:.0f} / {m[2]:.0f} |")
     lines += ["", "| target | wanted | measured | met |", "|---|---|---|:---:|"]
