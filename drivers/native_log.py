@@ -13,6 +13,7 @@ The tap is one per process (fd 2 is): :func:`acquire` and :func:`release` count 
 
 from __future__ import annotations
 
+import atexit
 import os
 import re
 import select
@@ -148,8 +149,18 @@ def acquire() -> StderrTap:
     with _tap_lock:
         if _tap is None:
             _tap = StderrTap()
+            atexit.register(_restore_at_exit)
         _holders += 1
         return _tap
+
+
+def _restore_at_exit() -> None:
+    """At exit with a hold left (a capture thread stuck in the driver): fd 2 back, the pipe drained."""
+    global _tap, _holders
+    with _tap_lock:
+        tap, _tap, _holders = _tap, None, 0
+    if tap is not None:
+        tap.close()
 
 
 def release() -> Counter:

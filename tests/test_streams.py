@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from photomap.drivers import native_log
@@ -323,3 +324,50 @@ def test_run_takes_a_url_and_a_silent_one_is_one_clear_line(tmp_path, how):
     assert proc.returncode == 3, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and f"cannot open camera {url}: nothing decodable arrived within 1 s" in lines[0], lines
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class _Decoder:
+    """A cv2.VideoCapture stand-in: ``script`` items are frames (True) or reads that fail at once
+    (False); each read advances ``clock`` by ``step`` s. After the script every read fails."""
+
+    def __init__(self, script, clock, step=0.1):
+        self.script, self.clock, self.step = list(script), clock, step
+        self.released = False
+
+    def isOpened(self):
+        return True
+
+    def read(self):
+        self.clock.now += self.step
+        if self.script and self.script.pop(0):
+            return True, np.zeros((2, 2, 3), np.uint8)
+        return False, None
+
+    def release(self):
+        self.released = True
+
+
+def test_a_stream_read_fails_only_after_the_timeout_without_a_frame():
+    from photomap.drivers.stream import StreamCapture
+    clock = _Clock()
+    # a decoder waiting for its key frame fails 5 reads at once (0.5 s), then decodes
+    dec = _Decoder([False] * 5 + [True, True], clock)
+    cap = StreamCapture(dec, read_timeout=2.0, clock=clock)
+    assert cap.read()[0] and cap.read()[0]
+    assert clock.now == pytest.approx(0.7)
+    ok, image = cap.read()  # then silence: False once 2 s passed since the last frame
+    assert not ok and image is None
+    assert clock.now == pytest.approx(0.7 + 2.0)
+    released = []
+    cap = StreamCapture(_Decoder([], clock), read_timeout=1.0, clock=clock, on_release=lambda: released.append(1))
+    cap.release()
+    cap.release()
+    assert released == [1] and not cap.isOpened() and cap.read() == (False, None)

@@ -85,12 +85,13 @@ def read_stamp(image: np.ndarray) -> int:
 
 # --------------------------------------------------------------------------- the sender (a process)
 
-def send(video: Path, url: str, frames: int, fps: float, times_path: Path, start_delay: float) -> None:
+def send(video: Path, url: str, frames: int, fps: float, times_path: Path, start_delay: float,
+         size: tuple[int, int] = SIZE) -> None:
     """Play ``frames`` frames of ``video`` at ``fps`` into ffmpeg (H.264 MPEG-TS to ``url``); write the
     glass time (monotonic s) of each frame index to ``times_path`` as JSON."""
     cap = cv2.VideoCapture(str(video))
     enc = subprocess.Popen([shutil.which("ffmpeg") or "ffmpeg", "-hide_banner", "-loglevel", "error",
-                            "-f", "rawvideo", "-pix_fmt", "bgr24", "-s", f"{SIZE[0]}x{SIZE[1]}",
+                            "-f", "rawvideo", "-pix_fmt", "bgr24", "-s", f"{size[0]}x{size[1]}",
                             "-framerate", f"{fps:g}", "-i", "-", *ENCODER, "-flush_packets", "1",
                             "-muxdelay", "0", "-f", "mpegts", f"{url}?pkt_size=1316"], stdin=subprocess.PIPE)
     glass: list[float] = []
@@ -119,7 +120,7 @@ def free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def measure(video: Path, out: Path, frames: int, busy: bool) -> dict:
+def measure(video: Path, out: Path, frames: int, busy: bool, size: tuple[int, int] = SIZE) -> dict:
     """One run: the sender process, the product's stream source and pipeline; per-frame latencies."""
     port = free_udp_port()
     url = f"udp://127.0.0.1:{port}"
@@ -132,7 +133,8 @@ def measure(video: Path, out: Path, frames: int, busy: bool) -> dict:
     with busy_neighbour(busy):
         sender = subprocess.Popen([sys.executable, "-m", "tools.bench_latency", "--send",
                                    json.dumps({"video": str(video), "url": url, "frames": frames, "fps": FPS,
-                                               "times": str(times_path), "start_delay": 1.0})], cwd=REPO)
+                                               "times": str(times_path), "start_delay": 1.0, "size": list(size)})],
+                                  cwd=REPO)
         try:
             cfg = load_config()
             source = open_source(url, queue_size=cfg.capture.queue_size, open_timeout=10.0)
@@ -166,7 +168,7 @@ def _stats(values: list[float]) -> tuple[float, float, float]:
     return float(np.median(a)), float(np.percentile(a, 95)), float(a.max())
 
 
-def render(runs: list[dict], frames: int, elapsed: float, load: tuple[float, float]) -> str:
+def render(runs: list[dict], frames: int, size: tuple[int, int], elapsed: float, load: tuple[float, float]) -> str:
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     ffmpeg_version = subprocess.run([shutil.which("ffmpeg") or "ffmpeg", "-version"], capture_output=True,
                                     text=True).stdout.split("\n")[0].split(" ")[2]
@@ -175,7 +177,7 @@ def render(runs: list[dict], frames: int, elapsed: float, load: tuple[float, flo
              f"Python {platform.python_version()}, OpenCV {cv2.__version__}, ffmpeg {ffmpeg_version}; "
              f"{elapsed / 60:.1f} min; 1-minute load average {load[0]:.1f} at the start and {load[1]:.1f} at the "
              "end: more than the busy neighbour's 1 means other processes shared the cores, and the latencies "
-             "are upper bounds). A sender process plays a simulated 1920x1080 flight at 30 fps into ffmpeg "
+             f"are upper bounds). A sender process plays a simulated {size[0]}x{size[1]} flight at 30 fps into ffmpeg "
              f"(`{' '.join(ENCODER)}`, MPEG-TS over UDP on loopback); `photomap`'s stream source "
              "(`udp://127.0.0.1:PORT`, default `capture:` config) and pipeline map it. *Glass* is when the "
              "sender hands a frame to the encoder (each frame carries its index as a barcode); *arrival* when "
@@ -195,9 +197,9 @@ def render(runs: list[dict], frames: int, elapsed: float, load: tuple[float, flo
     for r in runs:
         name = "busy neighbour" if r["busy"] else "quiet"
         med = _stats(r["to_map"])[0]
-        lines.append(f"| glass to map, 1080p30, {name} | median <= {TARGET_MEDIAN_MS:.0f} ms | {med:.0f} ms "
+        lines.append(f"| glass to map, {size[1]}p30, {name} | median <= {TARGET_MEDIAN_MS:.0f} ms | {med:.0f} ms "
                      f"| {'yes' if med <= TARGET_MEDIAN_MS else 'no'} |")
-        lines.append(f"| frames dropped, 1080p30, {name} | 0 | {r['dropped']} | {'yes' if not r['dropped'] else 'no'} |")
+        lines.append(f"| frames dropped, {size[1]}p30, {name} | 0 | {r['dropped']} | {'yes' if not r['dropped'] else 'no'} |")
     return "\n".join(lines) + "\n"
 
 
@@ -205,6 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=450, help="frames per run (default 450: 15 s)")
     ap.add_argument("--no-busy", action="store_true", help="quiet run only")
+    ap.add_argument("--size", default="1920x1080", help="frame size WxH (default 1920x1080, the target's)")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks.md",
                     help="markdown file whose latency section is replaced (default docs/benchmarks.md)")
     ap.add_argument("--print", action="store_true", help="print the section only")
@@ -213,30 +216,32 @@ def main(argv: list[str] | None = None) -> int:
     if args.send:
         spec = json.loads(args.send)
         send(Path(spec["video"]), spec["url"], int(spec["frames"]), float(spec["fps"]), Path(spec["times"]),
-             float(spec["start_delay"]))
+             float(spec["start_delay"]), (int(spec["size"][0]), int(spec["size"][1])))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     if not shutil.which("ffmpeg"):
         print("error: ffmpeg not found (apt-get install ffmpeg)", file=sys.stderr)
         return 1
     logging.getLogger("photomap").setLevel(logging.WARNING)
+    w, h = (int(v) for v in args.size.lower().split("x"))
+    size = (w, h)
     start, load0 = time.perf_counter(), load_average()
     runs = []
     try:
         with tempfile.TemporaryDirectory(prefix="bench-latency-") as tmp:
             tmp_dir = Path(tmp)
-            log.info("simulating %d frames of %dx%d", args.frames, *SIZE)
-            sim = simulate_flight(tmp_dir / "sim", n_frames=args.frames, size=SIZE, fps=FPS, seed=SEED,
+            log.info("simulating %d frames of %dx%d", args.frames, *size)
+            sim = simulate_flight(tmp_dir / "sim", n_frames=args.frames, size=size, fps=FPS, seed=SEED,
                                   video_codec="mjpg")
             for busy in (False,) if args.no_busy else (False, True):
-                runs.append(measure(sim / "video.avi", tmp_dir / f"out{int(busy)}", args.frames, busy))
+                runs.append(measure(sim / "video.avi", tmp_dir / f"out{int(busy)}", args.frames, busy, size))
                 r = runs[-1]
                 log.info("%s: %d sent, %d read, %d dropped, glass to map median %.0f ms, p95 %.0f ms",
                          "busy" if busy else "quiet", r["sent"], r["read"], r["dropped"], *_stats(r["to_map"])[:2])
     except PhotomapError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    body = render(runs, args.frames, time.perf_counter() - start, (load0, load_average()))
+    body = render(runs, args.frames, size, time.perf_counter() - start, (load0, load_average()))
     print(body)
     if not args.print:
         replace_section(args.out, "latency", body)
