@@ -57,6 +57,7 @@ def open_source(
     open_timeout: float = 5.0,
     stream_timeout: float = 2.0,
     rtsp_transport: str = "udp",
+    decoder_threads: int = 1,
     capture_factory: Callable[[str | int], Any] | None = None,
 ) -> FrameSource:
     """Open the frame source that ``spec`` names.
@@ -78,7 +79,7 @@ def open_source(
     """
     if is_stream(spec):
         opener = StreamOpener(str(spec), open_timeout=open_timeout, read_timeout=stream_timeout,
-                              rtsp_transport=rtsp_transport)
+                              rtsp_transport=rtsp_transport, decoder_threads=decoder_threads)
         return CameraSource(
             str(spec),
             queue_size=queue_size,

@@ -158,6 +158,9 @@ class StreamOpener:
         Seconds an opening, and reading without a frame, may take.
     rtsp_transport : str
         ``"udp"`` or ``"tcp"`` (interleaved) for rtsp:// without a ``?tcp`` marker.
+    decoder_threads : int
+        FFmpeg decoder threads (``CAP_PROP_N_THREADS``); 0 lets FFmpeg take one per core, and each
+        thread beyond the first holds back a frame (33 ms at 30 fps).
     quiet_decoder : bool
         Count the native decoder messages instead of letting them reach stderr.
     video_capture : callable
@@ -170,11 +173,12 @@ class StreamOpener:
     """
 
     def __init__(self, spec: str, *, open_timeout: float = 5.0, read_timeout: float = 2.0,
-                 rtsp_transport: str = "udp", quiet_decoder: bool = True,
+                 rtsp_transport: str = "udp", decoder_threads: int = 1, quiet_decoder: bool = True,
                  video_capture: Callable[..., Any] = cv2.VideoCapture) -> None:
         self.spec = str(spec).strip()
         self._open_timeout = open_timeout
         self._read_timeout = read_timeout
+        self._threads = decoder_threads
         self._video_capture = video_capture
         self._quiet = quiet_decoder
         self._counts: Counter = Counter()
@@ -199,6 +203,8 @@ class StreamOpener:
         """Open the stream (``device`` is ignored: CameraSource passes its name back)."""
         params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(self._open_timeout * 1000),
                   cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(self._read_timeout * 1000)]
+        if self._threads > 0:
+            params += [cv2.CAP_PROP_N_THREADS, int(self._threads)]
         if self._quiet:
             native_log.acquire()
         try:

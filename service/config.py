@@ -207,6 +207,7 @@ class CaptureConfig(_Section):
     open_timeout: float = _num(5.0, 0.0, 3600.0, lo_open=True)
     stream_timeout: float = _num(2.0, 0.0, 3600.0, lo_open=True)
     rtsp_transport: str = _choice("udp", "udp", "tcp")
+    decoder_threads: int = _num(1, 0, 64)
 
     def _check(self) -> None:
         if len(self.fourcc.strip()) > 4 or (self.fourcc and not self.fourcc.strip()):

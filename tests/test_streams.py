@@ -371,3 +371,30 @@ def test_a_stream_read_fails_only_after_the_timeout_without_a_frame():
     cap.release()
     cap.release()
     assert released == [1] and not cap.isOpened() and cap.read() == (False, None)
+
+
+def test_each_opening_is_bounded_low_latency_and_leaves_the_environment_alone(monkeypatch):
+    import cv2
+    monkeypatch.delenv("OPENCV_FFMPEG_CAPTURE_OPTIONS", raising=False)
+    seen = []
+
+    class Closed:
+        def isOpened(self):
+            return False
+
+        def release(self):
+            pass
+
+    def video_capture(url, api, params):
+        seen.append((url, api, dict(zip(params[::2], params[1::2])), os.environ.get("OPENCV_FFMPEG_CAPTURE_OPTIONS")))
+        return Closed()
+
+    opener = StreamOpener("rtsp://cam/live?tcp", open_timeout=3.0, read_timeout=1.5, quiet_decoder=False,
+                          video_capture=video_capture)
+    assert not opener().isOpened()
+    url, api, params, options = seen[0]
+    assert (url, api) == ("rtsp://cam/live", cv2.CAP_FFMPEG)
+    assert params == {cv2.CAP_PROP_OPEN_TIMEOUT_MSEC: 3000, cv2.CAP_PROP_READ_TIMEOUT_MSEC: 1500,
+                      cv2.CAP_PROP_N_THREADS: 1}
+    assert "rtsp_transport;tcp" in options.split("|") and "fflags;nobuffer" in options.split("|")
+    assert "OPENCV_FFMPEG_CAPTURE_OPTIONS" not in os.environ  # a video file opened later is not affected

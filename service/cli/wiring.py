@@ -60,7 +60,8 @@ def open_capture(spec: str, c: CaptureConfig) -> FrameSource:
                        queue_size=c.queue_size, read_failures=c.read_failures,
                        reconnect_initial=c.reconnect_initial, reconnect_max=c.reconnect_max,
                        image_rate=c.image_rate, open_timeout=c.open_timeout,
-                       stream_timeout=c.stream_timeout, rtsp_transport=c.rtsp_transport)
+                       stream_timeout=c.stream_timeout, rtsp_transport=c.rtsp_transport,
+                       decoder_threads=c.decoder_threads)
 
 
 # ---------------------------------------------------------------------------------- telemetry
