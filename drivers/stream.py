@@ -94,6 +94,11 @@ def ffmpeg_options(url: str, *, rtsp_transport: str = "udp") -> tuple[str, dict[
         options["rtsp_transport"] = transport
         if transport == "udp":
             options["reorder_queue_size"] = "0"  # hand packets on as they come (no jitter buffer)
+    elif scheme == "udp":
+        # a large socket buffer (the kernel caps it at net.core.rmem_max), and a full FIFO that
+        # loses packets instead of ending the stream: a busy receiver drops a frame, not the stream
+        options["buffer_size"] = "4194304"
+        options["overrun_nonfatal"] = "1"
     elif not scheme and url.lower().endswith(".sdp"):
         options["protocol_whitelist"] = "file,udp,rtp,crypto,data"
         options["reorder_queue_size"] = "0"

@@ -60,8 +60,9 @@ FPS = 30.0
 SEED = 3
 TARGET_MEDIAN_MS = 150.0
 BITS, CELL = 16, 32  # the barcode: 16 cells of 32x32 px, most significant bit first
+# an HD video link's encoder: 8 Mbit/s, no B-frames, a key frame a second, parameter sets repeated
 ENCODER = ["-c:v", "libx264", "-preset", "ultrafast", "-tune", "zerolatency", "-bf", "0", "-g", "30",
-           "-x264-params", "repeat-headers=1"]
+           "-b:v", "8M", "-maxrate", "8M", "-bufsize", "2M", "-x264-params", "repeat-headers=1"]
 
 
 # --------------------------------------------------------------------------- the barcode
