@@ -25,8 +25,7 @@ class Frame:
         ``index / rate`` when the stills carry no EXIF time. Live cameras: the host's
         monotonic clock (``time.monotonic()``) when the frame was received.
     image : numpy.ndarray
-        uint8, ``HxW`` (gray) or ``HxWx3`` (BGR, OpenCV order); uint16 ``HxW`` from a camera
-        asked for the ``Y16`` pixel format (the raw 16-bit values).
+        uint8, ``HxW`` (gray) or ``HxWx3`` (BGR, OpenCV order).
     source : str
         Where the frame came from: the still's file name, the video's file name, the device.
     """

@@ -203,11 +203,11 @@ class CaptureConfig(_Section):
     read_failures: int = _num(5, 1, 100000)
     reconnect_initial: float = _num(0.5, 0.0, 3600.0, lo_open=True)
     reconnect_max: float = _num(8.0, 0.0, 3600.0, lo_open=True)
-    image_rate: float = _num(1.0, 0.0, 1000.0, lo_open=True)
     open_timeout: float = _num(5.0, 0.0, 3600.0, lo_open=True)
     stream_timeout: float = _num(2.0, 0.0, 3600.0, lo_open=True)
     rtsp_transport: str = _choice("udp", "udp", "tcp")
     decoder_threads: int = _num(1, 0, 64)
+    image_rate: float = _num(1.0, 0.0, 1000.0, lo_open=True)
 
     def _check(self) -> None:
         if len(self.fourcc.strip()) > 4 or (self.fourcc and not self.fourcc.strip()):
