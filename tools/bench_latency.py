@@ -137,7 +137,6 @@ def send(ts_path: Path, port: int, fps: float, times_path: Path, start_delay: fl
     pieces = ts_frames(ts_path)
     glass: list[float] = []
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.connect(("127.0.0.1", port))
         t0 = time.monotonic() + start_delay
         for i, piece in enumerate(pieces):
             delay = t0 + i / fps - time.monotonic()
@@ -145,7 +144,10 @@ def send(ts_path: Path, port: int, fps: float, times_path: Path, start_delay: fl
                 time.sleep(delay)
             glass.append(time.monotonic())
             for off in range(0, len(piece), 7 * TS_PACKET):
-                sock.send(piece[off:off + 7 * TS_PACKET])
+                try:  # a camera sends on whether anyone listens (the receiver may be reopening)
+                    sock.sendto(piece[off:off + 7 * TS_PACKET], ("127.0.0.1", port))
+                except OSError:
+                    pass
     times_path.write_text(json.dumps(glass))
 
 
