@@ -51,13 +51,13 @@ def open_source(
     fourcc: str | None = None,
     queue_size: int = 4,
     read_failures: int = 5,
-    reconnect_initial: float = 0.5,
-    reconnect_max: float = 8.0,
-    image_rate: float = 1.0,
     open_timeout: float = 5.0,
     stream_timeout: float = 2.0,
     rtsp_transport: str = "udp",
     decoder_threads: int = 1,
+    reconnect_initial: float = 0.5,
+    reconnect_max: float = 8.0,
+    image_rate: float = 1.0,
     capture_factory: Callable[[str | int], Any] | None = None,
 ) -> FrameSource:
     """Open the frame source that ``spec`` names.

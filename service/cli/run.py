@@ -54,11 +54,11 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
     if spec:
         join, reader, cfg = open_telemetry(spec, cfg, live=True)
     configured = cfg.capture.device
-    camera = args.camera or configured or "/dev/video0"
+    args.camera = args.camera or configured or "/dev/video0"
     try:
-        source = open_capture(camera, cfg.capture)
-        print(f"mapping from {camera} into {out} (Ctrl-C to stop)")
-        summary = map_source(source, cfg, out, input_name=str(camera), telemetry=join, reader=reader,
+        source = open_capture(args.camera, cfg.capture)
+        print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")
+        summary = map_source(source, cfg, out, input_name=str(args.camera), telemetry=join, reader=reader,
                              viewer=args.viewer, status_interval=getattr(args, "status_interval", 0.0))
     finally:
         if reader is not None:
