@@ -1,4 +1,5 @@
-"""Live V4L2 camera: a capture thread, a drop-oldest queue and reconnection with back-off."""
+"""Live camera (V4L2, or a network stream through :mod:`photomap.drivers.stream`): a capture thread, a
+drop-oldest queue and reconnection with back-off."""
 
 from __future__ import annotations
 
@@ -15,6 +16,24 @@ from photomap.errors import InputError
 from photomap.drivers.frames import CaptureStats, Frame, SourceBase
 
 log = logging.getLogger(__name__)
+
+# Pixel formats that OpenCV hands over as they are (CAP_PROP_CONVERT_RGB off): 16-bit and 8-bit gray.
+RAW_FORMATS = {"Y16 ": "uint16 gray", "GREY": "uint8 gray"}
+
+
+def normalize_fourcc(fourcc: str) -> str:
+    """A V4L2 pixel format as its 4-character code: ``"Y16"`` -> ``"Y16 "``, ``"mjpg"`` -> ``"MJPG"``."""
+    code = fourcc.strip().upper()
+    if not 1 <= len(code) <= 4:
+        raise InputError(f"camera fourcc must have 1 to 4 characters, got {fourcc!r}")
+    return code.ljust(4)
+
+
+def fourcc_text(value: float) -> str:
+    """The 4-character code of a ``CAP_PROP_FOURCC`` value ("" when there is none)."""
+    code = int(value) if value and value > 0 else 0
+    text = "".join(chr((code >> (8 * i)) & 0xFF) for i in range(4))
+    return text.strip() if code and text.isprintable() else ""
 
 
 def open_v4l2(device: str | int) -> cv2.VideoCapture:
@@ -58,7 +77,10 @@ class CameraSource(SourceBase):
     fps : float, optional
         Requested frame rate (None: the camera's default).
     fourcc : str, optional
-        Requested pixel format, e.g. ``"MJPG"`` (None: the camera's default).
+        Requested pixel format: ``"MJPG"`` or ``"YUYV"`` (decoded to uint8 BGR), ``"GREY"`` (uint8
+        ``HxW``), ``"Y16"`` (uint16 ``HxW``, the raw values: thermal cores), or another code the
+        driver offers (None: the camera's default). What was asked for and what the camera delivers
+        (size, format, rate, frame type) is logged once, at the first frame.
     queue_size : int
         Frames held for the consumer before the oldest is dropped.
     read_failures : int
@@ -72,6 +94,13 @@ class CameraSource(SourceBase):
         Time stamp source for ``Frame.t`` (seconds).
     join_timeout : float
         Seconds ``close()`` waits for the capture thread (a read blocked in the driver).
+    loss : str, optional
+        How a loss is told in the log (default: after ``read_failures`` failed reads).
+    notes : callable, optional
+        ``notes()`` returns a clause appended to the lines logged at the first frame, at each loss
+        and recovery and at the end (a stream's decoder messages since the last line).
+    unavailable : str
+        Why the device may not open, for the error raised at start.
 
     Raises
     ------
@@ -96,19 +125,25 @@ class CameraSource(SourceBase):
         capture_factory: Callable[[str | int], Any] | None = None,
         clock: Callable[[], float] = time.monotonic,
         join_timeout: float = 2.0,
+        loss: str | None = None,
+        notes: Callable[[], str] | None = None,
+        unavailable: str = "no such device, or it is busy",
     ) -> None:
         if queue_size < 1:
             raise InputError(f"camera queue size must be at least 1, got {queue_size}")
-        if fourcc is not None and len(fourcc) != 4:
-            raise InputError(f"camera fourcc must have 4 characters, got {fourcc!r}")
+        fourcc = normalize_fourcc(fourcc) if fourcc else None
         self.device = device
         self.stats = CaptureStats()
+        self._asked = (width, height, fourcc, fps)
         self._props = [
             (cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc) if fourcc else None),
             (cv2.CAP_PROP_FRAME_WIDTH, width),
             (cv2.CAP_PROP_FRAME_HEIGHT, height),
             (cv2.CAP_PROP_FPS, fps),
+            (cv2.CAP_PROP_CONVERT_RGB, 0 if fourcc in RAW_FORMATS else None),
         ]
+        self._loss = loss or f"after {max(1, read_failures)} failed reads"
+        self._notes = notes or (lambda: "")
         self._read_failures = max(1, read_failures)
         self._reconnect = (reconnect_initial, reconnect_max)
         self._factory = capture_factory or open_v4l2
@@ -122,7 +157,7 @@ class CameraSource(SourceBase):
         self._error: Exception | None = None
         self._cap: Any | None = self._open()
         if self._cap is None:
-            raise InputError(f"cannot open camera {device}: no such device, or it is busy")
+            raise InputError(f"cannot open camera {device}: {unavailable}{self._notes()}")
         self._thread = threading.Thread(target=self._run, name=f"capture {device}", daemon=True)
         self._thread.start()
 
@@ -155,10 +190,12 @@ class CameraSource(SourceBase):
                 if self._stop.is_set():
                     break
                 if ok and image is not None:
+                    if index == 0:
+                        self._log_delivered(image)
                     if outage is not None:
                         outage = None
                         self.stats.reconnects += 1
-                        log.warning("camera %s is back", self._name)
+                        log.warning("camera %s is back%s", self._name, self._notes())
                     failures = 0
                     self._push(Frame(index=index, t=t, image=image, source=self._name))
                     index += 1
@@ -167,8 +204,8 @@ class CameraSource(SourceBase):
                 if failures >= self._read_failures:
                     failures = 0
                     if outage is None:
-                        log.warning("camera %s lost after %d failed reads: reconnecting",
-                                    self._name, self._read_failures)
+                        log.warning("camera %s lost %s: reconnecting%s", self._name, self._loss,
+                                    self._notes())
                         outage = backoff_delays(*self._reconnect)
                     self._reopen(outage)
         except Exception as exc:  # surfaced to the consumer by __iter__
@@ -178,6 +215,34 @@ class CameraSource(SourceBase):
                 self._stop.set()
                 self._cond.notify_all()
             self._release()  # the reading thread releases its capture, never another thread
+            notes = self._notes()
+            if notes:
+                log.info("camera %s closed%s", self._name, notes)
+
+    def _log_delivered(self, image: Any) -> None:
+        """Log, once, what was asked for and what the camera delivers."""
+        get = getattr(self._cap, "get", None)
+        width, height, fourcc, fps = self._asked
+
+        def prop(p: int) -> float:
+            try:
+                return float(get(p)) if get is not None else 0.0
+            except Exception:  # a driver that cannot tell
+                return 0.0
+
+        got_fourcc = fourcc_text(prop(cv2.CAP_PROP_FOURCC))
+        got_fps = prop(cv2.CAP_PROP_FPS)
+        kind = f"{image.dtype} {'BGR' if image.ndim == 3 else 'gray'} {image.shape[1]}x{image.shape[0]}"
+        delivered = " ".join(x for x in (got_fourcc, f"at {got_fps:g} fps" if got_fps > 0 else "") if x)
+        asked = " ".join(x for x in (f"{width or '-'}x{height or '-'}" if width or height else "",
+                                     (fourcc or "").strip(), f"at {fps:g} fps" if fps else "") if x)
+        log.info("camera %s: %sdelivers %s%s%s", self._name, f"asked for {asked}, " if asked else "",
+                 kind, f" ({delivered})" if delivered else "", self._notes())
+        if fourcc and got_fourcc and got_fourcc != fourcc.strip():
+            log.warning("camera %s delivers %s, not the %s asked for", self._name, got_fourcc, fourcc.strip())
+        if (width and image.shape[1] != width) or (height and image.shape[0] != height):
+            log.warning("camera %s delivers %dx%d, not the %sx%s asked for", self._name, image.shape[1],
+                        image.shape[0], width or "-", height or "-")
 
     def _push(self, frame: Frame) -> None:
         with self._cond:

@@ -204,6 +204,7 @@ class CaptureConfig(_Section):
     """Frame sources (:mod:`photomap.drivers`)."""
 
     _name = "capture"
+    device: str = ""
     width: int = _num(0, 0, 16384)
     height: int = _num(0, 0, 16384)
     fps: float = _num(0.0, 0.0, 1000.0)
@@ -212,13 +213,18 @@ class CaptureConfig(_Section):
     read_failures: int = _num(5, 1, 100000)
     reconnect_initial: float = _num(0.5, 0.0, 3600.0, lo_open=True)
     reconnect_max: float = _num(8.0, 0.0, 3600.0, lo_open=True)
+    open_timeout: float = _num(5.0, 0.0, 3600.0, lo_open=True)
+    stream_timeout: float = _num(2.0, 0.0, 3600.0, lo_open=True)
+    rtsp_transport: str = _choice("udp", "udp", "tcp")
+    decoder_threads: int = _num(1, 0, 64)
     image_rate: float = _num(1.0, 0.0, 1000.0, lo_open=True)
     mask: str = ""
     band: str = ""
 
     def _check(self) -> None:
-        if len(self.fourcc) not in (0, 4):
-            self._fail("fourcc", f"must be a 4-character code such as MJPG, or empty; got {self.fourcc!r}")
+        if len(self.fourcc.strip()) > 4 or (self.fourcc and not self.fourcc.strip()):
+            self._fail("fourcc", f"must be a code of up to 4 characters such as MJPG, YUYV, GREY or Y16, "
+                                 f"or empty; got {self.fourcc!r}")
         if self.reconnect_max < self.reconnect_initial:
             self._fail("reconnect_max", f"must be at least capture.reconnect_initial ({self.reconnect_initial})")
 

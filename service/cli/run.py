@@ -6,6 +6,9 @@ checkpointed every output.checkpoint_interval seconds, so a power loss loses at 
 
 examples:
   photomap run --camera /dev/video0
+  photomap run --camera udp://@:5600                 # MPEG-TS over UDP
+  photomap run --camera rtsp://192.168.144.25:8554/main.264?tcp
+  photomap run --camera qgc-5600.sdp                 # plain RTP (QGroundControl's UDP 5600), docs/streams.md
   photomap run --camera 0 --out /data/flights/today --set capture.width=640 --set capture.height=480
 """
 
@@ -24,8 +27,9 @@ from photomap.errors import OutputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--camera", default="/dev/video0",
-                        help="V4L2 device path or index (default /dev/video0)")
+    parser.add_argument("--camera", default=None,
+                        help="V4L2 device path or index, or a stream URL / .sdp file (docs/streams.md); "
+                             "default capture.device, else /dev/video0")
     parser.add_argument("--out", metavar="DIR",
                         help="output folder (default: a time-stamped folder under output.data_dir)")
     add_telemetry_arguments(parser)
@@ -56,6 +60,8 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
     join = reader = None
     if spec:
         join, reader, cfg = open_telemetry(spec, cfg, live=True)
+    configured = cfg.capture.device
+    args.camera = args.camera or configured or "/dev/video0"
     try:
         source = open_capture(args.camera, cfg.capture)
         print(f"mapping from {args.camera} into {out} (Ctrl-C to stop)")

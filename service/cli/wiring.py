@@ -95,6 +95,8 @@ def add_map_server_argument(parser: argparse.ArgumentParser) -> None:
 def open_capture(spec: str, c: CaptureConfig) -> FrameSource:
     """The frame source ``spec`` names (camera, folder/glob of stills, video), set up from ``capture``."""
     return open_source(spec, width=c.width, height=c.height, fps=c.fps, fourcc=c.fourcc,
+                       open_timeout=c.open_timeout, stream_timeout=c.stream_timeout,
+                       rtsp_transport=c.rtsp_transport, decoder_threads=c.decoder_threads,
                        queue_size=c.queue_size, read_failures=c.read_failures,
                        reconnect_initial=c.reconnect_initial, reconnect_max=c.reconnect_max,
                        image_rate=c.image_rate, band=c.band)
