@@ -87,8 +87,8 @@ def _run(args: argparse.Namespace) -> int:
 
     verify_ms = _time(verify, 10)
     k = cfg.mapping.loop_appearance_candidates
-    lines = [f"## Loops by appearance (`python -m tools.bench_loops --sizes {args.sizes}`)", "",
-             f"Per new keyframe: its signature ({signature_ms:.2f} ms, 320x240), the index's add and search "
+    lines = ["## Loops by appearance", "",
+             f"Written by `python -m tools.bench_loops --sizes {args.sizes}`. Per new keyframe: its signature ({signature_ms:.2f} ms, 320x240), the index's add and search "
              f"(top {k}, the newest 8 excluded), then {k} registrations with overlap check of "
              f"{verify_ms:.1f} ms each at 320x240 (no prior; the same at any flight length). BLAS on one "
              f"thread, as the pipeline runs. "

@@ -186,9 +186,9 @@ def one_pass(flight: Path, out: Path, condition: str, hz: float, live: bool = Fa
 
 
 def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, float]) -> str:
-    lines = [f"## Map server (`python -m tools.bench_mapserver --frames {args.frames} --passes {args.passes} "
-             f"--hz {args.hz:g}`)", "",
-             f"{datetime.date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} cores, Python "
+    lines = ["## Map server", "",
+             f"Written by `python -m tools.bench_mapserver --frames {args.frames} --passes {args.passes} "
+             f"--hz {args.hz:g}` on {datetime.date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} cores, Python "
              f"{platform.python_version()}; {args.frames} frames of {SIZE[0]}x{SIZE[1]} (simulated, with "
              f"telemetry) mapped by `photomap replay` as fast as possible, {args.passes} passes per condition, "
              f"interleaved; 1-minute load {loads[0]:.1f} before, {loads[1]:.1f} after; {took / 60:.1f} min.", "",
