@@ -25,9 +25,10 @@ class Frame:
         ``index / rate`` when the stills carry no EXIF time. Live cameras: the host's
         monotonic clock (``time.monotonic()``) when the frame was received.
     image : numpy.ndarray
-        uint8, ``HxW`` (gray) or ``HxWx3`` (BGR, OpenCV order). A source of deeper images
-        (16-bit, float) brings them to uint8 with one
-        :class:`~photomap.core.stretch.RunningStretch` per flight.
+        uint8, ``HxW`` (gray) or ``HxWx3`` (BGR, OpenCV order); deeper (16-bit, float) where a
+        source delivers raw values (a Y16 camera). Stills folders stretch theirs to uint8 with
+        one :class:`~photomap.core.stretch.RunningStretch` per flight; the mapping pipeline
+        does the same with any deep frame that reaches it.
     source : str
         Where the frame came from: the still's file name, the video's file name, the device.
     """

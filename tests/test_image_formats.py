@@ -248,3 +248,38 @@ def test_a_real_micasense_tiff_is_read_quietly(capfd):
     assert "TIFF" not in capfd.readouterr().err
     (kind, count), = reader.warnings.items()
     assert kind[0] == "libtiff" and "Unknown field with tag" in kind[1] and count >= 1
+
+
+# ------------------------------------------------------------------ deep frames from a source
+class _DeepLive:
+    """A live source that delivers raw 16-bit frames, as a Y16 V4L2 thermal core does."""
+
+    live = True
+
+    def __init__(self, frames):
+        from photomap.drivers.frames import CaptureStats
+        self.frames, self.stats = frames, CaptureStats()
+
+    def __iter__(self):
+        from photomap.drivers.frames import Frame
+        for i, image in enumerate(self.frames):
+            self.stats.read += 1
+            yield Frame(i, i / 15.0, image, "y16")
+
+    def close(self):
+        pass
+
+
+def test_raw_16_bit_frames_of_a_live_source_map_through_one_stretch(frames_png, tmp_path):
+    from photomap.mapping.pipeline import MappingPipeline
+    paths = sorted((frames_png / "frames").glob("*.png"))[:40]
+    deep = [(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE).astype(np.uint32) * 180 + 2500).astype(np.uint16)
+            for p in paths]
+    pipe = MappingPipeline(_DeepLive(deep), load_config(), tmp_path / "run")
+    summary = pipe.run()
+    assert summary["registered"] == 40 and summary["segments"] == 1
+    assert pipe._deep.frames == 40 and pipe._deep.low >= 2500 and pipe._deep.high <= 255 * 180 + 2500
+    mosaic = cv2.imread(str(tmp_path / "run" / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+    assert mosaic.dtype == np.uint8 and mosaic[..., 3].any()
+    ev = evaluate_run(tmp_path / "run", frames_png / "groundtruth.csv")["headline"]
+    assert ev["frames_posed"] == 40 and ev["ate"]["pct"] < 1.0, ev["ate"]

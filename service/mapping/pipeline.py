@@ -43,6 +43,7 @@ from photomap.core.ifmi import Registrar
 from photomap.core.matching import PairMatcher
 from photomap.core.maprelative import map_correction
 from photomap.core.mosaic import TiledMosaic
+from photomap.core.stretch import RunningStretch
 from photomap.core.tracking import LOW_CONFIDENCE, REFERENCE, TrackStep, Tracker
 from photomap.drivers.frames import Frame, FrameSource
 from photomap.drivers.images import ImageFolderSource
@@ -265,6 +266,7 @@ class MappingPipeline:
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
         self._prep = FramePrep.from_config(cfg)  # lens undistortion and frame mask (None: neither)
+        self._deep = RunningStretch()  # deep frames a source delivers raw (a Y16 camera) to uint8, one range a flight
 
     @property
     def on_georeference(self) -> GeoreferenceSink | None:
@@ -466,6 +468,8 @@ class MappingPipeline:
         self._gaps(frame.index)  # frames before this one that never came: dropped or undecodable
         self._next_index = max(self._next_index, frame.index + 1)
         self.stats.frames_in += 1
+        if frame.image.dtype != np.uint8:
+            frame = dataclasses.replace(frame, image=self._deep(frame.image))
         image = frame.image
         if self.tracker is None:
             self._setup(image)
