@@ -55,7 +55,7 @@ from photomap.io.keyframestore import KeyframeStore
 from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
 from photomap.io.tilestore import DiskTileStore, WriteBehindTileStore
-from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
+from photomap.io.trajectory_files import tum_skipped_message, write_json, write_trajectory_csv, write_tum
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import FrameEvent, FrameSink
 from photomap.mapping.geo_outputs import refresh_track_files, write_geo_outputs
@@ -260,6 +260,7 @@ class MappingPipeline:
         # live: the background threads' Python code waits while the worker maps a frame (a replay
         # has no frame deadline: throughput first)
         self._first = WorkerFirst(enabled=source.live)
+        self._tum_skipped: list[int] = []  # frames the final trajectory.tum left out (said once)
         self._next_index = 0
         self._started = 0.0
         self._last_checkpoint = 0.0
@@ -734,13 +735,17 @@ class MappingPipeline:
 
     def _write_trajectory(self, rows: Iterable[RowView] | None = None) -> None:
         """``trajectory.csv`` and ``trajectory.tum`` of ``rows`` (default: the rows now; iterated
-        several times)."""
+        several times). Frames the TUM file leaves out are said once, by the final rows' write."""
         if self.frame_size is None:
             return
-        rows = self._rows if rows is None else rows
+        final, rows = rows is None, (self._rows if rows is None else rows)
         write_trajectory_csv(self.out_dir / "trajectory.csv", rows, self.frame_size)
         if any(r.glued for r in rows):
-            write_tum(self.out_dir / "trajectory.tum", rows, self.frame_size)
+            skipped: list[int] = []
+            write_tum(self.out_dir / "trajectory.tum", rows, self.frame_size, skipped=skipped)
+            if final and skipped and skipped != self._tum_skipped:
+                self._tum_skipped = skipped
+                log.warning(tum_skipped_message(skipped))
 
     def _write_later(self, summary: dict) -> None:
         """A checkpoint's files, written by the writer thread: the trajectory (from a copy of the
