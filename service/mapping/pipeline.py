@@ -66,6 +66,7 @@ from photomap.mapping.painter import Painter
 from photomap.mapping.rerender import Rerenderer
 from photomap.mapping.rows import RowView, TrajectoryRows
 from photomap.mapping.telemetry_join import SegmentFit, TelemetryJoin
+from photomap.mapping.telemetry_place import TelemetryPlacer
 from photomap.mapping.threads import WorkerFirst, lower_priority, switch_interval
 from photomap.mapping.timing import StageTimes
 
@@ -261,6 +262,8 @@ class MappingPipeline:
         # has no frame deadline: throughput first)
         self._first = WorkerFirst(enabled=source.live)
         self._tum_skipped: list[int] = []  # frames the final trajectory.tum left out (said once)
+        self._placer: TelemetryPlacer | None = None  # frames vision left unplaced, with telemetry
+        self._placed: dict | None = None  # what the placer did (run.json telemetry.placed)
         self._next_index = 0
         self._started = 0.0
         self._last_checkpoint = 0.0
@@ -583,6 +586,9 @@ class MappingPipeline:
             if step.pose is not None:
                 self.telemetry.keep(frame.index, sample)
         self._rows.append(frame.index, frame.t, step.pose, step.confidence, step.status, step.segment, extra)
+        if self.telemetry is not None and step.status == LOW_CONFIDENCE:  # placed at the end, if trusted
+            self._placer = self._placer or TelemetryPlacer(self.telemetry, self.frame_size)
+            self._placer.keep(frame.index, frame.t, image, mask, sample)
         corrected_path = None
         t3 = time.perf_counter()
         if self.loops is not None:
@@ -968,6 +974,12 @@ class MappingPipeline:
                 for segment in list(self.mosaics):  # every segment got its last frame
                     self._painter.end_segment(self.mosaics.get(segment), segment)
                 self._painter.finish(self.mosaics)  # the re-renders the corrections need, in strips
+                if self._placer is not None and self.mosaics:  # what vision left unplaced, by trusted telemetry
+                    self._placed = self._placer.place(
+                        self._rows, self._largest_segments(), lambda seg: self._gps_fit(self._rows, seg),
+                        lambda seg, into, t: self._join(Join(seg, into, t, -1, -1, 0.0)),
+                        lambda seg, k, img, pose, mask: self._painter.paint(self._mosaic(seg), seg, k, img, pose, mask))
+                    self._painter.finish(self.mosaics)  # segments joined by the GPS re-rendered
             except PhotomapError as exc:  # the map stays as painted live: still written
                 log.error("%s; the map keeps the poses it was painted with", exc)
             finally:
@@ -1005,6 +1017,7 @@ class MappingPipeline:
         (self.out_dir / "preview.png").unlink(missing_ok=True)
         if self.telemetry is not None:
             self._attempt("georeference", self._georeference, summary, maps + [u for u in unwritten if u not in maps])
+            summary["telemetry"]["placed"] = self._placed
             for info in unwritten:
                 if info not in maps:
                     remove_sidecars(self.out_dir, info["file"])  # no PNG for them
@@ -1054,4 +1067,6 @@ class MappingPipeline:
             store.flush()  # its writes done before the folder goes
         if self._own_cache and self._cache_dir is not None:
             shutil.rmtree(self._cache_dir, ignore_errors=True)
+        if self._placer is not None:
+            self._placer.close()
         return summary

@@ -414,7 +414,7 @@ class TelemetryJoin:
         return {"residual_offset_s": found.offset_s, "correlation": found.correlation,
                 "refused": found.reason, "best_correlation": found.best_correlation}
 
-    def _gps_point(self, index: int | None, s: TelemetrySample, width: int, height: int) -> np.ndarray:
+    def gps_point(self, index: int | None, s: TelemetrySample, width: int, height: int) -> np.ndarray:
         """Homogeneous pixel (of the frame's pose) that the GPS fix belongs to: the ground point
         below the camera (the frame centre when the attitude or camera model is unknown)."""
         cx, cy = frame_centre(width, height)
@@ -449,7 +449,7 @@ class TelemetryJoin:
         heights = [s.height_above_ground for s in samples]
         camera_mpp = metres_per_pixel(poses, heights, fx) if fx else None
         frames = list(frames) if frames is not None else [None] * len(poses)
-        xy = (np.array([(p @ self._gps_point(f, s, width, height))[:2] for p, s, f in zip(poses, samples, frames)])
+        xy = (np.array([(p @ self.gps_point(f, s, width, height))[:2] for p, s, f in zip(poses, samples, frames)])
               if poses else np.zeros((0, 2)))
         heading = map_heading_deg(poses, [s.yaw for s in samples])
         g = self.gcfg
@@ -537,6 +537,23 @@ class TelemetryJoin:
         :attr:`problems` lists every reason found, in that order; for trusted telemetry, the
         priors the GPS fit dropped (``fit.dropped``: the status stays ``ok``), one WARNING each.
         """
+        problems = self.assess(check, fit)
+        dropped = list(fit.dropped) if fit is not None and not problems else []
+        self.problems = [f"{code}: {text}" for code, text in problems + dropped]
+        self.status = problems[0][0] if problems else "ok"
+        if problems:
+            log.warning("telemetry refused (%s): the map is not georeferenced from it",
+                        "; ".join(text for _, text in problems))
+        for _, text in dropped:
+            log.warning("telemetry prior dropped: %s", text)
+        if not problems and self._missing:
+            log.warning("%d of %d frames have no telemetry (frames %s): mapped by vision alone",
+                        len(self._missing), self._frames, frame_ranges(self._missing))
+        return self.status
+
+    def assess(self, check: dict | None, fit: SegmentFit | None) -> list[tuple[str, str]]:
+        """The reasons (code, text) to refuse the telemetry (see :meth:`verdict`, which says
+        them); empty when it fits the images. Logs nothing, changes nothing."""
         problems: list[tuple[str, str]] = []
         st = self.stats
         if self._frames and st.frames_with_telemetry == 0:
@@ -556,18 +573,7 @@ class TelemetryJoin:
                                 if st.stopped_at_frame is not None else "")))
         if fit is not None and fit.problem:
             problems.append(("gps_mismatch", fit.problem))
-        dropped = list(fit.dropped) if fit is not None and not problems else []
-        self.problems = [f"{code}: {text}" for code, text in problems + dropped]
-        self.status = problems[0][0] if problems else "ok"
-        if problems:
-            log.warning("telemetry refused (%s): the map is not georeferenced from it",
-                        "; ".join(text for _, text in problems))
-        for _, text in dropped:
-            log.warning("telemetry prior dropped: %s", text)
-        if not problems and self._missing:
-            log.warning("%d of %d frames have no telemetry (frames %s): mapped by vision alone",
-                        len(self._missing), self._frames, frame_ranges(self._missing))
-        return self.status
+        return problems
 
     def summary(self) -> dict:
         """What the join did and decided (``run.json`` ``telemetry``, without the time check)."""
