@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 import yaml
 
+from stills_fixtures import noisy_geo_txt
+
 from photomap.cli.replay import replay
 from photomap.config import load_config
 from photomap.drivers.exif import read_still_metadata
@@ -98,8 +100,11 @@ def test_the_rewritten_priors_read_back(flight, wrong):
 
 
 def test_wrong_height_and_gimbal_yaw_are_dropped_and_the_gps_georeferences(flight, wrong, tmp_path, caplog):
+    """... with a consumer GPS: the positions 1.5 m (sigma) off (a geo.txt); judged against the
+    photos' true positions."""
     caplog.set_level(logging.INFO)
-    summary = replay(str(wrong), tmp_path / "run", load_config())
+    geo = noisy_geo_txt(wrong, tmp_path / "geo.txt", sigma_m=1.5, seed=4)
+    summary = replay(str(wrong), tmp_path / "run", load_config(), geo=str(geo))
     tel = summary["telemetry"]
     assert summary["segments"] == 1 and summary["registered"] == 24
     assert tel["status"] == "ok"
@@ -110,6 +115,7 @@ def test_wrong_height_and_gimbal_yaw_are_dropped_and_the_gps_georeferences(fligh
     assert not [r for r in caplog.records if "telemetry refused" in r.getMessage()]
     geo = summary["georeference"]
     assert geo is not None and geo["crs"].startswith("EPSG:326") and geo["scale_source"] == "gps"
+    assert 0.5 < geo["gps_rms_m"] < 3.0   # the GPS noise
     assert (tmp_path / "run" / "mosaic.pgw").is_file()
     # the map's scale is the GPS's: the simulator's ground metres per map pixel
     meta = yaml.safe_load((flight / "meta.yaml").read_text())

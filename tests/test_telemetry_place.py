@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from stills_fixtures import noisy_geo_txt
+
 from photomap.cli.replay import replay
 from photomap.config import load_config
 from photomap.drivers.exif import read_still_metadata
@@ -23,6 +25,7 @@ from photomap.sim.simulate import simulate_flight
 
 SIZE = (480, 384)
 BLANK = (12, 13)   # the middle of the second strip (8 stills a strip)
+MPP = 60.0 / (SIZE[0] / 2.0 / math.tan(math.radians(30.0)))   # ground metres per frame pixel (60 m, 60 deg)
 
 
 @pytest.fixture(scope="module")
@@ -39,17 +42,19 @@ def survey(tmp_path_factory):
 
 
 def test_blank_stills_with_gps_are_placed_from_it(survey, tmp_path):
-    summary = replay(str(survey / "stills"), tmp_path / "run", load_config())
+    """With a consumer GPS (positions 1.5 m sigma off, a geo.txt), judged against the truth."""
+    geo = noisy_geo_txt(survey / "stills", tmp_path / "geo.txt", sigma_m=1.5, seed=7)
+    summary = replay(str(survey / "stills"), tmp_path / "run", load_config(), geo=str(geo))
     tel = summary["telemetry"]
     assert tel["status"] == "ok" and tel["placed"]["placed"] == len(BLANK)
     assert summary["segments"] == 1 and summary["registered"] == 24
     rows = {r.frame: r for r in read_trajectory_csv(tmp_path / "run" / "trajectory.csv")}
     assert {k for k, r in rows.items() if r.extra.get("method") == "telemetry"} == set(BLANK)
     assert len({r.segment for r in rows.values() if r.glued}) == 1
-    for k in BLANK:  # the frame centre where the photo's GPS says (nadir stills)
+    for k in BLANK:  # the frame centre near the photo's true position (nadir stills): its fix's noise
         meta = read_still_metadata(survey / "stills" / f"{k:06d}.jpg")
         e, n = enu_from_latlon(np.array([rows[k].extra["lat"]]), np.array([rows[k].extra["lon"]]), meta.lat, meta.lon)
-        assert math.hypot(float(e[0]), float(n[0])) < 3.0, k
+        assert math.hypot(float(e[0]), float(n[0])) < 5.0, k   # 3.3 sigma of a 2-D 1.5 m noise
     # ... and in the map's own frame, against the truth: the relative pose to a neighbour that
     # vision placed is the true one (a few pixels, a fraction of a degree)
     gt = read_groundtruth(survey / "groundtruth.csv")
@@ -59,7 +64,7 @@ def test_blank_stills_with_gps_are_placed_from_it(survey, tmp_path):
         true = np.linalg.solve(gt.H[ref], gt.H[k])
         c = np.array([(SIZE[0] - 1) / 2.0, (SIZE[1] - 1) / 2.0, 1.0])
         shift = np.hypot(*((est @ c)[:2] - (true @ c)[:2] / (true @ c)[2]))
-        assert shift < 25.0, (k, shift)   # px; GPS of 0.14 m px: about 3 m
+        assert shift * MPP < 6.0, (k, shift)   # metres: the fixes' noise
         angle = math.degrees(math.atan2(est[1, 0], est[0, 0]) - math.atan2(true[1, 0], true[0, 0]))
         assert abs(math.remainder(angle, 360.0)) < 1.0
     # painted: the map is grey (the blank stills) where they are, not empty
@@ -91,19 +96,22 @@ def test_a_strip_cut_by_a_blank_patch_stays_one_map(tmp_path):
         with Image.open(path) as im:
             exif, xmp = im.getexif(), im.info.get("xmp")
         Image.fromarray(np.full((SIZE[1], SIZE[0], 3), 118, np.uint8)).save(path, "JPEG", exif=exif, xmp=xmp)
-    summary = replay(str(out / "stills"), tmp_path / "run", load_config())
+    geo = noisy_geo_txt(out / "stills", tmp_path / "geo.txt", sigma_m=1.5, seed=8)
+    summary = replay(str(out / "stills"), tmp_path / "run", load_config(), geo=str(geo))
     placed = summary["telemetry"]["placed"]
     assert placed["joined_segments"] == 1 and placed["placed"] == 2, placed
     assert summary["segments"] == 1 and summary["registered"] == 16
     rows = {r.frame: r for r in read_trajectory_csv(tmp_path / "run" / "trajectory.csv")}
     assert len({r.segment for r in rows.values()}) == 1
-    for k, r in rows.items():  # every frame centre (vision's and the telemetry's) where its photo's GPS says
+    errors = {}
+    for k, r in rows.items():  # every frame centre (vision's and the telemetry's) near its photo's true GPS
         meta = read_still_metadata(out / "stills" / f"{k:06d}.jpg")
         e, n = enu_from_latlon(np.array([r.extra["lat"]]), np.array([r.extra["lon"]]), meta.lat, meta.lon)
-        assert math.hypot(float(e[0]), float(n[0])) < 3.0, k
+        errors[k] = math.hypot(float(e[0]), float(n[0]))
+    assert np.median(list(errors.values())) < 3.0 and max(errors.values()) < 5.0, errors
     # the piece after the patch sits where the truth puts it relative to the piece before it
     gt = read_groundtruth(out / "groundtruth.csv")
     c = np.array([(SIZE[0] - 1) / 2.0, (SIZE[1] - 1) / 2.0, 1.0])
     est = np.linalg.solve(np.vstack([rows[5].M, [0, 0, 1]]), np.vstack([rows[10].M, [0, 0, 1]])) @ c
     true = np.linalg.solve(gt.H[5], gt.H[10]) @ c
-    assert np.hypot(*(est[:2] - true[:2] / true[2])) < 25.0   # px (0.14 m each)
+    assert np.hypot(*(est[:2] - true[:2] / true[2])) * MPP < 6.0   # metres: joined through 14 noisy fixes

@@ -10,9 +10,11 @@ the end of the run (:meth:`TelemetryPlacer.place`, after the loop closures' last
 before the final re-render), and only when the telemetry fits the images
 (:meth:`~photomap.mapping.telemetry_join.TelemetryJoin.assess` of the main segment's GPS fit):
 
-1. the other map segments whose own GPS fit holds join the main one through the two
-   georeferences (their frame centres to WGS84 and back into the main map's pixels, a
-   similarity fitted to them): the map is one piece;
+1. the other map segments whose own GPS fit holds join the main one: their GPS fixes, put into
+   the main map's pixels by its georeference, fix the shift of the join; its rotation and scale
+   come from the attitude (yaw minus pose angle, height over pose scale, compared between the
+   two maps: constant offsets cancel) where both maps tell it (else they are fitted too): the map
+   is one piece;
 2. each kept frame is posed in the main map: the georeference's inverse puts its GPS fix
    (the ground point below the camera, :meth:`~TelemetryJoin.gps_point`) at its map pixel; its
    angle and scale are those of the nearest frame (by index) that vision placed, turned by the
@@ -124,7 +126,7 @@ class TelemetryPlacer:
             other = fit_of(seg)
             if other.geo is None or other.problem is not None:
                 continue
-            transform = self._between(rows, seg, other.geo, geo)
+            transform = self._between(rows, seg, main, geo)
             if transform is None:
                 continue
             join_segments(seg, main, transform)
@@ -155,16 +157,54 @@ class TelemetryPlacer:
                         self.skipped, _MAX_KEPT)
         return out
 
-    def _between(self, rows: TrajectoryRows, seg: int, src: Georeference, dst: Georeference) -> np.ndarray | None:
-        """3x3 similarity map px of ``seg`` (georeference ``src``) -> map px of ``dst``'s map,
-        fitted to the segment's frame centres carried through WGS84."""
-        glued = rows.glued_mask(seg)
-        if glued.sum() < 2:
+    def _between(self, rows: TrajectoryRows, seg: int, main: int, dst: Georeference) -> np.ndarray | None:
+        """3x3 similarity map px of ``seg`` -> map px of ``main`` (georeference ``dst``).
+
+        Its rotation and scale come from the attitude where both maps tell it (the yaw's offset
+        from the pose angles and the heights over the pose scales, each map's mean: a constant
+        compass or altitude offset cancels); then the fixes of both maps are fitted at once, in
+        complex numbers on the main georeference's tangent plane (east, south): ``g = a z + b``
+        for the main map's fixes, ``g = a r z + c + b`` for the segment's (``r`` the known
+        rotation and scale, ``c = a t``), linear in ``a, b, c``; the join is ``z -> r z + c / a``.
+        So the fixes' noise moves little more than its shift. Without the attitude the segment's
+        fixes are fitted on their own, put at their main-map pixels by ``dst``."""
+        pts: dict[int, tuple[list[complex], list[complex]]] = {main: ([], []), seg: ([], [])}
+        rel: dict[int, list[tuple[float, float, TelemetrySample]]] = {main: [], seg: []}
+        for s in (main, seg):
+            for k in np.flatnonzero(rows.glued_mask(s)):
+                row = rows[int(k)]
+                sample = self.join.kept(row.frame)
+                if sample is None:
+                    continue
+                m = to_h(row.M)
+                rel[s].append((pose_angle_deg(m), pose_scale(m), sample))
+                if sample.lat is not None and sample.lon is not None:
+                    p = m @ self.join.gps_point(row.frame, sample, *self.frame_size)
+                    east, north = enu_from_latlon(np.array([sample.lat]), np.array([sample.lon]),
+                                                  dst.origin_lat, dst.origin_lon)
+                    pts[s][0].append(complex(p[0], p[1]))
+                    pts[s][1].append(complex(float(east[0]), -float(north[0])))
+        if len(pts[seg][0]) < 2:
             return None
-        centre = np.array([*frame_centre(*self.frame_size), 1.0])
-        xy = rows.poses(glued) @ centre
-        lat, lon = src.to_latlon(xy[:, :2])
-        return to_h(similarity_fit(xy[:, :2], self._map_xy(dst, lat, lon)))
+        offsets = {s: [math.radians(a) - v.yaw for a, _, v in rel[s] if v.yaw is not None] for s in rel}
+        per_m = {s: [c / v.height_above_ground for _, c, v in rel[s]
+                     if v.height_above_ground and v.height_above_ground > 0] for s in rel}
+        steady = all(len(o) >= 2 and np.hypot(np.cos(o).mean(), np.sin(o).mean()) >= 0.9 for o in offsets.values())
+        if not steady or not all(per_m.values()) or len(pts[main][0]) < 2:
+            src = np.array([[z.real, z.imag] for z in pts[seg][0]])
+            enu = np.array([[g.real, -g.imag] for g in pts[seg][1]])
+            inv = np.linalg.inv(to_h(dst.map_to_enu))
+            return to_h(similarity_fit(src, (np.c_[enu, np.ones(len(enu))] @ inv.T)[:, :2]))
+        a_main, a_seg = (math.atan2(np.sin(offsets[s]).mean(), np.cos(offsets[s]).mean()) for s in (main, seg))
+        r = float(np.median(per_m[main]) / np.median(per_m[seg])) * complex(math.cos(a_main - a_seg),
+                                                                             math.sin(a_main - a_seg))
+        za, ga = np.array(pts[main][0]), np.array(pts[main][1])
+        zb, gb = np.array(pts[seg][0]), np.array(pts[seg][1])
+        design = np.vstack([np.c_[za, np.ones_like(za), np.zeros_like(za)],
+                            np.c_[r * zb, np.ones_like(zb), np.ones_like(zb)]])
+        (a, _, c), *_ = np.linalg.lstsq(design, np.concatenate([ga, gb]), rcond=None)
+        t = c / a
+        return np.array([[r.real, -r.imag, t.real], [r.imag, r.real, t.imag], [0.0, 0.0, 1.0]])
 
     @staticmethod
     def _map_xy(geo: Georeference, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
