@@ -40,7 +40,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from photomap.geo.georef import Georeference, enu_from_latlon
-from photomap.geometry import frame_centre, pose_angle_deg, pose_scale, similarity_fit, to_h
+from photomap.geometry import pose_angle_deg, pose_scale, similarity_fit, to_h
 from photomap.io.keyframestore import KeyframeStore
 from photomap.mapping.rows import TrajectoryRows
 from photomap.mapping.telemetry_join import SegmentFit, TelemetryJoin, frame_ranges
