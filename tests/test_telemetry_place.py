@@ -21,6 +21,7 @@ from photomap.config import load_config
 from photomap.drivers.exif import read_still_metadata
 from photomap.geo.georef import enu_from_latlon
 from photomap.io.trajectory_files import read_groundtruth, read_trajectory_csv
+from photomap.mapping.loopclosure import LoopCloser
 from photomap.sim.simulate import simulate_flight
 
 SIZE = (480, 384)
@@ -48,6 +49,7 @@ def test_blank_stills_with_gps_are_placed_from_it(survey, tmp_path):
     tel = summary["telemetry"]
     assert tel["status"] == "ok" and tel["placed"]["placed"] == len(BLANK)
     assert summary["segments"] == 1 and summary["registered"] == 24
+    assert summary["loop_closure"]["joins"] == 1   # the next strip found the map again by vision
     rows = {r.frame: r for r in read_trajectory_csv(tmp_path / "run" / "trajectory.csv")}
     assert {k for k, r in rows.items() if r.extra.get("method") == "telemetry"} == set(BLANK)
     assert len({r.segment for r in rows.values() if r.glued}) == 1
@@ -84,7 +86,7 @@ def test_without_telemetry_blank_stills_stay_unplaced(survey, tmp_path):
     assert not [r for r in rows.values() if r.extra.get("method") == "telemetry"]
 
 
-def test_a_strip_cut_by_a_blank_patch_stays_one_map(tmp_path):
+def test_a_strip_cut_by_a_blank_patch_stays_one_map(tmp_path, monkeypatch):
     """One strip of 16 stills, stills 7 and 8 blank: nothing links the stills before the patch to
     those after it but the GPS; the two pieces are joined through their georeferences and the
     blank stills placed between them."""
@@ -97,7 +99,21 @@ def test_a_strip_cut_by_a_blank_patch_stays_one_map(tmp_path):
             exif, xmp = im.getexif(), im.info.get("xmp")
         Image.fromarray(np.full((SIZE[1], SIZE[0], 3), 118, np.uint8)).save(path, "JPEG", exif=exif, xmp=xmp)
     geo = noisy_geo_txt(out / "stills", tmp_path / "geo.txt", sigma_m=1.5, seed=8)
+    tried = []  # the join searches of the loop closer (features of each candidate: the costly part)
+    place_join = LoopCloser._place_join
+
+    def spy(self, matcher, small, image, candidates, pause=None):
+        tried.append(list(candidates))
+        return place_join(self, matcher, small, image, candidates, pause)
+
+    monkeypatch.setattr(LoopCloser, "_place_join", spy)
     summary = replay(str(out / "stills"), tmp_path / "run", load_config(), geo=str(geo))
+    # a join search tries only old keyframes whose footprint could reach the new one's (by GPS:
+    # a frame's diagonal on the ground, 89 m, plus the GPS's error): the first two stills after
+    # the patch try the last ones before it, the others none (without the bound: 6 searches of
+    # the 4 nearest, each with features)
+    assert [len(c) for c in tried] in ([2, 1], [1, 1], [1], [2]), tried
+    assert summary["loop_closure"]["joins"] == 0
     placed = summary["telemetry"]["placed"]
     assert placed["joined_segments"] == 1 and placed["placed"] == 2, placed
     assert summary["segments"] == 1 and summary["registered"] == 16
