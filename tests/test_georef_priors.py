@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from PIL import Image
 
 from stills_fixtures import noisy_geo_txt
 
@@ -149,3 +150,30 @@ def test_another_flights_gps_is_still_refused(flight, wrong, tmp_path, caplog):
     assert "GPS fixes fit the vision track" in tel["problems"][0]  # its shape, not the priors
     assert summary["georeference"] is None and not (tmp_path / "run" / "mosaic.pgw").exists()
     assert len([r for r in caplog.records if "telemetry refused" in r.getMessage()]) == 1
+
+
+def test_stills_sharing_one_second_capture_times_keep_their_own_gps(tmp_path, caplog):
+    """EXIF times of one-second resolution (no SubSecTimeOriginal) with two stills a second:
+    each still keeps its own GPS (looked up by still, not by time), the map is georeferenced,
+    and trajectory.tum says once how many frames it leaves out."""
+    out = tmp_path / "fast"
+    simulate_flight(out, terrain="texture", terrain_size=(3400, 2400), mode="stills", strips=2, stills_per_strip=6,
+                    size=SIZE, altitude=(60.0, 60.0), seed=1, speed=40.0, t0_unix=1_700_000_000.25)
+    for still in sorted((out / "stills").glob("*.jpg")):
+        data = still.read_bytes()
+        with Image.open(still) as im:  # re-saved: the metadata kept but the sub-seconds
+            im.load()
+            exif, xmp = im.getexif(), im.info.get("xmp")
+            exif.get_ifd(0x8769).pop(0x9291, None)
+            im.save(still, "JPEG", quality=92, exif=exif, xmp=xmp)
+        assert still.read_bytes() != data
+    times = [read_still_metadata(p).time for p in sorted((out / "stills").glob("*.jpg"))]
+    assert len(set(times)) < len(times)   # stills share capture times
+    caplog.set_level(logging.INFO)
+    summary = replay(str(out / "stills"), tmp_path / "run", load_config())
+    assert summary["telemetry"]["status"] == "ok" and summary["georeference"] is not None
+    assert float(np.median(centre_errors_m(tmp_path / "run", out / "stills"))) < 1.0
+    tum = [r.getMessage() for r in caplog.records if r.getMessage().startswith("TUM:")]
+    skipped = len(times) - len(set(times))
+    assert len(tum) == 1 and tum[0].startswith(f"TUM: {skipped} frame(s) skipped (frames "), tum
+    assert tum[0].endswith("their times do not increase (e.g. capture times of one-second resolution)")

@@ -181,16 +181,21 @@ class TelemetryJoin:
         ``(field, t) -> value or None``: one field of what ``sample_at(t)`` gives (a buffer's
         ``value_at``), for checks that read one field over the whole flight (the time-offset
         check reads the yaw every 0.05 s: a whole sample each time cost 0.1 s a 1000-frame flight).
+    sample_of : callable, optional
+        ``frame -> TelemetrySample or None``: the frame's own sample, used instead of
+        ``sample_at`` (survey stills: each still's, also when stills share a capture time).
     """
 
     def __init__(self, sample_at: Callable[[float], TelemetrySample], mode: str, cfg: Config, *,
                  video_start: float = 0.0, offset: float = 0.0,
                  link_summary: Callable[[], dict] = dict,
-                 field_at: Callable[[str, float], float | None] | None = None) -> None:
+                 field_at: Callable[[str, float], float | None] | None = None,
+                 sample_of: Callable[[Frame], TelemetrySample | None] | None = None) -> None:
         if mode not in ("live", "log", "link", "stills"):
             raise ValueError(f"unknown telemetry time mode {mode!r}")
         self.sample_at = sample_at
         self.field_at = field_at
+        self.sample_of = sample_of
         self.mode = mode
         self.video_start = video_start
         self.offset = offset
@@ -275,7 +280,7 @@ class TelemetryJoin:
         if self.stopped:
             self.stats.frames_ignored += 1
             return None
-        s = self.sample_at(self.telemetry_time(frame.t))
+        s = self.sample_of(frame) if self.sample_of is not None else self.sample_at(self.telemetry_time(frame.t))
         known = s is not None and (s.yaw is not None or s.height_above_ground is not None
                                    or s.lat is not None)
         if known:
