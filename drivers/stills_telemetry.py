@@ -72,11 +72,19 @@ class StillsTelemetry:
             self._samples.append(samples[i])
         self.samples = list(samples)
         if self.duplicate_times:
-            log.warning("%d still(s) share a capture time with another: at those times the "
-                        "first still's telemetry is used", self.duplicate_times)
+            log.info("%d still(s) share a capture time with another (capture times of one-second "
+                     "resolution?): each still keeps its own telemetry (looked up by still)",
+                     self.duplicate_times)
+
+    def of_frame(self, frame) -> TelemetrySample | None:
+        """The sample of the still a frame of the folder's source is (``frame.index``: its place
+        in the folder), whatever its time: stills that share a capture time keep their own."""
+        k = int(frame.index)
+        return self.samples[k] if 0 <= k < len(self.samples) else None
 
     def at(self, t: float) -> TelemetrySample | None:
-        """The sample of the still taken at ``t`` (within ``tolerance``), else None."""
+        """The sample of the still taken at ``t`` (within ``tolerance``; of stills sharing a time,
+        the first), else None."""
         k = bisect_left(self._times, float(t) - self.tolerance)
         if k < len(self._times) and abs(self._times[k] - t) <= self.tolerance:
             return self._samples[k]

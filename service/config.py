@@ -425,6 +425,8 @@ class GeorefConfig(_Section):
     min_inlier_fraction: float = _num(0.7, 0.0, 1.0)
     max_scale_ratio: float = _num(1.3, 1.0, None, lo_open=True)
     max_heading_error_deg: float = _num(20.0, 0.0, 180.0)
+    alone_min_inlier_fraction: float = _num(0.9, 0.0, 1.0)
+    alone_max_rms_fraction: float = _num(0.1, 0.0, None)
 
 
 @dataclass(frozen=True)

@@ -90,3 +90,24 @@ def seneca_folder(data: Path, out: Path, count: int | None = None) -> tuple[Path
         src = data / "images" / row["file"]
         write_still(src, out / row["file"], row, make="Canon", xmp=False)
     return out, rows
+
+
+def noisy_geo_txt(stills: Path, path: Path, sigma_m: float, seed: int = 0) -> Path:
+    """An OpenDroneMap geo.txt for the JPEG stills in ``stills``: each still's EXIF GPS position
+    moved by Gaussian noise of ``sigma_m`` metres east and north (a consumer GPS)."""
+    import math
+
+    import numpy as np
+
+    from photomap.drivers.exif import read_still_metadata
+
+    rng = np.random.default_rng(seed)
+    lines = ["EPSG:4326\n"]
+    for still in sorted(stills.glob("*.jpg")):
+        m = read_still_metadata(still)
+        de, dn = rng.normal(0.0, sigma_m, 2)
+        lat = m.lat + math.degrees(dn / 6_378_137.0)
+        lon = m.lon + math.degrees(de / (6_378_137.0 * math.cos(math.radians(m.lat))))
+        lines.append(f"{still.name} {lon:.9f} {lat:.9f} {m.alt:.3f}\n")
+    path.write_text("".join(lines))
+    return path

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -354,37 +355,90 @@ def truth_track(n=300, fps=5.0, yaw0=40.0):
     return camera, poses, samples, lat, lon
 
 
-def test_gps_fit_checks_scale_and_rotation_against_camera_and_compass():
+def moved_track(samples, lat, lon, factor=1.0, turn_deg=0.0, frames=None):
+    """The GPS track scaled and turned about its first fix (``frames``: only those fixes moved)."""
+    e = (lon - lon[0]) * math.cos(math.radians(lat[0]))
+    nrt = lat - lat[0]
+    a = math.radians(turn_deg)
+    e2, n2 = factor * (math.cos(a) * e - math.sin(a) * nrt), factor * (math.sin(a) * e + math.cos(a) * nrt)
+    out = []
+    for k, (s, x, y) in enumerate(zip(samples, e2, n2)):
+        if frames is not None and k not in frames:
+            out.append(s)
+            continue
+        out.append(TelemetrySample(t=s.t, lat=float(lat[0] + y), lon=float(lon[0] + x / math.cos(math.radians(lat[0]))),
+                                   yaw=s.yaw, height_above_ground=s.height_above_ground))
+    return out
+
+
+def test_gps_fit_drops_the_camera_scale_and_compass_that_contradict_it():
+    """The priors (camera-height scale, compass yaw) are judged by the GPS fit, not the other way
+    round: a height off by a factor or a yaw off by a constant leaves the GPS georeference."""
     camera, poses, samples, lat, lon = truth_track()
     cfg = load_config().updated({"camera": {"fx_px": camera.fx}})
     join = TelemetryJoin(lambda t: None, "log", cfg)
     good = join.fit_segment(W, H, poses, samples)
-    assert good.geo is not None and good.geo.scale_source == "gps" and good.problem is None
+    assert good.geo is not None and good.geo.scale_source == "gps" and good.problem is None and not good.dropped
     assert good.geo.metres_per_px == pytest.approx(good.camera_mpp, rel=0.005)
     assert abs((good.geo.heading_deg - good.compass_heading_deg + 180) % 360 - 180) < 0.5
 
-    def moved(factor=1.0, turn_deg=0.0):
-        """The same GPS track scaled and turned about its first fix (another flight's shape)."""
-        e = (lon - lon[0]) * math.cos(math.radians(lat[0]))
-        nrt = lat - lat[0]
-        a = math.radians(turn_deg)
-        e2, n2 = factor * (math.cos(a) * e - math.sin(a) * nrt), factor * (math.sin(a) * e + math.cos(a) * nrt)
-        return [TelemetrySample(t=s.t, lat=float(lat[0] + y), lon=float(lon[0] + x / math.cos(math.radians(lat[0]))),
-                                yaw=s.yaw, height_above_ground=s.height_above_ground)
-                for s, x, y in zip(samples, e2, n2)]
-
-    scaled = join.fit_segment(W, H, poses, moved(factor=2.0))
-    assert "m per map pixel" in scaled.problem
-    assert join.georeference(W, H, poses, moved(factor=2.0))[1] is None
-    turned = join.fit_segment(W, H, poses, moved(turn_deg=60.0))
-    assert "against the compass" in turned.problem
-    assert join.fit_segment(W, H, poses, moved(factor=1.1, turn_deg=5.0)).problem is None  # within tolerance
-    assert join.verdict(None, scaled) == "gps_mismatch" and join.problems[0].startswith("gps_mismatch")
+    # the heights over the take-off point, 0.75 of those over the ground: the scale is the GPS's
+    low = [replace(s, height_above_ground=0.75 * s.height_above_ground) for s in samples]
+    scaled = join.fit_segment(W, H, poses, low)
+    assert scaled.problem is None and [code for code, _ in scaled.dropped] == ["camera_scale"]
+    assert "x1.33" in scaled.dropped[0][1]
+    assert scaled.metres_per_px == pytest.approx(good.geo.metres_per_px, rel=1e-6)
+    assert scaled.camera_mpp == pytest.approx(0.75 * good.camera_mpp, rel=1e-6)
+    assert np.allclose(join.georeference(W, H, poses, low)[1].map_to_crs, good.geo.map_to_crs)
+    # a gimbal yaw 55 deg off the body's: the heading is the GPS's
+    off = [replace(s, yaw=s.yaw + math.radians(55.0)) for s in samples]
+    turned = join.fit_segment(W, H, poses, off)
+    assert turned.problem is None and [code for code, _ in turned.dropped] == ["compass"]
+    assert "turned 55 deg" in turned.dropped[0][1]
+    assert np.allclose(turned.geo.map_to_crs, good.geo.map_to_crs)
+    assert join.verdict(None, turned) == "ok" and join.problems == [f"compass: {turned.dropped[0][1]}"]
+    both = join.fit_segment(W, H, poses, [replace(s, yaw=o.yaw) for s, o in zip(low, off)])
+    assert [code for code, _ in both.dropped] == ["camera_scale", "compass"]
+    assert join.fit_segment(W, H, poses, moved_track(samples, lat, lon, 1.1, 5.0)).dropped == []  # within tolerance
     # a compass whose logged yaw flips by 180 deg now and then (DJI strip ends) cannot judge the rotation
-    flipped = [TelemetrySample(t=s.t, lat=s.lat, lon=s.lon, height_above_ground=s.height_above_ground,
-                               yaw=s.yaw + (math.pi if (k // 40) % 2 else 0.0))
-               for k, s in enumerate(moved(turn_deg=60.0))]
-    assert "compass" not in (join.fit_segment(W, H, poses, flipped).problem or "")
+    flipped = [replace(s, yaw=s.yaw + (math.pi if (k // 40) % 2 else 0.0))
+               for k, s in enumerate(moved_track(samples, lat, lon, turn_deg=60.0))]
+    assert join.fit_segment(W, H, poses, flipped).dropped == []
+
+
+def test_gps_fit_refuses_a_track_that_does_not_follow_the_images():
+    """Where the GPS itself is wrong it is refused, priors or not: another flight's shape, a
+    wrong clock, a track whose halves need different scales or rotations."""
+    camera, poses, samples, lat, lon = truth_track()
+    cfg = load_config().updated({"camera": {"fx_px": camera.fx}})
+    join = TelemetryJoin(lambda t: None, "log", cfg)
+    n = len(samples)
+    reversed_track = [replace(s, lat=o.lat, lon=o.lon) for s, o in zip(samples, samples[::-1])]
+    late = [replace(s, lat=samples[min(k + 25, n - 1)].lat, lon=samples[min(k + 25, n - 1)].lon)
+            for k, s in enumerate(samples)]   # the GPS 5 s late
+    second = set(range(n // 2, n))
+    stretched = moved_track(samples, lat, lon, factor=1.6, frames=second)
+    twisted = moved_track(samples, lat, lon, turn_deg=40.0, frames=second)
+    for track in (reversed_track, late, stretched, twisted):
+        fit = join.fit_segment(W, H, poses, track)
+        assert fit.problem is not None and "of 300 GPS fixes fit" in fit.problem, fit
+        assert join.georeference(W, H, poses, track)[1] is None
+        assert join.verdict(None, fit) == "gps_mismatch" and join.problems[0].startswith("gps_mismatch")
+    # a shorter track (60 fixes, 28 m spread), its second half stretched or turned: most fixes
+    # still fit one similarity, its halves do not
+    camera, poses, samples, lat, lon = truth_track(n=60)
+    second = set(range(30, 60))
+    for track, why in ((moved_track(samples, lat, lon, factor=1.5, frames=second), "at scales x1.50 apart"),
+                       (moved_track(samples, lat, lon, turn_deg=35.0, frames=second), "turned -35 deg apart")):
+        fit = join.fit_segment(W, H, poses, track)
+        assert fit.problem == f"the two halves of the GPS track fit the vision track {why}", fit
+    assert join.fit_segment(W, H, poses, samples).problem is None
+    # shorter still (40 fixes): a GPS fit that contradicts the camera's scale and holds only
+    # loosely (RMS 3.9 m over 30 m) loses to the prior
+    camera, poses, samples, lat, lon = truth_track(n=40)
+    fit = join.fit_segment(W, H, poses, moved_track(samples, lat, lon, factor=1.5, frames=set(range(20, 40))))
+    assert fit.problem.startswith("the GPS track makes") and "over a track of 30 m spread" in fit.problem
+    assert fit.dropped == []
 
 
 def test_time_sync_tells_refused_from_undecided():

@@ -293,6 +293,23 @@ def test_tum_is_valid_for_evo(tmp_path):
     assert np.linalg.norm(data[:, 4:], axis=1) == pytest.approx([1, 1])
 
 
+def test_tum_says_the_frames_it_skips_once_with_a_count(tmp_path, caplog):
+    """Capture times of one-second resolution (EXIF) repeat: one line for all the frames left out."""
+    rows = sample_rows()
+    rows += [PoseRow(7, 0.6, sim(2.0)[:2], 0.9, "registered", 1), PoseRow(8, 0.6, sim(2.5)[:2], 0.9, "registered", 1)]
+    with caplog.at_level("WARNING"):
+        write_tum(tmp_path / "a.tum", rows, frame_size=(W, H))
+    said = [r.getMessage() for r in caplog.records if "TUM" in r.getMessage()]
+    assert said == ["TUM: 2 frame(s) skipped (frames 7, 8): their times do not increase "
+                    "(e.g. capture times of one-second resolution)"]
+    caplog.clear()
+    skipped: list[int] = []  # the caller collects them (and says them once for the run)
+    with caplog.at_level("WARNING"):
+        write_tum(tmp_path / "b.tum", rows, frame_size=(W, H), skipped=skipped)
+    assert skipped == [7, 8] and not caplog.records
+    assert (tmp_path / "a.tum").read_text() == (tmp_path / "b.tum").read_text()
+
+
 def test_writes_are_atomic(tmp_path, monkeypatch):
     path = tmp_path / "trajectory.csv"
     for k in range(3):

@@ -17,6 +17,14 @@ tiling, overviews.
 ``--quick``: 1,500 frames over 4000 x 3000 (a smoke test). The full run (about 10-15 minutes on 2
 cores) replaces the section between ``<!-- survey:start -->`` and ``<!-- survey:end -->`` of
 ``docs/benchmarks.md``. Needs psutil (``bench`` extra) and rasterio (``geo`` extra).
+
+``--stills``: survey stills at survey speed instead. Lawn-mower surveys of JPEG stills with EXIF GPS
+and DJI XMP (``photomap simulate --mode stills``): 64 stills of 640x512 in two strips joined by a
+180-degree turn, the same with a featureless patch (4 blank stills: the map breaks and rejoins), and
+57 stills of 2400x1800 in three strips; each mapped by ``photomap replay`` (georeferenced from the
+stills' own telemetry) in a fresh process: wall and CPU time, the worker's loop-closure time,
+segments, placed stills, the median distance of the frame centres from the photos' GPS. Replaces
+the ``survey-stills`` section of ``docs/benchmarks.md``.
 """
 
 from __future__ import annotations
@@ -222,6 +230,97 @@ def report(args, r: dict, cog: dict, elapsed: float, load: tuple[float, float]) 
     return "\n".join(lines) + "\n"
 
 
+# --------------------------------------------------------------------------- stills at survey speed
+STILLS = {  # name -> (simulate flags, stills made blank)
+    "64 x 640x512, 2 strips": (["--strips", "2", "--stills-per-strip", "32", "--size", "640x512",
+                                "--set", "simulate.terrain_size=7800x2400", "--side-overlap", "0.6",
+                                "--seed", "2"], []),
+    "64 x 640x512, 2 strips, 4 blank": (["--strips", "2", "--stills-per-strip", "32", "--size", "640x512",
+                                         "--set", "simulate.terrain_size=7800x2400", "--side-overlap", "0.6",
+                                         "--seed", "2"], [20, 21, 22, 23]),
+    "57 x 2400x1800, 3 strips": (["--strips", "3", "--stills-per-strip", "19", "--size", "2400x1800",
+                                  "--set", "simulate.terrain_size=5000x2400", "--seed", "4"], []),
+}
+
+
+def blank_stills(folder: Path, frames: list[int]) -> None:
+    """Make stills ``frames`` one grey level, their EXIF and XMP kept (a featureless patch)."""
+    import numpy as np
+    from PIL import Image
+
+    for k in frames:
+        path = folder / f"{k:06d}.jpg"
+        with Image.open(path) as im:
+            exif, xmp, size = im.getexif(), im.info.get("xmp"), im.size
+        Image.fromarray(np.full((size[1], size[0], 3), 118, np.uint8)).save(path, "JPEG", exif=exif, xmp=xmp)
+
+
+def measure_stills(stills: Path, out: Path) -> dict:
+    """Map a folder of stills in this process: times, segments, distance from the photos' GPS."""
+    import numpy as np
+
+    from photomap.cli.replay import replay
+    from photomap.config import load_config
+    from photomap.drivers.exif import read_still_metadata
+    from photomap.geo.georef import enu_from_latlon
+    from photomap.io.trajectory_files import read_trajectory_csv
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    summary = replay(str(stills), out, load_config())
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    files = sorted(stills.glob("*.jpg"))
+    errors = []
+    for r in read_trajectory_csv(out / "trajectory.csv"):
+        if r.glued and "lat" in r.extra:
+            m = read_still_metadata(files[r.frame])
+            e, n = enu_from_latlon(np.array([r.extra["lat"]]), np.array([r.extra["lon"]]), m.lat, m.lon)
+            errors.append(math.hypot(float(e[0]), float(n[0])))
+    timing = summary["timing_ms"]
+    return {"stills": summary["frames_in"], "registered": summary["registered"], "segments": summary["segments"],
+            "wall_s": wall, "cpu_s": cpu, "loop_closure_s": timing.get("loop_closure", {}).get("total_s", 0.0),
+            "status": summary["telemetry"]["status"], "placed": (summary["telemetry"].get("placed") or {}).get("placed"),
+            "joins": summary.get("loop_closure", {}).get("joins"),
+            "median_gps_m": float(np.median(errors)) if errors else None}
+
+
+def run_stills(work: Path) -> list[dict]:
+    results = []
+    for name, (flags, blank) in STILLS.items():
+        sim = work / f"sim{len(results)}"
+        cmd = [sys.executable, "-m", "photomap", "simulate", "--out", str(sim), "--mode", "stills", "--terrain",
+               "texture", "--altitude", "60:60", *flags, "-q"]
+        subprocess.run(cmd, check=True, cwd=REPO)
+        blank_stills(sim / "stills", blank)
+        spec = json.dumps({"stills": str(sim / "stills"), "out": str(work / f"run{len(results)}")})
+        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--measure-stills", spec],
+                              capture_output=True, text=True, cwd=REPO)
+        if proc.returncode != 0:
+            raise RuntimeError(f"the measured run failed:\n{proc.stderr[-3000:]}")
+        results.append({"case": name, **json.loads(proc.stdout.strip().splitlines()[-1])})
+        log.info("%s: %.1f s wall, %.1f s CPU", name, results[-1]["wall_s"], results[-1]["cpu_s"])
+    return results
+
+
+def report_stills(results: list[dict], elapsed: float, load: tuple[float, float]) -> str:
+    when = datetime.date.today().isoformat()
+    lines = ["## Survey stills at survey speed", "",
+             f"Written by `python -m tools.bench_survey --stills` on {when} (Python {platform.python_version()}, "
+             f"{os.cpu_count()} cores, {elapsed:.0f} s; 1-minute load average {load[0]:.1f} at the start and "
+             f"{load[1]:.1f} at the end: other processes shared the cores, wall times are upper bounds of a "
+             "calm machine's). Simulated lawn-mower surveys of JPEG stills with EXIF GPS and DJI XMP "
+             "(`photomap simulate --mode stills --terrain texture --altitude 60:60`), mapped by "
+             "`photomap replay` from their own telemetry in a fresh process (target: <= 10 s each).", "",
+             "| survey | stills / placed / segments | wall s | CPU s | loop closure s (worker) | joins | "
+             "telemetry placed | telemetry | frame centres vs photo GPS (median) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        gps = f"{r['median_gps_m']:.2f} m" if r["median_gps_m"] is not None else "-"
+        lines.append(f"| {r['case']} | {r['stills']} / {r['registered']} / {r['segments']} | {r['wall_s']:.1f} | "
+                     f"{r['cpu_s']:.1f} | {r['loop_closure_s']:.2f} | {r['joins']} | {r['placed'] or 0} | "
+                     f"{r['status']} | {gps} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=None, help="frames of the survey (default 10000)")
@@ -232,13 +331,30 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="1500 frames over 4000x3000 (smoke test)")
     ap.add_argument("--out", type=Path, default=None, help="markdown file whose survey section is replaced "
                     "(default docs/benchmarks.md; none with --quick)")
+    ap.add_argument("--stills", action="store_true", help="survey stills at survey speed (section survey-stills)")
     ap.add_argument("--measure", metavar="JSON", help=argparse.SUPPRESS)
+    ap.add_argument("--measure-stills", metavar="JSON", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING if args.measure else logging.INFO,
+    logging.basicConfig(level=logging.WARNING if args.measure or args.measure_stills else logging.INFO,
                         format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     if args.measure:
         spec = json.loads(args.measure)
         print(json.dumps(measure(Path(spec["sim"]), Path(spec["out"]), spec["overrides"])))
+        return 0
+    if args.measure_stills:
+        spec = json.loads(args.measure_stills)
+        print(json.dumps(measure_stills(Path(spec["stills"]), Path(spec["out"]))))
+        return 0
+    if args.stills:
+        start, load0 = time.perf_counter(), os.getloadavg()[0]
+        with tempfile.TemporaryDirectory(prefix="bench-stills-") as tmp:
+            work = args.work or Path(tmp)
+            work.mkdir(parents=True, exist_ok=True)
+            body = report_stills(run_stills(work), time.perf_counter() - start, (load0, os.getloadavg()[0]))
+        print(body)
+        out_md = args.out if args.out is not None else REPO / "docs" / "benchmarks.md"
+        replace_section(out_md, "survey-stills", body)
+        log.info("wrote the survey-stills section of %s", out_md)
         return 0
     args.frames = args.frames or (1500 if args.quick else 10_000)
     args.terrain_size = args.terrain_size or ("4000x3000" if args.quick else "12000x8000")

@@ -207,7 +207,7 @@ def open_stills_telemetry(source: FrameSource, cfg: Config, geo: str | None = No
         return None, cfg
     if not cfg.camera.fx_px and not cfg.camera.hfov_deg and not cfg.camera.calibration and tel.focal_px:
         cfg = cfg.updated({"camera": {"fx_px": float(tel.focal_px)}})
-    return TelemetryJoin(tel.at, "stills", cfg, link_summary=tel.summary), cfg
+    return TelemetryJoin(tel.at, "stills", cfg, link_summary=tel.summary, sample_of=tel.of_frame), cfg
 
 
 # ---------------------------------------------------------------------------------- sinks

@@ -366,6 +366,7 @@ class Georeference:
     metres_per_px : ground metres per map pixel. heading_deg : heading of the map's up direction
         (clockwise from north). scale_source : "gps" (fitted) or "camera" (given).
     rms_m : RMS residual of the inlier fixes, metres. inliers, points : fixes used / given.
+    extent_m : RMS distance of the fixes from their centroid, metres (the track's spread).
     """
 
     origin_lat: float
@@ -379,6 +380,7 @@ class Georeference:
     rms_m: float
     inliers: int
     points: int
+    extent_m: float = 0.0
 
     def to_latlon(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Map pixels ``(n, 2)`` -> WGS84 (lat, lon) degrees (exact through the tangent plane)."""
@@ -456,7 +458,7 @@ def fit_georeference(map_xy: np.ndarray, lat: Sequence[float | None], lon: Seque
     jac = np.c_[(u[1] - u[2]) / (2 * d), (u[3] - u[4]) / (2 * d)]
     enu_to_crs = np.hstack([jac, (u[0] - jac @ c)[:, None]])
     return Georeference(lat0, lon0, map_to_enu, epsg, compose(enu_to_crs, map_to_enu), mpp, heading, source, rms,
-                        int(inliers.sum()), n)
+                        int(inliers.sum()), n, extent)
 
 
 # --------------------------------------------------------------------------- files

@@ -265,8 +265,12 @@ def largest_segment(rows: Iterable[PoseRow]) -> int | None:
 
 
 def _tum_chunks(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None,
-                segment: int | None) -> Iterator[str]:
-    """The text of ``trajectory.tum``, a header then ``_CHUNK_ROWS`` lines at a time."""
+                segment: int | None, skipped: list[int] | None = None) -> Iterator[str]:
+    """The text of ``trajectory.tum``, a header then ``_CHUNK_ROWS`` lines at a time; the frames
+    left out because their time does not increase are appended to ``skipped`` (or, without it,
+    said in one warning at the end)."""
+    warn = skipped is None
+    skipped = [] if skipped is None else skipped
     rows = list(rows) if isinstance(rows, Iterator) else rows  # iterated twice
     seg = largest_segment(rows) if segment is None else segment
     centre = frame_centre(*frame_size) if frame_size is not None else None
@@ -277,7 +281,7 @@ def _tum_chunks(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None,
         if not r.glued or r.segment != seg:
             continue
         if not r.t > last_t:
-            log.warning("TUM: frame %d skipped, its time %.6f s does not increase", r.frame, r.t)
+            skipped.append(r.frame)
             continue
         last_t = r.t
         x, y = _centre_xy(r, centre)
@@ -288,6 +292,15 @@ def _tum_chunks(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None,
             yield "".join(lines)
             lines = []
     yield "".join(lines)
+    if warn and skipped:
+        log.warning(tum_skipped_message(skipped))
+
+
+def tum_skipped_message(frames: Sequence[int]) -> str:
+    """One line naming the frames a TUM trajectory leaves out (their times do not increase)."""
+    shown = ", ".join(str(f) for f in list(frames)[:5]) + (", ..." if len(frames) > 5 else "")
+    return (f"TUM: {len(frames)} frame(s) skipped (frames {shown}): their times do not increase "
+            "(e.g. capture times of one-second resolution)")
 
 
 def format_tum(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None,
@@ -297,7 +310,7 @@ def format_tum(rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = Non
 
 
 def write_tum(path: str | Path, rows: Iterable[PoseRow], frame_size: tuple[int, int] | None = None,
-              segment: int | None = None) -> None:
+              segment: int | None = None, skipped: list[int] | None = None) -> None:
     """Write the glued poses of one segment as a TUM trajectory (``evo`` reads it), atomically.
 
     One line ``t x y z qx qy qz qw`` per ``reference``/``registered`` frame after a ``#`` header.
@@ -305,7 +318,8 @@ def write_tum(path: str | Path, rows: Iterable[PoseRow], frame_size: tuple[int, 
     pointing into the ground the frame is still right-handed, and ``yaw`` (about z) is
     ``angle_deg``, positive from x towards y. The scale of the pose is not representable and is
     dropped (use ``evo_ape --align --correct_scale``). Frames whose ``t`` does not increase are
-    skipped with a warning.
+    skipped: with ``skipped`` (a list) their frame numbers are appended to it for the caller to
+    report, else one warning with their count is logged.
 
     Parameters
     ----------
@@ -316,7 +330,7 @@ def write_tum(path: str | Path, rows: Iterable[PoseRow], frame_size: tuple[int, 
         As for :func:`write_trajectory_csv`.
     """
     with atomic_file(path, "w") as f:
-        for chunk in _tum_chunks(rows, frame_size, segment):
+        for chunk in _tum_chunks(rows, frame_size, segment, skipped):
             f.write(chunk)
 
 

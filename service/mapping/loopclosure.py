@@ -46,13 +46,13 @@ import cv2
 import numpy as np
 
 from photomap.config import MappingConfig, PosegraphConfig
-from photomap.core.matching import PairMatcher
+from photomap.core.matching import PairMatcher, View
 from photomap.core.ifmi import Registrar
 from photomap.core.keyframes import KeyframeGraph, KeyframePriors, LoopCandidate, LoopMeasurement
 from photomap.core.places import PlaceIndex, place_signature, place_similarities
 from photomap.core.tracking import TrackStep
 from photomap.geo.georef import enu_from_latlon
-from photomap.geometry import scaling, to_h
+from photomap.geometry import pose_scale, scaling, to_h
 from photomap.io.keyframestore import KeyframeStore
 from photomap.mapping.threads import WorkerFirst, lower_priority
 from photomap.telemetry.samples import TelemetrySample
@@ -62,6 +62,17 @@ log = logging.getLogger(__name__)
 # Live, a pose-graph solve starts at most this often (s): each correction costs the worker time
 # in proportion to the flight's frames (a replay: one every lockstep_frames at most).
 SOLVE_INTERVAL_S = 1.0
+# Join candidates whose spectra and features are kept (a few MB each at most).
+_JOIN_VIEWS = 16
+# Ground scale from GPS: keyframe pairs at least this many GPS sigmas apart, looked for among the
+# previous keyframes of a chain; the median of the latest pairs, once there are a few.
+_GROUND_BASE_SIGMAS = 5.0
+_GROUND_LOOKBACK = 20
+_GROUND_PAIRS = 200
+_GROUND_MIN_PAIRS = 5
+# A join candidate farther (GPS) than the frame diagonal on the ground plus this many GPS sigmas
+# cannot overlap the new keyframe: not tried.
+_JOIN_GPS_SIGMAS = 4.0
 
 
 class PoseTable(Mapping[int, np.ndarray]):
@@ -226,6 +237,10 @@ class LoopCloser:
         self._signature: dict[int, np.ndarray] = {}  # keyframe -> place signature
         self._places = PlaceIndex()  # the same signatures, by segment: loops by appearance
         self._position: dict[int, tuple[float, float]] = {}  # keyframe -> (east, north) m, with GPS
+        # ground metres per input pixel, one value per keyframe with GPS (see _ground_scale)
+        self._ground_m_per_px: deque[float] = deque(maxlen=_GROUND_PAIRS)
+        # (keyframe, image shape) -> its view as a join candidate, the newest last (see _join_view)
+        self._join_views: dict[tuple[int, tuple[int, int]], View] = {}
         self._to_small = scaling(working_scale)
         self._from_small = np.linalg.inv(self._to_small)
         self._enu_origin: tuple[float, float] | None = None  # first GPS fix of the run
@@ -317,6 +332,7 @@ class LoopCloser:
         graph = self._graph(step.segment)
         edge = (step.reference, step.relative, step.confidence) if step.reference is not None else None
         graph.add_keyframe(index, np.vstack([step.pose, [0, 0, 1]]), edge, priors)
+        self._ground_scale(graph)
         updates: list[Update] = []
         if self._join_matcher is None:
             join = self._try_join(index, step.segment, small, image)
@@ -420,15 +436,50 @@ class LoopCloser:
         started = self._start()
         return [c for c in (done, started) if c is not None]
 
+    def _ground_scale(self, graph: KeyframeGraph) -> None:
+        """Learn the ground metres per input pixel from the newest keyframe of ``graph`` and an
+        earlier one of its chain with a GPS fix at least ``_GROUND_BASE_SIGMAS`` GPS sigmas away
+        (their GPS distance over their map distance, in input pixels of the newest)."""
+        kfs = graph.keyframes
+        here = self._position.get(kfs[-1].index)
+        if here is None or len(kfs) < 2:
+            return
+        pose = kfs[-1].pose
+        centre = pose @ graph.centre
+        base = _GROUND_BASE_SIGMAS * self.graph_params.gps_sigma_m
+        for kf in kfs[-2:-_GROUND_LOOKBACK - 2:-1]:
+            there = self._position.get(kf.index)
+            if there is None:
+                continue
+            metres = float(np.hypot(here[0] - there[0], here[1] - there[1]))
+            if metres < base:
+                continue
+            px = float(np.hypot(*(kf.pose @ graph.centre - centre)[:2])) / max(pose_scale(pose), 1e-9)
+            if px > 1.0:
+                self._ground_m_per_px.append(metres / px)
+            return
+
+    def _join_reach_m(self) -> float | None:
+        """How far apart (metres, by GPS) two keyframes can be while their footprints may still
+        overlap: the frame diagonal on the ground (:meth:`_ground_scale`, median) plus
+        ``_JOIN_GPS_SIGMAS`` GPS sigmas; None while fewer than ``_GROUND_MIN_PAIRS`` pairs tell it."""
+        if len(self._ground_m_per_px) < _GROUND_MIN_PAIRS:
+            return None
+        diagonal = float(np.hypot(*self.frame_size)) * float(np.median(self._ground_m_per_px))
+        return diagonal + _JOIN_GPS_SIGMAS * self.graph_params.gps_sigma_m
+
     def _join_candidates(self, index: int, segment: int) -> list[int]:
-        """Keyframes of the other segments to try against keyframe ``index``, best first."""
+        """Keyframes of the other segments to try against keyframe ``index``, best first (by GPS:
+        the nearest, none whose footprint cannot reach this one's)."""
         others = [k for k, s in self._segment_of.items() if s != segment and s in self.graphs]
         if not others:
             return []
         here = self._position.get(index)
         if here is not None and all(k in self._position for k in others):
             key = {k: np.hypot(self._position[k][0] - here[0], self._position[k][1] - here[1]) for k in others}
-            return sorted(others, key=key.get)[:self.join_candidates]
+            reach = self._join_reach_m()
+            near = sorted(others, key=key.get)[:self.join_candidates]
+            return [k for k in near if reach is None or key[k] <= reach]
         similar = place_similarities(self._signature[index], np.stack([self._signature[k] for k in others]))
         return [others[i] for i in np.argsort(-similar, kind="stable")[:self.join_candidates]]
 
@@ -478,14 +529,34 @@ class LoopCloser:
         for match in candidates:
             if pause is not None:
                 pause()
-            old = self.store.image(match)  # as the painter kept it: maybe at the map's (lower) resolution
-            if old is not None and old.shape[:2] != image.shape[:2]:
-                # the features' placement assumes both images at one scale: the input frame's
-                old = cv2.resize(old, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_LINEAR)
-            placed = matcher.match(matcher.view(self.store.small(match), old), view, always_check=True)
+            ref = self._join_view(matcher, match, image.shape[:2])
+            placed = matcher.match(ref, view, always_check=True)
+            ref.image = None  # its features, if asked, are kept with it; the image is read again if needed
             if placed.accepted:
                 return match, self._from_small @ to_h(placed.matrix) @ self._to_small, float(placed.confidence)
         return None
+
+    def _join_view(self, matcher: PairMatcher, match: int, shape: tuple[int, int]) -> View:
+        """Keyframe ``match`` as a join candidate: its spectra and features are kept (the last
+        ``_JOIN_VIEWS`` candidates: a new segment's keyframes try the same few old ones again and
+        again, and the features were most of a stills join search's time); its image is read
+        from the store, resized to ``shape`` (h, w) of the new keyframe, only while its features
+        are not known."""
+        key = (match, shape)
+        ref = self._join_views.pop(key, None)
+        if ref is None:
+            ref = matcher.view(self.store.small(match))
+        self._join_views[key] = ref  # the newest last
+        while len(self._join_views) > _JOIN_VIEWS:
+            self._join_views.pop(next(iter(self._join_views)))
+        if ref.features is None:
+            old = self.store.image(match)  # as the painter kept it: maybe at the map's (lower) resolution
+            if old is not None and old.shape[:2] != shape:
+                # the features' placement assumes both images at one scale: the input frame's
+                old = cv2.resize(old, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+            ref.image = old
+            ref.image_scale = ref.prepared.gray.shape[1] / old.shape[1] if old is not None else 1.0
+        return ref
 
     def _join(self, index: int, match: int, measured: np.ndarray, confidence: float) -> Join | None:
         """Join the segment of keyframe ``index`` to that of keyframe ``match`` (``measured``: 3x3
@@ -584,6 +655,8 @@ class LoopCloser:
             self._signature.pop(k, None)
             self._places.remove(k)
             self._position.pop(k, None)
+            for key in [key for key in list(self._join_views) if key[0] == k]:
+                self._join_views.pop(key, None)
             self.store.discard(k)
 
     def flush(self) -> list[Update]:

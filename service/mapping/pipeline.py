@@ -61,6 +61,7 @@ from photomap.mapping.rows import RowView, TrajectoryRows
 from photomap.mapping.run_outputs import RunOutputs
 from photomap.mapping.segments import SegmentMaps
 from photomap.mapping.telemetry_join import TelemetryJoin
+from photomap.mapping.telemetry_place import TelemetryPlacer
 from photomap.mapping.threads import WorkerFirst, switch_interval
 from photomap.mapping.timing import StageTimes
 from photomap.telemetry.samples import TelemetrySample
@@ -266,6 +267,8 @@ class MappingPipeline:
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
         self._prep = FramePrep.from_config(cfg)  # lens undistortion and frame mask (None: neither)
+        self._placer: TelemetryPlacer | None = None  # frames vision left unplaced, with telemetry
+        self._placed: dict | None = None  # what the placer did (run.json telemetry.placed)
         self._deep = RunningStretch()  # deep frames a source delivers raw (a Y16 camera) to uint8, one range a flight
 
     @property
@@ -581,6 +584,9 @@ class MappingPipeline:
             if step.pose is not None:
                 self.telemetry.keep(frame.index, sample)
         self._rows.append(frame.index, frame.t, step.pose, step.confidence, step.status, step.segment, extra)
+        if self.telemetry is not None and step.status == LOW_CONFIDENCE:  # placed at the end, if trusted
+            self._placer = self._placer or TelemetryPlacer(self.telemetry, self.frame_size)
+            self._placer.keep(frame.index, frame.t, placed.image, placed.mask, placed.sample)
         return messages
 
     def _close_loops(self, frame: Frame, placed: _Placed, messages: list[str]) -> Callable[[], np.ndarray] | None:
@@ -772,12 +778,22 @@ class MappingPipeline:
                 for segment in list(self.mosaics):  # every segment got its last frame
                     self._painter.end_segment(self.mosaics.get(segment), segment)
                 self._painter.finish(self.mosaics)  # the re-renders the corrections need, in strips
+                if self._placer is not None and self.mosaics:  # what vision left unplaced, by trusted telemetry
+                    self._placed = self._placer.place(
+                        self._rows, self.segments.largest(), lambda seg: self.outputs.gps_fit(self._rows, seg),
+                        lambda seg, into, t: self._join(Join(seg, into, t, -1, -1, 0.0)),
+                        lambda seg, k, img, pose, mask: self._painter.paint(self.segments.mosaic(seg), seg, k, img,
+                                                                            pose, mask))
+                    self._painter.finish(self.mosaics)  # segments joined by the GPS re-rendered
             except PhotomapError as exc:  # the map stays as painted live: still written
                 log.error("%s; the map keeps the poses it was painted with", exc)
             finally:
                 self._painter.close()
         self.stats.timing.add("final_rerender", time.perf_counter() - t0)
         self._close_gaps()
+        self.outputs.placed = self._placed
         summary = self.outputs.finish(self.summary, self.stats.timing, t0)
         self.segments.close()
+        if self._placer is not None:
+            self._placer.close()
         return summary

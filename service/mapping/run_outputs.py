@@ -32,7 +32,7 @@ from photomap.errors import OutputError, PhotomapError
 from photomap.geometry import pose_angle_deg
 from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
-from photomap.io.trajectory_files import write_json, write_trajectory_csv, write_tum
+from photomap.io.trajectory_files import tum_skipped_message, write_json, write_trajectory_csv, write_tum
 from photomap.mapping.band_maps import write_band_maps
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import GeoreferenceSink
@@ -103,6 +103,8 @@ class RunOutputs:
         self._write_errors: dict[str, str] = {}  # output -> why it could not be written (once each)
         # told each live GPS fit of the main map (writer thread) and the final one: (segment, fit)
         self.on_georeference: GeoreferenceSink | None = None
+        self.placed: dict | None = None  # what telemetry placed of what vision did not (run.json telemetry.placed)
+        self._tum_skipped: list[int] = []  # frames the final trajectory.tum left out (said once)
         # a checkpoint's trajectory.csv (10,000 rows take ~0.25 s to format: a stall in the worker)
         # and run.json are written by this thread; the worker hands it the rows' fields
         self._writer: ThreadPoolExecutor | None = None
@@ -118,13 +120,17 @@ class RunOutputs:
 
     def _write_trajectory(self, rows: Iterable[RowView] | None = None) -> None:
         """``trajectory.csv`` and ``trajectory.tum`` of ``rows`` (default: the rows now; iterated
-        several times)."""
+        several times). Frames the TUM file leaves out are said once, by the final rows' write."""
         if self._frame_size is None:
             return
-        rows = self._rows if rows is None else rows
+        final, rows = rows is None, (self._rows if rows is None else rows)
         write_trajectory_csv(self.out_dir / "trajectory.csv", rows, self._frame_size)
         if any(r.glued for r in rows):
-            write_tum(self.out_dir / "trajectory.tum", rows, self._frame_size)
+            skipped: list[int] = []
+            write_tum(self.out_dir / "trajectory.tum", rows, self._frame_size, skipped=skipped)
+            if final and skipped and skipped != self._tum_skipped:
+                self._tum_skipped = skipped
+                log.warning(tum_skipped_message(skipped))
 
     def _write_later(self, summary: dict) -> None:
         """A checkpoint's files, written by the writer thread: the trajectory (from a copy of the
@@ -238,7 +244,7 @@ class RunOutputs:
         main, footprints = self.segments.largest()[0], self.cfg.footprints
 
         def refresh() -> None:
-            fit = self._gps_fit(rows, main)  # no georeference below georef.min_fixes GPS fixes
+            fit = self.gps_fit(rows, main)  # no georeference below georef.min_fixes GPS fixes
             if fit.geo is None or fit.problem is not None:
                 return
             if self.on_georeference is not None:
@@ -252,7 +258,7 @@ class RunOutputs:
 
         return refresh
 
-    def _gps_fit(self, rows: TrajectoryRows, segment: int) -> SegmentFit:
+    def gps_fit(self, rows: TrajectoryRows, segment: int) -> SegmentFit:
         """The telemetry join's GPS fit of the glued rows of ``segment`` that have a kept sample
         (:meth:`TelemetryJoin.fit_segment`); from the worker or the writer (the rows' copy)."""
         join, (w, h) = self.telemetry, self._frame_size or (0, 0)
@@ -270,7 +276,7 @@ class RunOutputs:
         main = maps[0]["segment"] if maps else 0
         posed = self._rows.glued(main)
         check = join.time_offset_check([r.t for r in posed], [pose_angle_deg(np.asarray(r.M)) for r in posed])
-        fits = {info["segment"]: self._gps_fit(self._rows, info["segment"]) for info in maps}
+        fits = {info["segment"]: self.gps_fit(self._rows, info["segment"]) for info in maps}
         trusted = join.verdict(check, fits.get(main)) == "ok"
         geo_out = {}
         for info in maps:
@@ -365,6 +371,7 @@ class RunOutputs:
         (self.out_dir / "preview.png").unlink(missing_ok=True)
         if self.telemetry is not None:
             self._attempt("georeference", self._georeference, summary, maps + [u for u in unwritten if u not in maps])
+            summary["telemetry"]["placed"] = self.placed
             for info in unwritten:
                 if info not in maps:
                     remove_sidecars(self.out_dir, info["file"])  # no PNG for them

@@ -21,8 +21,14 @@ does not cover are outside its validity mask and never reach the map.
 
 Trust: telemetry that does not fit the images is refused at the end of the run
 (:meth:`TelemetryJoin.verdict`): no sample joined, the yaw rates do not correlate in time, vision
-overruled most priors, or the GPS track does not fit the vision track. Then the map is not
-georeferenced from it and ``run.json`` ``telemetry.status`` names the reason. After
+overruled most priors, or the GPS track does not fit the vision track (after the similarity fit:
+too few fixes within ``georef.gps_inlier_m``, a short track off the camera's scale, or halves of
+the track that need different scales or rotations). Then the map is not georeferenced from it
+and ``run.json`` ``telemetry.status`` names the reason. The camera-height scale (the relative
+altitude is over the take-off point, not the ground; the focal length may be wrong) and the
+compass or gimbal yaw (a constant offset on some models) are priors: one that contradicts a GPS
+fit that holds is dropped (the scale and heading are the GPS track's), listed in
+``telemetry.problems`` and said once, and the map is still georeferenced from the GPS. After
 ``max_disagreements_in_a_row`` overruled priors the join stops handing out telemetry for the rest
 of the run (vision alone).
 """
@@ -32,7 +38,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Callable
 
 import cv2
@@ -86,10 +92,12 @@ class Rectified:
 class SegmentFit:
     """The metric scale and georeference of one map segment, and what speaks against them.
 
-    metres_per_px : from the camera model and the heights (None when unknown), else the GPS
-    fit's. camera_mpp : the camera's alone. compass_heading_deg : the map's up direction from
-    the yaw (:func:`map_heading_deg`). geo : the GPS fit (None when not possible).
-    problem : why the GPS fit contradicts the vision track (None: it does not).
+    metres_per_px : from the camera model and the heights (None when unknown), else (or when
+    the camera's scale is dropped) the GPS fit's. camera_mpp : the camera's alone.
+    compass_heading_deg : the map's up direction from the yaw (:func:`map_heading_deg`).
+    geo : the GPS fit (None when not possible). problem : why the GPS fit contradicts the
+    vision track (None: it does not). dropped : the priors that contradict the GPS fit,
+    ``(code, text)``: ``camera_scale`` (height and focal length), ``compass`` (yaw).
     """
 
     metres_per_px: float | None
@@ -97,6 +105,7 @@ class SegmentFit:
     camera_mpp: float | None = None
     compass_heading_deg: float | None = None
     problem: str | None = None
+    dropped: list[tuple[str, str]] = field(default_factory=list)
 
 
 def _consistent_compass(poses: list[np.ndarray], samples: list[TelemetrySample], min_resultant: float = 0.9) -> bool:
@@ -106,6 +115,33 @@ def _consistent_compass(poses: list[np.ndarray], samples: list[TelemetrySample],
     d = [s.yaw - math.radians(pose_angle_deg(p)) for p, s in zip(poses, samples)
          if s.yaw is not None and math.isfinite(s.yaw)]
     return bool(d) and float(np.hypot(np.cos(d).mean(), np.sin(d).mean())) >= min_resultant
+
+
+def _halves_disagree(xy: np.ndarray, samples: list[TelemetrySample], inlier_m: float, min_extent_m: float,
+                     min_fixes: int, max_scale_ratio: float, max_heading_error: float) -> str | None:
+    """Why the two halves of a GPS track (by frame order) fit the vision track differently, or
+    None: each half long enough (``min_extent_m``) and with ``min_fixes`` fixes is fitted on its
+    own; scales more than ``max_scale_ratio`` or rotations more than ``max_heading_error`` deg
+    apart mean the GPS does not follow the images along the track (a wrong clock, another
+    flight's track) however well one similarity fits the whole."""
+    fixed = [k for k, s in enumerate(samples) if s.lat is not None and s.lon is not None]
+    if len(fixed) < 2 * min_fixes:
+        return None
+    half = len(fixed) // 2
+    fits = []
+    for part in (fixed[:half], fixed[half:]):
+        geo = fit_georeference(xy[part], [samples[k].lat for k in part], [samples[k].lon for k in part],
+                               inlier_m=inlier_m, min_extent_m=min_extent_m / 2.0, min_fixes=min_fixes)
+        if geo is None or geo.scale_source != "gps":
+            return None
+        fits.append(geo)
+    ratio = fits[1].metres_per_px / fits[0].metres_per_px
+    if max(ratio, 1.0 / ratio) > max_scale_ratio:
+        return f"the two halves of the GPS track fit the vision track at scales x{ratio:.2f} apart"
+    turn = float(wrap_deg(fits[1].heading_deg - fits[0].heading_deg))
+    if abs(turn) > max_heading_error:
+        return f"the two halves of the GPS track fit the vision track turned {turn:.0f} deg apart"
+    return None
 
 
 def frame_ranges(frames: list[int], limit: int = 6) -> str:
@@ -145,16 +181,21 @@ class TelemetryJoin:
         ``(field, t) -> value or None``: one field of what ``sample_at(t)`` gives (a buffer's
         ``value_at``), for checks that read one field over the whole flight (the time-offset
         check reads the yaw every 0.05 s: a whole sample each time cost 0.1 s a 1000-frame flight).
+    sample_of : callable, optional
+        ``frame -> TelemetrySample or None``: the frame's own sample, used instead of
+        ``sample_at`` (survey stills: each still's, also when stills share a capture time).
     """
 
     def __init__(self, sample_at: Callable[[float], TelemetrySample], mode: str, cfg: Config, *,
                  video_start: float = 0.0, offset: float = 0.0,
                  link_summary: Callable[[], dict] = dict,
-                 field_at: Callable[[str, float], float | None] | None = None) -> None:
+                 field_at: Callable[[str, float], float | None] | None = None,
+                 sample_of: Callable[[Frame], TelemetrySample | None] | None = None) -> None:
         if mode not in ("live", "log", "link", "stills"):
             raise ValueError(f"unknown telemetry time mode {mode!r}")
         self.sample_at = sample_at
         self.field_at = field_at
+        self.sample_of = sample_of
         self.mode = mode
         self.video_start = video_start
         self.offset = offset
@@ -182,6 +223,7 @@ class TelemetryJoin:
         self._max_scale_ratio = self.gcfg.max_scale_ratio
         self._max_heading_error = self.gcfg.max_heading_error_deg
         self._min_inlier_fraction = self.gcfg.min_inlier_fraction
+        self._alone = (self.gcfg.alone_min_inlier_fraction, self.gcfg.alone_max_rms_fraction)
 
     def keep(self, index: int, sample: TelemetrySample) -> None:
         """Keep the sample of posed frame ``index`` for the georeference at the end."""
@@ -239,7 +281,7 @@ class TelemetryJoin:
         if self.stopped:
             self.stats.frames_ignored += 1
             return None
-        s = self.sample_at(self.telemetry_time(frame.t))
+        s = self.sample_of(frame) if self.sample_of is not None else self.sample_at(self.telemetry_time(frame.t))
         known = s is not None and (s.yaw is not None or s.height_above_ground is not None
                                    or s.lat is not None)
         if known:
@@ -390,7 +432,7 @@ class TelemetryJoin:
         return {"residual_offset_s": found.offset_s, "correlation": found.correlation,
                 "refused": found.reason, "best_correlation": found.best_correlation}
 
-    def _gps_point(self, index: int | None, s: TelemetrySample, width: int, height: int) -> np.ndarray:
+    def gps_point(self, index: int | None, s: TelemetrySample, width: int, height: int) -> np.ndarray:
         """Homogeneous pixel (of the frame's pose) that the GPS fix belongs to: the ground point
         below the camera (the frame centre when the attitude or camera model is unknown)."""
         cx, cy = frame_centre(width, height)
@@ -411,16 +453,21 @@ class TelemetryJoin:
 
         ``poses`` (2x3, map pixels of the frames' views), ``samples`` and ``frames`` (indices)
         are parallel. The GPS fit's ``problem`` is set when fewer than
-        ``georef.min_inlier_fraction`` of the fixes agree with it, when a GPS-fitted scale
-        contradicts the camera's (ratio beyond ``georef.max_scale_ratio``) or its rotation
-        contradicts the compass (beyond ``georef.max_heading_error_deg``), or when a short track
-        (camera scale) leaves an RMS residual above half of ``georef.gps_inlier_m``.
+        ``georef.min_inlier_fraction`` of the fixes agree with it, when the two halves of a
+        GPS-scaled track need scales (rotations) more than ``georef.max_scale_ratio``
+        (``georef.max_heading_error_deg``) apart (:func:`_halves_disagree`), or when a short
+        track (camera scale) leaves an RMS residual above half of ``georef.gps_inlier_m``.
+        Otherwise a GPS-fitted scale that contradicts the camera's (ratio beyond
+        ``georef.max_scale_ratio``) drops the camera's scale, and a GPS-fitted rotation that
+        contradicts a consistent compass (beyond ``georef.max_heading_error_deg``) drops the
+        compass (``dropped``): the GPS fit stands, if it holds on its own (:meth:`_weak_alone`);
+        if it does not, the contradiction is its ``problem``.
         """
         fx = self.focal(width)
         heights = [s.height_above_ground for s in samples]
         camera_mpp = metres_per_pixel(poses, heights, fx) if fx else None
         frames = list(frames) if frames is not None else [None] * len(poses)
-        xy = (np.array([(p @ self._gps_point(f, s, width, height))[:2] for p, s, f in zip(poses, samples, frames)])
+        xy = (np.array([(p @ self.gps_point(f, s, width, height))[:2] for p, s, f in zip(poses, samples, frames)])
               if poses else np.zeros((0, 2)))
         heading = map_heading_deg(poses, [s.yaw for s in samples])
         g = self.gcfg
@@ -439,24 +486,55 @@ class TelemetryJoin:
         if geo.inliers < self._min_inlier_fraction * geo.points:
             fit.problem = (f"only {geo.inliers} of {geo.points} GPS fixes fit the vision track "
                            f"within {g.gps_inlier_m:g} m")
-        elif geo.scale_source == "gps" and camera_mpp:
-            ratio = geo.metres_per_px / camera_mpp
-            if max(ratio, 1.0 / ratio) > self._max_scale_ratio:
-                fit.problem = (f"the GPS track makes {geo.metres_per_px:.3g} m per map pixel, the camera "
-                               f"and height {camera_mpp:.3g} m (x{ratio:.2f})")
-        if fit.problem is None and geo.scale_source == "gps" and heading is not None \
-                and _consistent_compass(poses, samples):
-            off = float(wrap_deg(geo.heading_deg - heading))
-            if abs(off) > self._max_heading_error:
-                fit.problem = f"the GPS track is turned {off:.0f} deg against the compass"
+        elif geo.scale_source == "gps":
+            fit.problem = _halves_disagree(xy, samples, g.gps_inlier_m, g.min_extent_m, g.min_fixes,
+                                           self._max_scale_ratio, self._max_heading_error)
         if fit.problem is None and geo.scale_source == "camera" and geo.rms_m > g.gps_inlier_m / 2:
             fit.problem = (f"the GPS track does not follow the vision track at the camera's scale "
                            f"(RMS {geo.rms_m:.1f} m)")
+        contradicted: list[tuple[str, str, str]] = []  # (prior, refusal text, dropping text)
+        if fit.problem is None and geo.scale_source == "gps" and camera_mpp:
+            ratio = geo.metres_per_px / camera_mpp
+            if max(ratio, 1.0 / ratio) > self._max_scale_ratio:
+                contradicted.append((
+                    "camera_scale",
+                    f"the GPS track makes {geo.metres_per_px:.3g} m per map pixel, the camera and height "
+                    f"{camera_mpp:.3g} m (x{ratio:.2f})",
+                    f"the camera height and focal length make {camera_mpp:.3g} m per map pixel, the GPS "
+                    f"track {geo.metres_per_px:.3g} m (x{ratio:.2f}; is the height over the take-off "
+                    "point rather than the ground?): the scale is the GPS track's"))
+        if fit.problem is None and geo.scale_source == "gps" and heading is not None \
+                and _consistent_compass(poses, samples):
+            off = float(wrap_deg(heading - geo.heading_deg))
+            if abs(off) > self._max_heading_error:
+                contradicted.append((
+                    "compass", f"the GPS track is turned {-off:.0f} deg against the compass",
+                    f"the compass (gimbal) yaw is turned {off:.0f} deg against the GPS track: the map's "
+                    "heading is the GPS track's"))
+        if contradicted:
+            weak = self._weak_alone(geo)
+            if weak is not None:  # a GPS fit that needs the priors' support loses to them
+                fit.problem = "; ".join(refusal for _, refusal, _ in contradicted) + f" ({weak})"
+            else:
+                fit.dropped = [(code, text) for code, _, text in contradicted]
+                if any(code == "camera_scale" for code, _, _ in contradicted):
+                    fit.metres_per_px = geo.metres_per_px
         if geo.inliers < g.min_fixes:
             fit.geo = None
         elif fit.metres_per_px is None:
             fit.metres_per_px = geo.metres_per_px
         return fit
+
+    def _weak_alone(self, geo: Georeference) -> str | None:
+        """Why a GPS fit cannot overrule the priors on its own, or None: fewer than
+        ``georef.alone_min_inlier_fraction`` of the fixes within ``georef.gps_inlier_m``, or an
+        RMS residual above ``georef.alone_max_rms_fraction`` of the track's spread."""
+        min_inliers, max_rms = self._alone
+        if geo.inliers < min_inliers * geo.points:
+            return f"{geo.inliers} of {geo.points} fixes fit"
+        if geo.rms_m > max_rms * geo.extent_m:
+            return f"RMS {geo.rms_m:.1f} m over a track of {geo.extent_m:.0f} m spread"
+        return None
 
     def georeference(self, width: int, height: int, poses: list[np.ndarray],
                      samples: list[TelemetrySample], frames: list[int] | None = None
@@ -474,8 +552,26 @@ class TelemetryJoin:
         video and telemetry do not correlate: ``check`` from :meth:`time_offset_check`);
         ``disagrees`` (vision overruled most priors, or telemetry was switched off for it);
         ``gps_mismatch`` (``fit``, the main segment's :meth:`fit_segment`, has a problem).
-        :attr:`problems` lists every reason found, in that order.
+        :attr:`problems` lists every reason found, in that order; for trusted telemetry, the
+        priors the GPS fit dropped (``fit.dropped``: the status stays ``ok``), one WARNING each.
         """
+        problems = self.assess(check, fit)
+        dropped = list(fit.dropped) if fit is not None and not problems else []
+        self.problems = [f"{code}: {text}" for code, text in problems + dropped]
+        self.status = problems[0][0] if problems else "ok"
+        if problems:
+            log.warning("telemetry refused (%s): the map is not georeferenced from it",
+                        "; ".join(text for _, text in problems))
+        for _, text in dropped:
+            log.warning("telemetry prior dropped: %s", text)
+        if not problems and self._missing:
+            log.warning("%d of %d frames have no telemetry (frames %s): mapped by vision alone",
+                        len(self._missing), self._frames, frame_ranges(self._missing))
+        return self.status
+
+    def assess(self, check: dict | None, fit: SegmentFit | None) -> list[tuple[str, str]]:
+        """The reasons (code, text) to refuse the telemetry (see :meth:`verdict`, which says
+        them); empty when it fits the images. Logs nothing, changes nothing."""
         problems: list[tuple[str, str]] = []
         st = self.stats
         if self._frames and st.frames_with_telemetry == 0:
@@ -495,15 +591,7 @@ class TelemetryJoin:
                                 if st.stopped_at_frame is not None else "")))
         if fit is not None and fit.problem:
             problems.append(("gps_mismatch", fit.problem))
-        self.problems = [f"{code}: {text}" for code, text in problems]
-        self.status = problems[0][0] if problems else "ok"
-        if problems:
-            log.warning("telemetry refused (%s): the map is not georeferenced from it",
-                        "; ".join(text for _, text in problems))
-        elif self._missing:
-            log.warning("%d of %d frames have no telemetry (frames %s): mapped by vision alone",
-                        len(self._missing), self._frames, frame_ranges(self._missing))
-        return self.status
+        return problems
 
     def summary(self) -> dict:
         """What the join did and decided (``run.json`` ``telemetry``, without the time check)."""
