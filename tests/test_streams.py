@@ -66,6 +66,19 @@ def _photomap_run(url: str, out: Path) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def _wait_for_reopen(port: int, gap_s: float, limit_s: float = 20.0) -> None:
+    """Stay silent for ``gap_s``, and on until photomap has let the port go and bound it again
+    (the lost stream released and reopened: a loaded machine may take longer than the gap to
+    notice the loss), at most ``limit_s``: then the stream comes back to a listening receiver."""
+    start, released = time.monotonic(), False
+    while time.monotonic() - start < limit_s:
+        bound = _udp_bound(port)
+        released = released or not bound
+        if time.monotonic() - start >= gap_s and released and bound:
+            return
+        time.sleep(0.02)
+
+
 def _udp_bound(port: int) -> bool:
     """Whether a socket listens on UDP ``port`` (from /proc/net/udp)."""
     try:
@@ -108,8 +121,8 @@ def test_udp_mpegts_stream_that_stops_and_starts_again_is_mapped(halves, tmp_pat
             time.sleep(0.05)
         assert _udp_bound(port), "photomap run never listened on the port"
         for i, part in enumerate(halves):
-            if i:
-                time.sleep(GAP_S)  # the sender is silent: the stream is lost, then reopened
+            if i:  # the sender is silent: the stream is lost, then reopened
+                _wait_for_reopen(port, GAP_S)
             subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-re", "-i", str(part), "-c", "copy",
                             "-f", "mpegts", f"{url}?pkt_size=1316"], check=True, timeout=60)
         _stop_and_check(proc, out, 2 * PART)

@@ -161,7 +161,11 @@ def test_link_lost_mid_flight_keeps_the_map(flight, tmp_path, monkeypatch):
 
 
 def test_garbage_bytes_on_the_link_do_not_break_the_map(flight, tmp_path, monkeypatch):
-    summary = run_with_udp_replay(flight, tmp_path, monkeypatch, garbage_rate=0.3)
+    # what is judged is the samples that reach the join through the garbage: the join is not
+    # switched off after disagreements (on a loaded machine a realtime replay falls behind the
+    # link's clock, and its priors then disagree with the images whatever the bytes)
+    summary = run_with_udp_replay(flight, tmp_path, monkeypatch, ["telemetry.max_disagreements_in_a_row=0"],
+                                  garbage_rate=0.3)
     assert summary["registered"] == 60
     assert summary["telemetry"]["frames_with_telemetry"] >= 50
     assert (tmp_path / "mosaic.png").is_file()
