@@ -25,6 +25,7 @@ With --md, replaces the section between the exposure markers of that file.
 from __future__ import annotations
 
 import argparse
+import datetime
 import math
 import os
 import platform
