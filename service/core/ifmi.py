@@ -71,6 +71,10 @@ _REFINE_KEEP = 0.25  # grid samples kept: gradient energy above this fraction of
 _REFINE_MIN_KEEP = 4096  # ... but at least this many (all of a smaller grid: noisy ground needs them)
 _BLAS_ONE_THREAD = 65536 * 4  # OpenBLAS runs a matrix product with m n k up to this on the caller's thread
 _REFINE_MARGIN = 2.0  # samples used must map this far inside b (level pixels); see _refine
+_TAIL_SIGMAS = 3.0  # a converged residual beyond this many robust sigmas (1.4826 MAD) is in the tail
+_TAIL_SHARE = 0.05  # ... and a tail above this share of the samples is a second layer (see _refine)
+_BIWEIGHT_C = 4.685  # Tukey's biweight constant (robust sigmas) of the re-weighted refinement
+_LAYER_RATIO = (0.6, 0.97)  # a farther layer moves this fraction of a nearer one's displacement (see _ground_first)
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 _EXPECTED_PEAK = 0.35  # a peak at the expected shift wins over higher ones at this fraction of the best
 _CLEAR_PEAK = 0.15  # ... and at least this high (well above noise, which scores ~0)
@@ -833,7 +837,8 @@ class Registrar:
             frame._cache["template"] = tpl
         return tpl
 
-    def _refine(self, a: PreparedFrame, b: PreparedFrame, m: np.ndarray) -> np.ndarray | None:
+    def _refine(self, a: PreparedFrame, b: PreparedFrame, m: np.ndarray,
+                layered: bool = False) -> np.ndarray | None:
         """Inverse compositional Gauss-Newton on a similarity + brightness gain/offset.
 
         ``m`` maps b -> a; returns the refined matrix, or None when it does not converge. It runs
@@ -861,6 +866,7 @@ class Registrar:
         moved = math.inf  # level pixels the samples moved since their mask was built
         fit_start = fit_end = -math.inf  # weighted correlation of b with the template
         samples = np.empty((2, tpl.sd.shape[1]), np.float32)  # b at the samples (centred roughly), squared
+        robust: np.ndarray | None = None  # per-sample biweight once a second layer showed up
         for it in range(self.refine_iterations):
             # where the template's samples fall in b: the inverse of the matrix
             det = m00 * m11 - m01 * m10
@@ -876,6 +882,8 @@ class Registrar:
                 # mask, Hessian and template moments stay valid) while the warp moves them less
                 inside = cv2.inRange(where, (lo, lo), (wb_ - 1 - lo, hb - 1 - lo)).ravel()
                 wgt = cv2.multiply(tpl.window, inside, scale=1.0 / 255.0, dtype=cv2.CV_32F).ravel()
+                if robust is not None:
+                    wgt *= robust
                 wsd = tpl.sd * wgt
                 # Gauss-Newton matrix and template moments
                 hess = _gram(tpl.sd, wsd)
@@ -910,6 +918,13 @@ class Registrar:
             if vw <= _EPS:
                 return None
             gain = math.sqrt(vt / vw)
+            if layered and robust is None and it == 0:
+                # a layer at another depth is in view and ``m`` is the ground's: weight its
+                # misaligned samples down before they pull the fit
+                robust = self._second_layer(samples[0], tpl.sd[5], gain, mw, mt, wgt, always=True)
+                if robust is not None:
+                    moved = math.inf
+                    continue
             # weighted correlation of b with the template: the residual's energy is -2 rhs[5]
             # (row 5 is the centred template; the residual has zero weighted mean)
             fit = 1.0 + (gain * (float(proj[5]) - mw * ones5) - tmpl5) / (wsum * vt)
@@ -927,6 +942,12 @@ class Registrar:
             # converged when the frame corners move less than _REFINE_TOL (full-resolution pixels)
             step = max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * reach
             if step * f < _REFINE_TOL:
+                if robust is None and it + 1 < self.refine_iterations:
+                    robust = self._second_layer(samples[0], tpl.sd[5], gain, mw, mt, wgt)
+                    if robust is not None:
+                        # parallax: samples of a second depth pull the fit; continue without them
+                        moved = math.inf
+                        continue
                 fit_end = fit
                 break
             moved += step
@@ -939,6 +960,36 @@ class Registrar:
         converged_better = fit_end > fit_start and moved_px <= 0.1 * max(h, w)
         if moved_px > max(3.0, 0.03 * max(h, w)) and not converged_better:
             return None
+        return out
+
+    @staticmethod
+    def _second_layer(u: np.ndarray, t: np.ndarray, gain: float, mw: float, mt: float,
+                      wgt: np.ndarray, always: bool = False) -> np.ndarray | None:
+        """Tukey biweights of the refinement's samples when its converged residual has a heavy
+        tail, else None.
+
+        ``u`` is b at the samples (centred roughly), ``t`` the centred template, ``gain``, ``mw``,
+        ``mt`` the brightness model, ``wgt`` the samples' weights (0 outside). Residuals of one
+        depth (noise, interpolation) are near Gaussian: few lie beyond ``_TAIL_SIGMAS`` robust
+        sigmas. Where a layer at another depth (roofs, trees above the ground) stands in the view,
+        its samples are misaligned once the ground is aligned (or the fit compromises between
+        both): more than ``_TAIL_SHARE`` of them lie in the tail, and weighting them down lets the
+        fit follow the majority, the ground.
+        """
+        used = wgt > 0
+        e = np.float32(gain) * (u[used] - np.float32(mw)) - (t[used] - np.float32(mt))
+        if e.size < 64:
+            return None
+        np.abs(e, out=e)
+        sigma = 1.4826 * _percentile(e, 50.0)
+        if sigma <= _EPS or not always and np.count_nonzero(e > _TAIL_SIGMAS * sigma) <= _TAIL_SHARE * e.size:
+            return None
+        out = np.zeros(u.shape, np.float32)
+        z = e * np.float32(1.0 / (_BIWEIGHT_C * sigma))
+        np.minimum(z, 1.0, out=z)
+        z *= z
+        np.subtract(1.0, z, out=z)
+        out[used] = z * z
         return out
 
     # ------------------------------------------------------------------ public
@@ -972,16 +1023,16 @@ class Registrar:
             # Little overlap starves the log-polar POMF first: also try the expected rotation and
             # scale directly in the translation step (the refinement then corrects them).
             cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior, weight, memo))
-        cands = self._rank(cands, prior)
+        cands, layered = self._ground_first(self._rank(cands, prior))
         best = cands[0]
         m = similarity_matrix(best.angle_deg, best.scale)
         m[:, 2] = best.shift
         ambiguous = any(c.peak >= 0.8 * best.peak and not self._same(c, best) for c in cands[1:])
         refined = False
         if self.refine_iterations and best.peak > 0:
-            key = ("refined", m.tobytes())
+            key = ("refined", m.tobytes(), layered)
             if key not in memo:
-                memo[key] = self._refine(pa, pb, m)
+                memo[key] = self._refine(pa, pb, m, layered)
             m_ref = None if memo[key] is None else memo[key].copy()
             if m_ref is not None:
                 m, refined = m_ref, True
@@ -992,6 +1043,52 @@ class Registrar:
     def _same(c: Candidate, d: Candidate) -> bool:
         return (abs(_wrap180(c.angle_deg - d.angle_deg)) < 1.0 and abs(c.scale / d.scale - 1) < 0.02
                 and math.hypot(c.shift[0] - d.shift[0], c.shift[1] - d.shift[1]) < 2.0)
+
+    def _ground_first(self, cands: list[Candidate]) -> tuple[list[Candidate], bool]:
+        """``cands`` with the ground layer's placement first, and whether a layer above it shows.
+
+        Seen from above, a layer at another depth (roofs, boxes, tree crowns) moves with the same
+        rotation and scale as the ground but by a displacement of the frame centre that is longer
+        (it is nearer): the translation POMF shows a second peak on the line from the centre
+        through the ground's (eFMT, Remote Sensing 2021). A clear candidate of the same rotation
+        and scale whose centre displacement lies on that line at ``_LAYER_RATIO`` of another's is
+        the farther layer of the two: when the best candidate has such a partner, the partner
+        (the farthest of several) is the ground and goes first. Peaks a period apart on periodic
+        ground are not on that line unless the step is at least 1/(1 - 0.6) periods long along a
+        lattice direction.
+        """
+        best = cands[0]
+        floor = max(_EXPECTED_PEAK * best.peak, _CLEAR_PEAK)
+        cx, cy = self.center
+
+        def displacement(c: Candidate) -> tuple[float, float]:
+            m = similarity_matrix(c.angle_deg, c.scale)
+            return (m[0, 0] * cx + m[0, 1] * cy + c.shift[0] - cx, m[1, 0] * cx + m[1, 1] * cy + c.shift[1] - cy)
+
+        def farther(near: tuple[float, float], far: tuple[float, float]) -> float | None:
+            """``far``'s displacement over ``near``'s when ``far`` is a farther layer of it."""
+            norm2 = near[0] * near[0] + near[1] * near[1]
+            lam = (far[0] * near[0] + far[1] * near[1]) / max(norm2, _EPS)
+            off = abs(far[0] * near[1] - far[1] * near[0]) / math.sqrt(max(norm2, _EPS))
+            if _LAYER_RATIO[0] <= lam <= _LAYER_RATIO[1] and off <= 1.0 + 0.03 * math.sqrt(norm2) \
+                    and math.hypot(far[0] - near[0], far[1] - near[1]) >= 2.0:
+                return lam
+            return None
+
+        d_best = displacement(best)
+        chosen, ratio, layered = best, 1.0, False
+        for c in cands[1:]:
+            if c.peak < floor or abs(_wrap180(c.angle_deg - best.angle_deg)) >= 1.0 \
+                    or abs(c.scale / best.scale - 1) >= 0.02:
+                continue
+            d = displacement(c)
+            lam = farther(d_best, d)
+            if lam is not None and lam < ratio:
+                chosen, ratio = c, lam
+            layered = layered or lam is not None or farther(d, d_best) is not None
+        if chosen is best:
+            return cands, layered
+        return [chosen] + [c for c in cands if c is not chosen], True
 
     @staticmethod
     def _rank(cands: list[Candidate], prior: Prior | None) -> list[Candidate]:
