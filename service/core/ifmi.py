@@ -71,8 +71,9 @@ _REFINE_KEEP = 0.25  # grid samples kept: gradient energy above this fraction of
 _REFINE_MIN_KEEP = 4096  # ... but at least this many (all of a smaller grid: noisy ground needs them)
 _BLAS_ONE_THREAD = 65536 * 4  # OpenBLAS runs a matrix product with m n k up to this on the caller's thread
 _REFINE_MARGIN = 2.0  # samples used must map this far inside b (level pixels); see _refine
-_TAIL_SIGMAS = 3.0  # a converged residual beyond this many robust sigmas (1.4826 MAD) is in the tail
-_TAIL_SHARE = 0.05  # ... and a tail above this share of the samples is a second layer (see _refine)
+_TAIL_SIGMAS = 8.0  # a converged residual beyond this many robust sigmas (1.4826 MAD) is in the tail
+_TAIL_SHARE = 0.015  # ... and a tail above this share of the samples is a second layer (see _refine)
+_TAIL_STRIDE = 8  # ... tested on every 8th sample
 _BIWEIGHT_C = 4.685  # Tukey's biweight constant (robust sigmas) of the re-weighted refinement
 _LAYER_RATIO = (0.6, 0.97)  # a farther layer moves this fraction of a nearer one's displacement (see _ground_first)
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
@@ -976,21 +977,24 @@ class Registrar:
         both): more than ``_TAIL_SHARE`` of them lie in the tail, and weighting them down lets the
         fit follow the majority, the ground.
         """
-        used = wgt > 0
-        e = np.float32(gain) * (u[used] - np.float32(mw)) - (t[used] - np.float32(mt))
+        g, offset = np.float32(gain), np.float32(gain * mw - mt)
+        # the test on every _TAIL_STRIDE-th sample (the median and the tail share need no more)
+        e = g * u[::_TAIL_STRIDE] - t[::_TAIL_STRIDE]
+        e = np.abs(e[wgt[::_TAIL_STRIDE] > 0] - offset)
         if e.size < 64:
             return None
-        np.abs(e, out=e)
         sigma = 1.4826 * _percentile(e, 50.0)
         if sigma <= _EPS or not always and np.count_nonzero(e > _TAIL_SIGMAS * sigma) <= _TAIL_SHARE * e.size:
             return None
-        out = np.zeros(u.shape, np.float32)
-        z = e * np.float32(1.0 / (_BIWEIGHT_C * sigma))
+        z = g * u - t
+        z -= offset
+        np.abs(z, out=z)
+        z *= np.float32(1.0 / (_BIWEIGHT_C * sigma))
         np.minimum(z, 1.0, out=z)
         z *= z
         np.subtract(1.0, z, out=z)
-        out[used] = z * z
-        return out
+        z *= z
+        return z
 
     # ------------------------------------------------------------------ public
     def register(self, a: np.ndarray | PreparedFrame, b: np.ndarray | PreparedFrame,
@@ -1062,8 +1066,9 @@ class Registrar:
         cx, cy = self.center
 
         def displacement(c: Candidate) -> tuple[float, float]:
-            m = similarity_matrix(c.angle_deg, c.scale)
-            return (m[0, 0] * cx + m[0, 1] * cy + c.shift[0] - cx, m[1, 0] * cx + m[1, 1] * cy + c.shift[1] - cy)
+            rad = math.radians(c.angle_deg)
+            co, si = c.scale * math.cos(rad), c.scale * math.sin(rad)
+            return co * cx - si * cy + c.shift[0] - cx, si * cx + co * cy + c.shift[1] - cy
 
         def farther(near: tuple[float, float], far: tuple[float, float]) -> float | None:
             """``far``'s displacement over ``near``'s when ``far`` is a farther layer of it."""
