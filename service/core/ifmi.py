@@ -76,6 +76,7 @@ _TAIL_SHARE = 0.015  # ... and a tail above this share of the samples is a secon
 _TAIL_STRIDE = 8  # ... tested on every 8th sample
 _BIWEIGHT_C = 4.685  # Tukey's biweight constant (robust sigmas) of the re-weighted refinement
 _LAYER_RATIO = (0.6, 0.97)  # a farther layer moves this fraction of a nearer one's displacement (see _ground_first)
+_AROUND = (np.array([-1, -1, -1, 0, 0, 1, 1, 1]), np.array([-1, 0, 1, -1, 1, -1, 0, 1]))  # 8 neighbours (dy, dx)
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 _EXPECTED_PEAK = 0.35  # a peak at the expected shift wins over higher ones at this fraction of the best
 _CLEAR_PEAK = 0.15  # ... and at least this high (well above noise, which scores ~0)
@@ -710,23 +711,82 @@ class Registrar:
             hyps.append((_wrap180(angle + 180.0), True))
 
         out = []
-        k = math.sqrt(2.0 * math.log(h * w)) + 1.0
         for hyp_angle, mirrored in hyps:
             r = surface(mirrored)
             peaks = self._peaks(r, 2, exclude=4)
             if prior is not None and prior.shift is not None:
                 # also the best peak within the prior's tolerance (periodic ground)
                 peaks += self._shift_peak(r, hyp_angle, scale, prior)
+            if memo is not None:  # for a farther layer's peak (register, _farther_peak)
+                memo.setdefault("surfaces", {})[(hyp_angle, scale)] = r
             for iy, ix, _ in dict.fromkeys(peaks):
-                fy, fx, height = self._subpixel(r, iy, ix)
-                dy = (fy + h / 2) % h - h / 2
-                dx = (fx + w / 2) % w - w / 2
-                tau = (-dx, -dy)  # b'(q) = a(q + tau) is a shifted by -tau
-                m = similarity_matrix(hyp_angle, scale, tau, center=self.center)
-                peak = (height - k * noise) / max(ref - k * noise, _EPS)
-                out.append(Candidate(hyp_angle, scale, (float(m[0, 2]), float(m[1, 2])),
-                                     float(np.clip(peak, 0.0, 1.0))))
+                out.append(self._candidate(r, iy, ix, hyp_angle, scale, weight))
         return out
+
+    def _candidate(self, r: np.ndarray, iy: int, ix: int, angle: float, scale: float,
+                   weight: tuple[np.ndarray, np.ndarray, float, float]) -> Candidate:
+        """The hypothesis of the translation surface ``r``'s peak (iy, ix) for the rotation
+        ``angle`` and ``scale`` (b warped by them before the POMF)."""
+        h, w = self.shape
+        _, _, ref, noise = weight
+        k = math.sqrt(2.0 * math.log(h * w)) + 1.0
+        fy, fx, height = self._subpixel(r, iy, ix)
+        dy = (fy + h / 2) % h - h / 2
+        dx = (fx + w / 2) % w - w / 2
+        tau = (-dx, -dy)  # b'(q) = a(q + tau) is a shifted by -tau
+        m = similarity_matrix(angle, scale, tau, center=self.center)
+        peak = (height - k * noise) / max(ref - k * noise, _EPS)
+        return Candidate(angle, scale, (float(m[0, 2]), float(m[1, 2])), float(np.clip(peak, 0.0, 1.0)))
+
+    def _farther_candidate(self, best: Candidate, memo: dict,
+                           weight: tuple[np.ndarray, np.ndarray, float, float]) -> Candidate | None:
+        """A farther layer's hypothesis for ``best``: the highest local maximum of its translation
+        surface on the segment from ``_LAYER_RATIO[0]`` to ``_LAYER_RATIO[1]`` of its centre
+        displacement (within 1 px of it), or None (none there, or ``best`` too near the origin
+        for two layers to part).
+
+        A peak's offset on the surface is minus the frame centre's displacement, so a layer
+        farther than ``best``'s lies there (see :meth:`_ground_first`), even where it is not among
+        the surface's highest peaks (a large roof fills the view). Reads about 3 samples per
+        pixel of the segment.
+        """
+        r = memo.get("surfaces", {}).get((best.angle_deg, best.scale))
+        if r is None:
+            return None
+        h, w = r.shape
+        cx, cy = self.center
+        rad = math.radians(best.angle_deg)
+        co, si = best.scale * math.cos(rad), best.scale * math.sin(rad)
+        py = -(si * cx + co * cy + best.shift[1] - cy)  # the peak's offset: minus the displacement
+        px = -(co * cx - si * cy + best.shift[0] - cx)
+        norm = math.hypot(py, px)
+        lo, hi = _LAYER_RATIO
+        if norm * (hi - lo) < 2.0:
+            return None
+        n = int(math.ceil((hi - lo) * norm)) + 1
+        t = np.arange(n) * ((hi - lo) / (n - 1)) + lo
+        ys = np.rint(np.concatenate([t * py - px / norm, t * py, t * py + px / norm])).astype(np.intp)
+        xs = np.rint(np.concatenate([t * px + py / norm, t * px, t * px - py / norm])).astype(np.intp)
+        ys %= h
+        xs %= w
+        ys *= w
+        ys += xs
+        flat = r.reshape(-1)
+        vals = flat[ys]
+        i = int(np.argmax(vals))
+        val = float(vals[i])
+        # not worth a look well below the peak _ground_first asks for (the sample is up to ~30 %
+        # below the fitted height that _candidate normalises)
+        _, _, ref, noise = weight
+        k = math.sqrt(2.0 * math.log(h * w)) + 1.0
+        floor = 0.7 * max(_EXPECTED_PEAK * best.peak, _CLEAR_PEAK)
+        if not val - k * noise >= floor * (ref - k * noise):
+            return None
+        y0, x0 = divmod(int(ys[i]), w)
+        around = flat[((y0 + _AROUND[0]) % h) * w + (x0 + _AROUND[1]) % w]
+        if val < float(around.max()):
+            return None  # the segment's highest value is on a slope, not a peak
+        return self._candidate(r, y0, x0, best.angle_deg, best.scale, weight)
 
     def _shift_peak(self, r: np.ndarray, angle: float, scale: float, prior: Prior) -> list[tuple[int, int, float]]:
         """The highest translation peak whose matrix shift lies within the prior's tolerance
@@ -1027,7 +1087,11 @@ class Registrar:
             # Little overlap starves the log-polar POMF first: also try the expected rotation and
             # scale directly in the translation step (the refinement then corrects them).
             cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior, weight, memo))
-        cands, layered = self._ground_first(self._rank(cands, prior))
+        cands = self._rank(cands, prior)
+        farther = self._farther_candidate(cands[0], memo, weight)
+        if farther is not None:
+            cands.append(farther)
+        cands, layered = self._ground_first(cands)
         best = cands[0]
         m = similarity_matrix(best.angle_deg, best.scale)
         m[:, 2] = best.shift
