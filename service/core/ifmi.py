@@ -20,6 +20,12 @@ Chatterji 1996 for classic FMI):
    gradient energy exceeds a quarter of the mean, at least 4096), and stop once an update moves the frame
    corners by less than 0.01 px (2-3 iterations on textured ground).
 
+Two depths (roofs, boxes, tree crowns above the ground; docs/hard-cases.md): a nearer layer moves
+with the same rotation and scale but farther, so its translation peak lies on the line from the
+origin through the ground's, beyond it. Of two such candidates the farther layer (the shorter
+displacement) goes first, and the refinement then weights the other layer's samples down (Tukey
+biweights); a refinement whose converged residual has a heavy tail is re-weighted alike.
+
 Every cross-power spectrum is weighted by a Gaussian low-pass, which turns the POMF peak into a
 sampled Gaussian; fitting a Gaussian to the 3 samples around the maximum (a parabola on their
 logarithms) then locates it without the ~0.1 px bias of a plain parabola.
