@@ -82,7 +82,8 @@ _TAIL_SHARE = 0.015  # ... and a tail above this share of the samples is a secon
 _TAIL_STRIDE = 8  # ... tested on every 8th sample
 _BIWEIGHT_C = 4.685  # Tukey's biweight constant (robust sigmas) of the re-weighted refinement
 _LAYER_RATIO = (0.6, 0.97)  # a farther layer moves this fraction of a nearer one's displacement (see _ground_first)
-_AROUND = (np.array([-1, -1, -1, 0, 0, 1, 1, 1]), np.array([-1, 0, 1, -1, 1, -1, 0, 1]))  # 8 neighbours (dy, dx)
+_AROUND = np.array([[-1, -1, -1, 0, 0, 1, 1, 1], [-1, 0, 1, -1, 1, -1, 0, 1]])  # 8 neighbours (dy, dx)
+_AROUND.setflags(write=False)
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 _EXPECTED_PEAK = 0.35  # a peak at the expected shift wins over higher ones at this fraction of the best
 _CLEAR_PEAK = 0.15  # ... and at least this high (well above noise, which scores ~0)
@@ -723,7 +724,7 @@ class Registrar:
             if prior is not None and prior.shift is not None:
                 # also the best peak within the prior's tolerance (periodic ground)
                 peaks += self._shift_peak(r, hyp_angle, scale, prior)
-            if memo is not None:  # for a farther layer's peak (register, _farther_peak)
+            if memo is not None:  # for a farther layer's peak (register, _farther_candidate)
                 memo.setdefault("surfaces", {})[(hyp_angle, scale)] = r
             for iy, ix, _ in dict.fromkeys(peaks):
                 out.append(self._candidate(r, iy, ix, hyp_angle, scale, weight))
