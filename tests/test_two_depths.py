@@ -82,7 +82,8 @@ def test_a_pair_follows_the_floor_when_the_prior_expects_the_boxes(circle):
         d_floor = (rel @ c - c)[:2]
         box_shift = rel[:2, 2] + (near - 1.0) * d_floor  # the same linear part, the roofs' displacement
         prior = Prior(angle_deg=angle, angle_tol_deg=5.0, scale=scale, scale_tol=0.05,
-                      shift=(float(box_shift[0]), float(box_shift[1])), shift_tol=4.0 + 0.25 * float(np.hypot(*d_floor)))
+                      shift=(float(box_shift[0]), float(box_shift[1])),
+                      shift_tol=4.0 + 0.25 * float(np.hypot(*d_floor)))  # the tracker's tolerance
         res = reg.register(frames[a], frames[b], prior)
         d = res.matrix @ c - c[:2]
         err_floor, err_boxes = np.hypot(*(d - d_floor)), np.hypot(*(d - near * d_floor))
