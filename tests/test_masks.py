@@ -33,8 +33,10 @@ def test_the_overlay_mask_covers_what_is_drawn():
 
 
 def test_a_masked_overlay_leaves_registration_to_the_ground():
-    """A faint ground under a bright overlay fixed in the frame: the overlay pulls the shift
-    toward zero; with the mask in the window the shift is the ground's, at a higher confidence."""
+    """A faint ground under a bright overlay fixed in the frame: the overlay's peak stands at zero
+    shift; with the mask in the window the ground's peak is far higher. (Without the mask the
+    refinement weights the overlay's misaligned samples down, as a second layer, so both shifts
+    end on the ground's.)"""
     rng = np.random.default_rng(0)
     ground = cv2.GaussianBlur(rng.normal(0, 1, (400, 480)).astype(np.float32), (0, 0), 3)
     ground = np.clip(128 + 5 * ground / ground.std(), 0, 255).astype(np.uint8)
@@ -49,7 +51,7 @@ def test_a_masked_overlay_leaves_registration_to_the_ground():
     plain = Registrar((h, w)).register(a, b)
     masked = Registrar((h, w), mask=prep.window((w, h))).register(prep.apply(a), prep.apply(b))
     err = lambda r: math.hypot(r.matrix[0, 2] - 7.0, r.matrix[1, 2] + 4.0)  # noqa: E731
-    assert err(masked) < 0.05 and err(plain) > 3 * err(masked)
+    assert err(masked) < 0.05 and err(plain) < 0.05
     assert masked.confidence > plain.confidence + 0.2
 
 

@@ -20,6 +20,12 @@ Chatterji 1996 for classic FMI):
    gradient energy exceeds a quarter of the mean, at least 4096), and stop once an update moves the frame
    corners by less than 0.01 px (2-3 iterations on textured ground).
 
+Two depths (roofs, boxes, tree crowns above the ground; docs/hard-cases.md): a nearer layer moves
+with the same rotation and scale but farther, so its translation peak lies on the line from the
+origin through the ground's, beyond it. Of two such candidates the farther layer (the shorter
+displacement) goes first, and the refinement then weights the other layer's samples down (Tukey
+biweights); a refinement whose converged residual has a heavy tail is re-weighted alike.
+
 Every cross-power spectrum is weighted by a Gaussian low-pass, which turns the POMF peak into a
 sampled Gaussian; fitting a Gaussian to the 3 samples around the maximum (a parabola on their
 logarithms) then locates it without the ~0.1 px bias of a plain parabola.
@@ -71,6 +77,13 @@ _REFINE_KEEP = 0.25  # grid samples kept: gradient energy above this fraction of
 _REFINE_MIN_KEEP = 4096  # ... but at least this many (all of a smaller grid: noisy ground needs them)
 _BLAS_ONE_THREAD = 65536 * 4  # OpenBLAS runs a matrix product with m n k up to this on the caller's thread
 _REFINE_MARGIN = 2.0  # samples used must map this far inside b (level pixels); see _refine
+_TAIL_SIGMAS = 8.0  # a converged residual beyond this many robust sigmas (1.4826 MAD) is in the tail
+_TAIL_SHARE = 0.015  # ... and a tail above this share of the samples is a second layer (see _refine)
+_TAIL_STRIDE = 8  # ... tested on every 8th sample
+_BIWEIGHT_C = 4.685  # Tukey's biweight constant (robust sigmas) of the re-weighted refinement
+_LAYER_RATIO = (0.6, 0.97)  # a farther layer moves this fraction of a nearer one's displacement (see _ground_first)
+_AROUND = np.array([[-1, -1, -1, 0, 0, 1, 1, 1], [-1, 0, 1, -1, 1, -1, 0, 1]])  # 8 neighbours (dy, dx)
+_AROUND.setflags(write=False)
 _WEAK_PEAK = 0.5  # below this translation peak, the prior's own rotation/scale is tried too
 _EXPECTED_PEAK = 0.35  # a peak at the expected shift wins over higher ones at this fraction of the best
 _CLEAR_PEAK = 0.15  # ... and at least this high (well above noise, which scores ~0)
@@ -705,23 +718,82 @@ class Registrar:
             hyps.append((_wrap180(angle + 180.0), True))
 
         out = []
-        k = math.sqrt(2.0 * math.log(h * w)) + 1.0
         for hyp_angle, mirrored in hyps:
             r = surface(mirrored)
             peaks = self._peaks(r, 2, exclude=4)
             if prior is not None and prior.shift is not None:
                 # also the best peak within the prior's tolerance (periodic ground)
                 peaks += self._shift_peak(r, hyp_angle, scale, prior)
+            if memo is not None:  # for a farther layer's peak (register, _farther_candidate)
+                memo.setdefault("surfaces", {})[(hyp_angle, scale)] = r
             for iy, ix, _ in dict.fromkeys(peaks):
-                fy, fx, height = self._subpixel(r, iy, ix)
-                dy = (fy + h / 2) % h - h / 2
-                dx = (fx + w / 2) % w - w / 2
-                tau = (-dx, -dy)  # b'(q) = a(q + tau) is a shifted by -tau
-                m = similarity_matrix(hyp_angle, scale, tau, center=self.center)
-                peak = (height - k * noise) / max(ref - k * noise, _EPS)
-                out.append(Candidate(hyp_angle, scale, (float(m[0, 2]), float(m[1, 2])),
-                                     float(np.clip(peak, 0.0, 1.0))))
+                out.append(self._candidate(r, iy, ix, hyp_angle, scale, weight))
         return out
+
+    def _candidate(self, r: np.ndarray, iy: int, ix: int, angle: float, scale: float,
+                   weight: tuple[np.ndarray, np.ndarray, float, float]) -> Candidate:
+        """The hypothesis of the translation surface ``r``'s peak (iy, ix) for the rotation
+        ``angle`` and ``scale`` (b warped by them before the POMF)."""
+        h, w = self.shape
+        _, _, ref, noise = weight
+        k = math.sqrt(2.0 * math.log(h * w)) + 1.0
+        fy, fx, height = self._subpixel(r, iy, ix)
+        dy = (fy + h / 2) % h - h / 2
+        dx = (fx + w / 2) % w - w / 2
+        tau = (-dx, -dy)  # b'(q) = a(q + tau) is a shifted by -tau
+        m = similarity_matrix(angle, scale, tau, center=self.center)
+        peak = (height - k * noise) / max(ref - k * noise, _EPS)
+        return Candidate(angle, scale, (float(m[0, 2]), float(m[1, 2])), float(np.clip(peak, 0.0, 1.0)))
+
+    def _farther_candidate(self, best: Candidate, memo: dict,
+                           weight: tuple[np.ndarray, np.ndarray, float, float]) -> Candidate | None:
+        """A farther layer's hypothesis for ``best``: the highest local maximum of its translation
+        surface on the segment from ``_LAYER_RATIO[0]`` to ``_LAYER_RATIO[1]`` of its centre
+        displacement (within 1 px of it), or None (none there, or ``best`` too near the origin
+        for two layers to part).
+
+        A peak's offset on the surface is minus the frame centre's displacement, so a layer
+        farther than ``best``'s lies there (see :meth:`_ground_first`), even where it is not among
+        the surface's highest peaks (a large roof fills the view). Reads about 3 samples per
+        pixel of the segment.
+        """
+        r = memo.get("surfaces", {}).get((best.angle_deg, best.scale))
+        if r is None:
+            return None
+        h, w = r.shape
+        cx, cy = self.center
+        rad = math.radians(best.angle_deg)
+        co, si = best.scale * math.cos(rad), best.scale * math.sin(rad)
+        py = -(si * cx + co * cy + best.shift[1] - cy)  # the peak's offset: minus the displacement
+        px = -(co * cx - si * cy + best.shift[0] - cx)
+        norm = math.hypot(py, px)
+        lo, hi = _LAYER_RATIO
+        if norm * (hi - lo) < 2.0:
+            return None
+        n = int(math.ceil((hi - lo) * norm)) + 1
+        t = np.arange(n) * ((hi - lo) / (n - 1)) + lo
+        ys = np.rint(np.concatenate([t * py - px / norm, t * py, t * py + px / norm])).astype(np.intp)
+        xs = np.rint(np.concatenate([t * px + py / norm, t * px, t * px - py / norm])).astype(np.intp)
+        ys %= h
+        xs %= w
+        ys *= w
+        ys += xs
+        flat = r.reshape(-1)
+        vals = flat[ys]
+        i = int(np.argmax(vals))
+        val = float(vals[i])
+        # not worth a look well below the peak _ground_first asks for (the sample is up to ~30 %
+        # below the fitted height that _candidate normalises)
+        _, _, ref, noise = weight
+        k = math.sqrt(2.0 * math.log(h * w)) + 1.0
+        floor = 0.7 * max(_EXPECTED_PEAK * best.peak, _CLEAR_PEAK)
+        if not val - k * noise >= floor * (ref - k * noise):
+            return None
+        y0, x0 = divmod(int(ys[i]), w)
+        around = flat[((y0 + _AROUND[0]) % h) * w + (x0 + _AROUND[1]) % w]
+        if val < float(around.max()):
+            return None  # the segment's highest value is on a slope, not a peak
+        return self._candidate(r, y0, x0, best.angle_deg, best.scale, weight)
 
     def _shift_peak(self, r: np.ndarray, angle: float, scale: float, prior: Prior) -> list[tuple[int, int, float]]:
         """The highest translation peak whose matrix shift lies within the prior's tolerance
@@ -833,7 +905,8 @@ class Registrar:
             frame._cache["template"] = tpl
         return tpl
 
-    def _refine(self, a: PreparedFrame, b: PreparedFrame, m: np.ndarray) -> np.ndarray | None:
+    def _refine(self, a: PreparedFrame, b: PreparedFrame, m: np.ndarray,
+                layered: bool = False) -> np.ndarray | None:
         """Inverse compositional Gauss-Newton on a similarity + brightness gain/offset.
 
         ``m`` maps b -> a; returns the refined matrix, or None when it does not converge. It runs
@@ -861,6 +934,7 @@ class Registrar:
         moved = math.inf  # level pixels the samples moved since their mask was built
         fit_start = fit_end = -math.inf  # weighted correlation of b with the template
         samples = np.empty((2, tpl.sd.shape[1]), np.float32)  # b at the samples (centred roughly), squared
+        robust: np.ndarray | None = None  # per-sample biweight once a second layer showed up
         for it in range(self.refine_iterations):
             # where the template's samples fall in b: the inverse of the matrix
             det = m00 * m11 - m01 * m10
@@ -876,6 +950,8 @@ class Registrar:
                 # mask, Hessian and template moments stay valid) while the warp moves them less
                 inside = cv2.inRange(where, (lo, lo), (wb_ - 1 - lo, hb - 1 - lo)).ravel()
                 wgt = cv2.multiply(tpl.window, inside, scale=1.0 / 255.0, dtype=cv2.CV_32F).ravel()
+                if robust is not None:
+                    wgt *= robust
                 wsd = tpl.sd * wgt
                 # Gauss-Newton matrix and template moments
                 hess = _gram(tpl.sd, wsd)
@@ -910,6 +986,13 @@ class Registrar:
             if vw <= _EPS:
                 return None
             gain = math.sqrt(vt / vw)
+            if layered and robust is None and it == 0:
+                # a layer at another depth is in view and ``m`` is the ground's: weight its
+                # misaligned samples down before they pull the fit
+                robust = self._second_layer(samples[0], tpl.sd[5], gain, mw, mt, wgt, always=True)
+                if robust is not None:
+                    moved = math.inf
+                    continue
             # weighted correlation of b with the template: the residual's energy is -2 rhs[5]
             # (row 5 is the centred template; the residual has zero weighted mean)
             fit = 1.0 + (gain * (float(proj[5]) - mw * ones5) - tmpl5) / (wsum * vt)
@@ -927,6 +1010,12 @@ class Registrar:
             # converged when the frame corners move less than _REFINE_TOL (full-resolution pixels)
             step = max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * reach
             if step * f < _REFINE_TOL:
+                if robust is None and it + 1 < self.refine_iterations:
+                    robust = self._second_layer(samples[0], tpl.sd[5], gain, mw, mt, wgt)
+                    if robust is not None:
+                        # parallax: samples of a second depth pull the fit; continue without them
+                        moved = math.inf
+                        continue
                 fit_end = fit
                 break
             moved += step
@@ -940,6 +1029,39 @@ class Registrar:
         if moved_px > max(3.0, 0.03 * max(h, w)) and not converged_better:
             return None
         return out
+
+    @staticmethod
+    def _second_layer(u: np.ndarray, t: np.ndarray, gain: float, mw: float, mt: float,
+                      wgt: np.ndarray, always: bool = False) -> np.ndarray | None:
+        """Tukey biweights of the refinement's samples when its converged residual has a heavy
+        tail, else None.
+
+        ``u`` is b at the samples (centred roughly), ``t`` the centred template, ``gain``, ``mw``,
+        ``mt`` the brightness model, ``wgt`` the samples' weights (0 outside). Residuals of one
+        depth (noise, interpolation) are near Gaussian: few lie beyond ``_TAIL_SIGMAS`` robust
+        sigmas. Where a layer at another depth (roofs, trees above the ground) stands in the view,
+        its samples are misaligned once the ground is aligned (or the fit compromises between
+        both): more than ``_TAIL_SHARE`` of them lie in the tail, and weighting them down lets the
+        fit follow the majority, the ground.
+        """
+        g, offset = np.float32(gain), np.float32(gain * mw - mt)
+        # the test on every _TAIL_STRIDE-th sample (the median and the tail share need no more)
+        e = g * u[::_TAIL_STRIDE] - t[::_TAIL_STRIDE]
+        e = np.abs(e[wgt[::_TAIL_STRIDE] > 0] - offset)
+        if e.size < 64:
+            return None
+        sigma = 1.4826 * _percentile(e, 50.0)
+        if sigma <= _EPS or not always and np.count_nonzero(e > _TAIL_SIGMAS * sigma) <= _TAIL_SHARE * e.size:
+            return None
+        z = g * u - t
+        z -= offset
+        np.abs(z, out=z)
+        z *= np.float32(1.0 / (_BIWEIGHT_C * sigma))
+        np.minimum(z, 1.0, out=z)
+        z *= z
+        np.subtract(1.0, z, out=z)
+        z *= z
+        return z
 
     # ------------------------------------------------------------------ public
     def register(self, a: np.ndarray | PreparedFrame, b: np.ndarray | PreparedFrame,
@@ -973,15 +1095,19 @@ class Registrar:
             # scale directly in the translation step (the refinement then corrects them).
             cands.extend(self._translation(pa, pb, prior.angle_deg, prior.scale, prior, weight, memo))
         cands = self._rank(cands, prior)
+        farther = self._farther_candidate(cands[0], memo, weight)
+        if farther is not None:
+            cands.append(farther)
+        cands, layered = self._ground_first(cands)
         best = cands[0]
         m = similarity_matrix(best.angle_deg, best.scale)
         m[:, 2] = best.shift
         ambiguous = any(c.peak >= 0.8 * best.peak and not self._same(c, best) for c in cands[1:])
         refined = False
         if self.refine_iterations and best.peak > 0:
-            key = ("refined", m.tobytes())
+            key = ("refined", m.tobytes(), layered)
             if key not in memo:
-                memo[key] = self._refine(pa, pb, m)
+                memo[key] = self._refine(pa, pb, m, layered)
             m_ref = None if memo[key] is None else memo[key].copy()
             if m_ref is not None:
                 m, refined = m_ref, True
@@ -992,6 +1118,53 @@ class Registrar:
     def _same(c: Candidate, d: Candidate) -> bool:
         return (abs(_wrap180(c.angle_deg - d.angle_deg)) < 1.0 and abs(c.scale / d.scale - 1) < 0.02
                 and math.hypot(c.shift[0] - d.shift[0], c.shift[1] - d.shift[1]) < 2.0)
+
+    def _ground_first(self, cands: list[Candidate]) -> tuple[list[Candidate], bool]:
+        """``cands`` with the ground layer's placement first, and whether a layer above it shows.
+
+        Seen from above, a layer at another depth (roofs, boxes, tree crowns) moves with the same
+        rotation and scale as the ground but by a displacement of the frame centre that is longer
+        (it is nearer): the translation POMF shows a second peak on the line from the centre
+        through the ground's (eFMT, Remote Sensing 2021). A clear candidate of the same rotation
+        and scale whose centre displacement lies on that line at ``_LAYER_RATIO`` of another's is
+        the farther layer of the two: when the best candidate has such a partner, the partner
+        (the farthest of several) is the ground and goes first. Peaks a period apart on periodic
+        ground are not on that line unless the step is at least 1/(1 - 0.6) periods long along a
+        lattice direction.
+        """
+        best = cands[0]
+        floor = max(_EXPECTED_PEAK * best.peak, _CLEAR_PEAK)
+        cx, cy = self.center
+
+        def displacement(c: Candidate) -> tuple[float, float]:
+            rad = math.radians(c.angle_deg)
+            co, si = c.scale * math.cos(rad), c.scale * math.sin(rad)
+            return co * cx - si * cy + c.shift[0] - cx, si * cx + co * cy + c.shift[1] - cy
+
+        def farther(near: tuple[float, float], far: tuple[float, float]) -> float | None:
+            """``far``'s displacement over ``near``'s when ``far`` is a farther layer of it."""
+            norm2 = near[0] * near[0] + near[1] * near[1]
+            lam = (far[0] * near[0] + far[1] * near[1]) / max(norm2, _EPS)
+            off = abs(far[0] * near[1] - far[1] * near[0]) / math.sqrt(max(norm2, _EPS))
+            if _LAYER_RATIO[0] <= lam <= _LAYER_RATIO[1] and off <= 1.0 + 0.03 * math.sqrt(norm2) \
+                    and math.hypot(far[0] - near[0], far[1] - near[1]) >= 2.0:
+                return lam
+            return None
+
+        d_best = displacement(best)
+        chosen, ratio, layered = best, 1.0, False
+        for c in cands[1:]:
+            if c.peak < floor or abs(_wrap180(c.angle_deg - best.angle_deg)) >= 1.0 \
+                    or abs(c.scale / best.scale - 1) >= 0.02:
+                continue
+            d = displacement(c)
+            lam = farther(d_best, d)
+            if lam is not None and lam < ratio:
+                chosen, ratio = c, lam
+            layered = layered or lam is not None or farther(d, d_best) is not None
+        if chosen is best:
+            return cands, layered
+        return [chosen] + [c for c in cands if c is not chosen], True
 
     @staticmethod
     def _rank(cands: list[Candidate], prior: Prior | None) -> list[Candidate]:
