@@ -16,6 +16,7 @@ import numpy as np
 
 from photomap.core.mosaic import TiledMosaic, _area_weights
 from photomap.geo.georef import Georeference, aux_xml_text, compose, png_to_map, prj_text, world_file_text
+from photomap.io.parallel_writes import ParallelWrites
 from photomap.io.pngstream import PngStreamWriter
 from photomap.io.trajectory_files import atomic_write_bytes
 
@@ -163,13 +164,19 @@ def render_small(mosaic: TiledMosaic, max_px: int) -> np.ndarray | None:
     return np.vstack([_bgra(image, alpha) for image, alpha in bands])
 
 
+def _write_tile(path: Path, bgra: np.ndarray) -> None:
+    ok, buf = cv2.imencode(".png", bgra)
+    if ok:
+        atomic_write_bytes(path, buf.tobytes())
+
+
 def write_tiles(folder: Path, mosaic: TiledMosaic) -> None:
-    """Every map tile at full resolution as ``tile_{tx}_{ty}.png`` (BGRA) in ``folder``."""
+    """Every map tile at full resolution as ``tile_{tx}_{ty}.png`` (BGRA) in ``folder``: read
+    here, one tile at a time, encoded and written on :class:`ParallelWrites`' threads."""
     folder.mkdir(exist_ok=True)
-    for key in mosaic.tiles():
-        ok, buf = cv2.imencode(".png", _bgra(*mosaic.tile_image(key)))
-        if ok:
-            atomic_write_bytes(folder / f"tile_{key[0]}_{key[1]}.png", buf.tobytes())
+    with ParallelWrites() as writes:
+        for key in mosaic.tiles():
+            writes.submit(_write_tile, folder / f"tile_{key[0]}_{key[1]}.png", _bgra(*mosaic.tile_image(key)))
 
 
 SIDECAR_SUFFIXES = (".pgw", ".prj", ".png.aux.xml")
