@@ -90,6 +90,7 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
     step_y, step_x = h / oh, w / ow
     start = 0  # first output row not yet emitted; acc holds rows start .. start + len(acc)
     acc = np.zeros((0, ow, C + 1), np.float32)
+    columns: dict[int, tuple[int, np.ndarray]] = {}
     for ty in range(y // ts, (y + h - 1) // ts + 1):
         my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
         j0 = int(math.floor((my0 - y) / step_y))
@@ -103,6 +104,7 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
             start = j0
         if j1 - start > acc.shape[0]:
             acc = np.concatenate([acc, np.zeros((j1 - start - acc.shape[0], ow, C + 1), np.float32)])
+        wy = None
         for key in rows.get(ty, ()):
             ox, oy = key[0] * ts, ty * ts
             mx0, mx1 = max(ox, x), min(ox + ts, x + w)
@@ -111,9 +113,14 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
             a = t_alpha[src].astype(np.float32) / 255
             if not a.any():
                 continue
-            pre = np.dstack([t_img[src] * a[..., None], a])
-            u0, wx = _area_weights(mx0 - x, mx1 - x, step_x, ow)
-            v0, wy = _area_weights(my0 - y, my1 - y, step_y, oh)
+            pre = np.empty(a.shape + (C + 1,), np.float32)  # premultiplied colour, alpha
+            np.multiply(t_img[src], a[..., None], out=pre[..., :C])
+            pre[..., C] = a
+            if key[0] not in columns:  # a tile column's weights are the same in every row
+                columns[key[0]] = _area_weights(mx0 - x, mx1 - x, step_x, ow)
+            u0, wx = columns[key[0]]
+            if wy is None:
+                v0, wy = _area_weights(my0 - y, my1 - y, step_y, oh)
             block = np.tensordot(wy, pre, axes=(1, 0))
             block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)
             acc[v0 - start:v0 - start + wy.shape[0], u0:u0 + wx.shape[0]] += block
@@ -126,9 +133,9 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
 def _finish(acc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
     """Alpha-weighted sums -> (image, alpha), as ``TiledMosaic.render`` finishes them."""
     cover = acc[..., C]
-    image = np.zeros(acc.shape[:2] + (C,), np.uint8)
-    covered = cover > 1e-6
-    image[covered] = np.clip(np.rint(acc[..., :C][covered] / cover[covered][:, None]), 0, 255)
+    with np.errstate(divide="ignore", invalid="ignore"):  # uncovered pixels: 0 below
+        colour = np.rint(acc[..., :C] / cover[..., None])
+    image = np.where((cover > 1e-6)[..., None], np.clip(colour, 0, 255), 0).astype(np.uint8)
     return image, np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
 
 
