@@ -9,7 +9,7 @@ the source) and resampled bilinearly, alpha-premultiplied so that empty map pixe
 the edges. Only one window (and the source region under it) is in memory at a time.
 
 The windows go into a temporary tiled GeoTIFF (sparse: blocks the map does not cover are not
-written), which GDAL's COG driver then copies into the final layout: RGBA (band 4 is alpha),
+written; ZSTD level 1, written once and read twice, a third of DEFLATE's time both ways), which GDAL's COG driver then copies into the final layout: RGBA (band 4 is alpha),
 512-pixel tiles, DEFLATE (level 1: a third of level 6's time for 6 % more bytes, the same pixels)
 with the horizontal predictor, compressed on every core, overviews down to one tile
 (area-averaged, alpha-aware), the CRS inside. ``gdalinfo`` reports ``LAYOUT=COG``.
@@ -161,7 +161,7 @@ def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, 
     transform = Affine(gsd, 0.0, west, 0.0, -gsd, north)
     profile = dict(driver="GTiff", width=width, height=height, count=4, dtype="uint8",
                    crs=f"EPSG:{raster.epsg}", transform=transform, tiled=True, blockxsize=block,
-                   blockysize=block, compress="DEFLATE", zlevel=1, photometric="RGB", alpha="YES",
+                   blockysize=block, compress="ZSTD", zstd_level=1, photometric="RGB", alpha="YES",
                    sparse_ok=True, bigtiff="IF_SAFER", interleave="pixel")
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp.tif")
     os.close(fd)
