@@ -8,6 +8,7 @@ recorded in ``run.json`` (``origin_xy``: map pixel of the PNG's top-left pixel c
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterator
 
@@ -142,8 +143,9 @@ def _finish(acc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
 def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
     """The map of ``mosaic``, downscaled to at most ``max_px`` on its longer side; its placement.
 
-    Written band by band (:func:`render_bands`, :class:`~photomap.io.pngstream.PngStreamWriter`):
-    memory stays about one tile row of the PNG whatever the map's size.
+    Written band by band (:func:`render_bands`, :class:`~photomap.io.pngstream.PngStreamWriter`),
+    each band encoded on a thread while the next renders: memory stays about two tile rows of the
+    PNG whatever the map's size.
     Returns None for an empty map, else ``file``, ``origin_xy``, ``scale``, ``pixel_scale``,
     ``bounds`` (map rectangle x, y, w, h) and ``size`` (PNG w, h).
     """
@@ -152,9 +154,15 @@ def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
     _, _, w, h = mosaic.bounds()
     scale = min(1.0, max_px / max(w, h))
     bounds, (ow, oh), bands = render_bands(mosaic, scale)
-    with PngStreamWriter(path, ow, oh, channels=4) as png:
+    with PngStreamWriter(path, ow, oh, channels=4) as png, ThreadPoolExecutor(1, "photomap-png") as encoder:
+        encoded = None  # a band is filtered and compressed while the next one renders (two bands in memory)
         for image, alpha in bands:
-            png.write(_bgra(image, alpha))
+            band = _bgra(image, alpha)
+            if encoded is not None:
+                encoded.result()
+            encoded = encoder.submit(png.write, band)
+        if encoded is not None:
+            encoded.result()
     # exact per-axis scale of the PNG: output size over the map rectangle's size
     return {"file": path.name, "origin_xy": [int(bounds[0]), int(bounds[1])], "scale": scale,
             "pixel_scale": [ow / w, oh / h], "bounds": [int(v) for v in bounds], "size": [int(ow), int(oh)]}
