@@ -8,6 +8,7 @@ recorded in ``run.json`` (``origin_xy``: map pixel of the PNG's top-left pixel c
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterator
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from photomap.core.mosaic import TiledMosaic, _area_weights
 from photomap.geo.georef import Georeference, aux_xml_text, compose, png_to_map, prj_text, world_file_text
+from photomap.io.parallel_writes import ParallelWrites
 from photomap.io.pngstream import PngStreamWriter
 from photomap.io.trajectory_files import atomic_write_bytes
 
@@ -89,6 +91,7 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
     step_y, step_x = h / oh, w / ow
     start = 0  # first output row not yet emitted; acc holds rows start .. start + len(acc)
     acc = np.zeros((0, ow, C + 1), np.float32)
+    columns: dict[int, tuple[int, np.ndarray]] = {}
     for ty in range(y // ts, (y + h - 1) // ts + 1):
         my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
         j0 = int(math.floor((my0 - y) / step_y))
@@ -102,6 +105,7 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
             start = j0
         if j1 - start > acc.shape[0]:
             acc = np.concatenate([acc, np.zeros((j1 - start - acc.shape[0], ow, C + 1), np.float32)])
+        wy = None
         for key in rows.get(ty, ()):
             ox, oy = key[0] * ts, ty * ts
             mx0, mx1 = max(ox, x), min(ox + ts, x + w)
@@ -110,9 +114,14 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
             a = t_alpha[src].astype(np.float32) / 255
             if not a.any():
                 continue
-            pre = np.dstack([t_img[src] * a[..., None], a])
-            u0, wx = _area_weights(mx0 - x, mx1 - x, step_x, ow)
-            v0, wy = _area_weights(my0 - y, my1 - y, step_y, oh)
+            pre = np.empty(a.shape + (C + 1,), np.float32)  # premultiplied colour, alpha
+            np.multiply(t_img[src], a[..., None], out=pre[..., :C])
+            pre[..., C] = a
+            if key[0] not in columns:  # a tile column's weights are the same in every row
+                columns[key[0]] = _area_weights(mx0 - x, mx1 - x, step_x, ow)
+            u0, wx = columns[key[0]]
+            if wy is None:
+                v0, wy = _area_weights(my0 - y, my1 - y, step_y, oh)
             block = np.tensordot(wy, pre, axes=(1, 0))
             block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)
             acc[v0 - start:v0 - start + wy.shape[0], u0:u0 + wx.shape[0]] += block
@@ -125,17 +134,18 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
 def _finish(acc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
     """Alpha-weighted sums -> (image, alpha), as ``TiledMosaic.render`` finishes them."""
     cover = acc[..., C]
-    image = np.zeros(acc.shape[:2] + (C,), np.uint8)
-    covered = cover > 1e-6
-    image[covered] = np.clip(np.rint(acc[..., :C][covered] / cover[covered][:, None]), 0, 255)
+    with np.errstate(divide="ignore", invalid="ignore"):  # uncovered pixels: 0 below
+        colour = np.rint(acc[..., :C] / cover[..., None])
+    image = np.where((cover > 1e-6)[..., None], np.clip(colour, 0, 255), 0).astype(np.uint8)
     return image, np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
 
 
 def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
     """The map of ``mosaic``, downscaled to at most ``max_px`` on its longer side; its placement.
 
-    Written band by band (:func:`render_bands`, :class:`~photomap.io.pngstream.PngStreamWriter`):
-    memory stays about one tile row of the PNG whatever the map's size.
+    Written band by band (:func:`render_bands`, :class:`~photomap.io.pngstream.PngStreamWriter`),
+    each band encoded on a thread while the next renders: memory stays about two tile rows of the
+    PNG whatever the map's size.
     Returns None for an empty map, else ``file``, ``origin_xy``, ``scale``, ``pixel_scale``,
     ``bounds`` (map rectangle x, y, w, h) and ``size`` (PNG w, h).
     """
@@ -144,9 +154,15 @@ def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
     _, _, w, h = mosaic.bounds()
     scale = min(1.0, max_px / max(w, h))
     bounds, (ow, oh), bands = render_bands(mosaic, scale)
-    with PngStreamWriter(path, ow, oh, channels=4) as png:
+    with PngStreamWriter(path, ow, oh, channels=4) as png, ThreadPoolExecutor(1, "photomap-png") as encoder:
+        encoded = None  # a band is filtered and compressed while the next one renders (two bands in memory)
         for image, alpha in bands:
-            png.write(_bgra(image, alpha))
+            band = _bgra(image, alpha)
+            if encoded is not None:
+                encoded.result()
+            encoded = encoder.submit(png.write, band)
+        if encoded is not None:
+            encoded.result()
     # exact per-axis scale of the PNG: output size over the map rectangle's size
     return {"file": path.name, "origin_xy": [int(bounds[0]), int(bounds[1])], "scale": scale,
             "pixel_scale": [ow / w, oh / h], "bounds": [int(v) for v in bounds], "size": [int(ow), int(oh)]}
@@ -163,13 +179,19 @@ def render_small(mosaic: TiledMosaic, max_px: int) -> np.ndarray | None:
     return np.vstack([_bgra(image, alpha) for image, alpha in bands])
 
 
+def _write_tile(path: Path, bgra: np.ndarray) -> None:
+    ok, buf = cv2.imencode(".png", bgra)
+    if ok:
+        atomic_write_bytes(path, buf.tobytes())
+
+
 def write_tiles(folder: Path, mosaic: TiledMosaic) -> None:
-    """Every map tile at full resolution as ``tile_{tx}_{ty}.png`` (BGRA) in ``folder``."""
+    """Every map tile at full resolution as ``tile_{tx}_{ty}.png`` (BGRA) in ``folder``: read
+    here, one tile at a time, encoded and written on :class:`ParallelWrites`' threads."""
     folder.mkdir(exist_ok=True)
-    for key in mosaic.tiles():
-        ok, buf = cv2.imencode(".png", _bgra(*mosaic.tile_image(key)))
-        if ok:
-            atomic_write_bytes(folder / f"tile_{key[0]}_{key[1]}.png", buf.tobytes())
+    with ParallelWrites() as writes:
+        for key in mosaic.tiles():
+            writes.submit(_write_tile, folder / f"tile_{key[0]}_{key[1]}.png", _bgra(*mosaic.tile_image(key)))
 
 
 SIDECAR_SUFFIXES = (".pgw", ".prj", ".png.aux.xml")
