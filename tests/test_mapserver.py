@@ -425,3 +425,39 @@ def test_tiles_the_flight_left_are_packed_and_still_served():
     assert np.abs(after[..., :3].astype(int) - before[..., :3].astype(int))[covered].mean() < 3
     # lower zooms come from the halvings kept as pixels: exactly as before
     assert (_decode(render_png(live.snapshot(), "pixel", 0, 0, 6)) == low_before).all()
+
+
+def test_hazards_found_during_a_replay_are_served_where_they_were_planted(tmp_path):
+    """The hazard tracker's spots reach /hazards.geojson while the flight is mapped, at the WGS84
+    positions the simulator planted them (hotspots.csv), each once."""
+    import csv
+    flight = simulate_flight(tmp_path / "hot", n_frames=120, size=(W, H), fps=20.0, seed=3, hotspots=3)
+    planted = [(float(r["lat"]), float(r["lon"])) for r in csv.DictReader(open(flight / "hotspots.csv"))]
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}/"
+    cfg = load_config().updated({"hazards": {"enabled": True}})
+    result: dict = {}
+
+    def run() -> None:
+        result["summary"] = replay(str(flight / "video.mp4"), tmp_path / "run", cfg, realtime=True,
+                                   mavlink=str(flight / "telemetry.tlog"), map_server=str(port))
+
+    worker = threading.Thread(target=run)
+    worker.start()
+    try:
+        def served():
+            if not _status(base):
+                return None
+            features = json.loads(_get(base + "hazards.geojson")[1])["features"]
+            placed = [f for f in features if f["geometry"] is not None]
+            return placed if len(placed) >= len(planted) else None
+        features = _wait(served, timeout=60.0)
+    finally:
+        worker.join(timeout=120)
+    assert not worker.is_alive() and result["summary"]["registered"] == 120
+    assert features is not None, "the planted spots never reached /hazards.geojson"
+    assert len(features) == len(planted) and len({f["properties"]["id"] for f in features}) == len(planted)
+    for lon, lat in (f["geometry"]["coordinates"] for f in features):
+        err = min(np.hypot((lat - la) * 111_320.0, (lon - lo) * 111_320.0 * np.cos(np.radians(la)))
+                  for la, lo in planted)
+        assert err < 2.0, f"a served hazard {err:.1f} m from the nearest planted spot"
