@@ -389,10 +389,15 @@ class Registrar:
         overlays, pixels the lens does not cover; see :mod:`photomap.mapping.frameprep`). It
         weights every frame this registrar prepares, so it belongs to the frames' own pixels
         (a mask fixed in the frame). None: every pixel.
+    layered_tail : bool
+        A converged refinement whose residual has a heavy tail is taken for a second depth in
+        view and re-weighted (frames of one flight). False for images whose tail has other causes:
+        map windows composed of many frames (seams, exposure steps), where re-weighting moved
+        right placements (photomap.mapping.merge).
     """
 
     def __init__(self, shape: tuple[int, int], params: RegistrationConfig = RegistrationConfig(),
-                 mask: np.ndarray | None = None) -> None:
+                 mask: np.ndarray | None = None, layered_tail: bool = True) -> None:
         h, w = int(shape[0]), int(shape[1])
         if h < 16 or w < 16:
             raise ValueError(f"frames of {w}x{h} px are too small to register")
@@ -415,6 +420,7 @@ class Registrar:
             yy, xx = np.mgrid[0:h, 0:w]
             rr = np.hypot((xx - (w - 1) / 2) / ((w - 1) / 2), (yy - (h - 1) / 2) / ((h - 1) / 2))
             self.window = np.where(rr < 1, 0.5 * (1 + np.cos(np.pi * np.clip((rr - (1 - window_taper)) / window_taper, 0, 1))), 0).astype(np.float32)
+        self.layered_tail = bool(layered_tail)
         self.mask = None
         if mask is not None:
             mask = np.asarray(mask, np.float32)
@@ -1010,7 +1016,7 @@ class Registrar:
             # converged when the frame corners move less than _REFINE_TOL (full-resolution pixels)
             step = max(abs(tx), abs(ty)) + (abs(da) + abs(db)) * reach
             if step * f < _REFINE_TOL:
-                if robust is None and it + 1 < self.refine_iterations:
+                if robust is None and self.layered_tail and it + 1 < self.refine_iterations:
                     robust = self._second_layer(samples[0], tpl.sd[5], gain, mw, mt, wgt)
                     if robust is not None:
                         # parallax: samples of a second depth pull the fit; continue without them

@@ -161,9 +161,10 @@ class MapRegistrar:
         self.overview, self.patch = int(overview), int(patch)
         self.windows, self.min_patches = int(windows), int(min_patches)
         self.min_confidence, self.min_coarse, self.tol = float(min_confidence), float(min_coarse), float(tol)
-        self._coarse = Registrar((self.overview, self.overview), registration)
+        # map windows: their residual tails are seams and exposure steps, not a second depth
+        self._coarse = Registrar((self.overview, self.overview), registration, layered_tail=False)
         self._features = FeatureMatcher("sift", working_size=0)
-        self._fine = Registrar((self.patch, self.patch), registration)
+        self._fine = Registrar((self.patch, self.patch), registration, layered_tail=False)
 
     # ------------------------------------------------------------------ coarse
     def coarse(self, ref: RunMap, mov: RunMap) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:
