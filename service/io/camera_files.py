@@ -31,6 +31,7 @@ import yaml
 
 from photomap.errors import InputError
 from photomap.geo.lens import LensModel
+from photomap.io.trajectory_files import read_text_input
 
 __all__ = ["read_calibration", "write_calibration", "read_mask"]
 
@@ -51,12 +52,7 @@ _OpenCVLoader.add_constructor("tag:yaml.org,2002:opencv-nd-matrix",
 def read_calibration(path: str | Path) -> LensModel:
     """The lens model in the calibration file ``path`` (see the module docstring)."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"camera calibration file not found: {p}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read camera calibration file {p}: {getattr(exc, 'strerror', None) or exc}") from None
+    text = read_text_input(p, "camera calibration file", reason=lambda exc: getattr(exc, "strerror", None) or exc)
     try:
         data = _parse(text)
     except (yaml.YAMLError, json.JSONDecodeError, ValueError):

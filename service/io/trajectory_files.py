@@ -184,14 +184,21 @@ def write_trajectory_csv(path: str | Path, rows: Iterable[PoseRow],
             f.write(chunk)
 
 
-def _open_csv(path: str | Path, what: str) -> tuple[list[str], list[tuple[int, dict]]]:
+def read_text_input(path: str | Path, what: str, *, reason=str) -> str:
+    """The UTF-8 text of the input file ``path`` (``what`` names it in the error), or one
+    :class:`InputError` line: not found, or unreadable (``reason`` of the exception)."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError(f"{what} not found: {path}") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read {what} {path}: {exc}") from None
+        raise InputError(f"cannot read {what} {path}: {reason(exc)}") from None
+
+
+def _open_csv(path: str | Path, what: str) -> tuple[list[str], list[tuple[int, dict]]]:
+    path = Path(path)
+    text = read_text_input(path, what)
     reader = csv.DictReader(io.StringIO(text))
     header = [h.strip() for h in (reader.fieldnames or [])]
     if not header:
