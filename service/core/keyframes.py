@@ -267,13 +267,9 @@ class KeyframeGraph:
                                         p.confidence, kind="loop")
                 added += 2
                 continue
-            if m.candidate.by_appearance:
-                self.graph.add_edge(self._node[m.candidate.ref], self._node[m.candidate.new], m.measured,
-                                    m.confidence, kind="loop")
-                added += 1
-                continue
-            jump = np.linalg.norm((m.measured - m.candidate.predicted) @ self.centre)
-            if jump > 0.25 * self.diagonal:
+            # a loop found by appearance is never held to the (drifted) prediction
+            if not m.candidate.by_appearance and \
+                    np.linalg.norm((m.measured - m.candidate.predicted) @ self.centre) > 0.25 * self.diagonal:
                 self.rejected_loops += 1
                 continue
             self.graph.add_edge(self._node[m.candidate.ref], self._node[m.candidate.new], m.measured,
