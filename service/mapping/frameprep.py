@@ -33,6 +33,14 @@ from photomap.io.camera_files import read_calibration, read_mask
 log = logging.getLogger(__name__)
 
 
+
+def fill_invalid(image: np.ndarray, valid: np.ndarray, invalid: np.ndarray | None = None) -> None:
+    """Fill the pixels of ``image`` where the uint8 mask ``valid`` is 0 with the mean of the valid
+    ones, in place (registration then sees no edge there). ``invalid``: ``valid == 0`` when the
+    caller keeps it (a mask fixed for the flight)."""
+    fill = cv2.mean(image, mask=valid)[:1 if image.ndim == 2 else image.shape[2]]
+    image[valid == 0 if invalid is None else invalid] = np.round(fill).astype(image.dtype)
+
 class FramePrep:
     """Undistortion and mask of the frames of one run (see the module docstring).
 
@@ -49,6 +57,7 @@ class FramePrep:
         self.user_mask = mask
         self.undistortion: Undistortion | None = None
         self.mask: np.ndarray | None = None  # uint8 (h, w), 255 = valid; None: every pixel
+        self._invalid: np.ndarray | None = None  # bool (h, w): the mask's invalid pixels (made once)
         self.fx: float | None = None  # focal length of the frames after undistortion (None: unknown)
         self.size: tuple[int, int] | None = None
 
@@ -112,6 +121,7 @@ class FramePrep:
             raise InputError("the frame mask (with the lens model) leaves less than 5 % of each frame: "
                              "nothing to map")
         self.mask = valid
+        self._invalid = None if valid is None else valid == 0
 
     def summary(self) -> dict:
         """For run.json: the lens the frames were undistorted with (None: none) and the share of
@@ -131,8 +141,7 @@ class FramePrep:
         elif self.mask is not None:
             image = image.copy()  # the source's frame stays as it was (the viewer shows it)
         if self.mask is not None:
-            fill = cv2.mean(image, mask=self.mask)[:1 if image.ndim == 2 else image.shape[2]]
-            image[self.mask == 0] = np.round(fill).astype(image.dtype)
+            fill_invalid(image, self.mask, self._invalid)
         return image
 
     def window(self, size: tuple[int, int]) -> np.ndarray | None:

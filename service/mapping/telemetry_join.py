@@ -52,6 +52,7 @@ from photomap.geometry import frame_centre, pose_angle_deg, wrap_deg
 from photomap.core.ifmi import Prior
 from photomap.telemetry.samples import TelemetrySample
 from photomap.telemetry.timesync import sync_time_offset
+from photomap.mapping.frameprep import fill_invalid
 
 log = logging.getLogger(__name__)
 
@@ -335,8 +336,7 @@ class TelemetryJoin:
                                      borderMode=cv2.BORDER_REPLICATE)
         mask = self._warp_mask(hmg, w, h)
         if cv2.countNonZero(mask) < mask.size:
-            fill = cv2.mean(warped, mask=mask)[:1 if warped.ndim == 2 else warped.shape[2]]
-            warped[mask == 0] = np.round(fill).astype(warped.dtype)
+            fill_invalid(warped, mask)
         return Rectified(warped, mask, hmg)
 
     def rectify(self, image: np.ndarray, s: TelemetrySample | None) -> np.ndarray:
