@@ -16,6 +16,10 @@ What is read, and the conventions of :class:`StillMetadata`
 - ``alt`` [m above mean sea level]: EXIF ``GPSAltitude`` with ``GPSAltitudeRef`` (1 = below
   sea level), else DJI XMP ``AbsoluteAltitude``;
 - ``relative_alt`` [m above the take-off point]: DJI XMP ``RelativeAltitude``;
+- ``lrf_distance`` [m along the optical axis to the ground at the image centre]: the laser range
+  finder of DJI enterprise cameras, XMP ``LRFTargetDistance`` where ``LRFStatus`` is ``Normal``
+  (or absent); the height over what is under the drone (canopy, roof), where ``relative_alt``
+  is over the take-off point;
 - DJI gimbal and airframe angles [deg], as written: ``Gimbal{Yaw,Pitch,Roll}Degree``,
   ``Flight{Yaw,Pitch,Roll}Degree``. The ``drone-dji`` namespace is recognised by its prefix or
   by a namespace URI containing ``/drone-dji/`` (DJI has used ``www.dji.com`` and ``www.uav.com``);
@@ -87,6 +91,7 @@ SENSOR_WIDTH_MM: dict[str, float] = {
 # Plausibility limits (a value outside is dropped, as for MAVLink samples)
 _ALT_RANGE = (-500.0, 12000.0)        # m AMSL
 _REL_ALT_RANGE = (-2000.0, 12000.0)   # m above home
+_LRF_RANGE = (0.5, 3000.0)            # m: DJI's range finders read 3-1200 m; 0 = no return
 _ANGLE_LIMIT = 360.0                  # deg
 
 # Display rotation of the image's up direction (clockwise, deg) that each EXIF orientation
@@ -118,6 +123,7 @@ class StillMetadata:
     lon: float | None = None
     alt: float | None = None
     relative_alt: float | None = None
+    lrf_distance: float | None = None
     gimbal_yaw: float | None = None
     gimbal_pitch: float | None = None
     gimbal_roll: float | None = None
@@ -434,6 +440,8 @@ def read_still_metadata(path: str | Path) -> StillMetadata:
         if relative_alt is None:
             problems.append(f"RelativeAltitude: unreadable {dji['RelativeAltitude']!r}")
 
+    lrf_distance = _lrf_distance(dji, problems)
+
     orientation = ifd0.get(_TAG_ORIENTATION, 1)
     if not isinstance(orientation, int) or not 1 <= orientation <= 8:
         problems.append(f"orientation: bad value {orientation!r}")
@@ -450,7 +458,7 @@ def read_still_metadata(path: str | Path) -> StillMetadata:
         sensor_mm=sensor_width_mm(make, model))
     return StillMetadata(
         name=path.name, width=width, height=height, time=capture_time(ifd0, exif_ifd),
-        lat=lat, lon=lon, alt=alt, relative_alt=relative_alt,
+        lat=lat, lon=lon, alt=alt, relative_alt=relative_alt, lrf_distance=lrf_distance,
         gimbal_yaw=_angle(dji, "GimbalYawDegree", problems),
         gimbal_pitch=_angle(dji, "GimbalPitchDegree", problems),
         gimbal_roll=_angle(dji, "GimbalRollDegree", problems),
@@ -459,6 +467,25 @@ def read_still_metadata(path: str | Path) -> StillMetadata:
         flight_roll=_angle(dji, "FlightRollDegree", problems),
         focal_px=fx, focal_source=source, orientation=orientation, make=make, model=model,
         problems=tuple(problems))
+
+
+def _lrf_distance(dji: Mapping[str, str], problems: list[str]) -> float | None:
+    """The laser range finder's ``LRFTargetDistance`` (m) where its ``LRFStatus`` says it measured.
+
+    DJI writes the status ``Normal`` for a valid reading (other words: out of range, no return)
+    and a distance of 0 without one; such readings are skipped quietly (a still over open
+    sky or water), an unreadable number is a problem.
+    """
+    if "LRFTargetDistance" not in dji:
+        return None
+    status = dji.get("LRFStatus")
+    if status is not None and status.strip().lower() != "normal":
+        return None
+    value = _float(dji["LRFTargetDistance"])
+    if value is None:
+        problems.append(f"LRFTargetDistance: unreadable {dji['LRFTargetDistance']!r}")
+        return None
+    return _in(value, *_LRF_RANGE)
 
 
 def _safe_ifd(exif: Image.Exif, tag: int, problems: list[str]) -> dict[int, Any]:
@@ -535,9 +562,11 @@ def camera_attitude(meta: StillMetadata) -> tuple[float | None, float | None, fl
 def still_sample(meta: StillMetadata, t: float | None = None) -> TelemetrySample | None:
     """The still's telemetry as a sample at time ``t`` (default: its EXIF capture time).
 
-    ``lat``, ``lon`` [deg], ``alt`` [m AMSL], ``relative_alt`` [m above take-off] and
-    ``height_above_ground`` = ``relative_alt`` with ``height_source = "home"`` (flat ground),
-    ``roll``, ``pitch``, ``yaw`` [rad] from :func:`camera_attitude`. None when the still tells
+    ``lat``, ``lon`` [deg], ``alt`` [m AMSL], ``relative_alt`` [m above take-off],
+    ``roll``, ``pitch``, ``yaw`` [rad] from :func:`camera_attitude`, and ``height_above_ground``:
+    the laser range finder's distance tilt-corrected by ``cos(roll) cos(pitch)`` (as a MAVLink
+    rangefinder is; ``height_source = "rangefinder"``, ``rangefinder`` the distance), else
+    ``relative_alt`` with ``height_source = "home"`` (flat ground). None when the still tells
     nothing (no position, altitude or attitude) or has no time.
     """
     t = meta.time if t is None else t
@@ -548,10 +577,13 @@ def still_sample(meta: StillMetadata, t: float | None = None) -> TelemetrySample
     values = (lat, meta.alt, meta.relative_alt, roll, pitch, yaw)
     if all(v is None for v in values):
         return None
+    height, source = meta.relative_alt, None if meta.relative_alt is None else "home"
+    if meta.lrf_distance is not None:
+        height = meta.lrf_distance * math.cos(roll or 0.0) * math.cos(pitch or 0.0)
+        source = "rangefinder"
     return TelemetrySample(t=float(t), lat=lat, lon=lon, alt=meta.alt,
                            relative_alt=meta.relative_alt, roll=roll, pitch=pitch, yaw=yaw,
-                           height_above_ground=meta.relative_alt,
-                           height_source=None if meta.relative_alt is None else "home")
+                           rangefinder=meta.lrf_distance, height_above_ground=height, height_source=source)
 
 
 def median_focal_px(metas: list[StillMetadata]) -> float | None:

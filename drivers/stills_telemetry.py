@@ -108,6 +108,7 @@ class StillsTelemetry:
             "with_gps": sum(s.lat is not None for s in got),
             "with_altitude": sum(s.alt is not None for s in got),
             "with_height": sum(s.height_above_ground is not None for s in got),
+            "with_rangefinder": sum(s.height_source == "rangefinder" for s in got),
             "with_attitude": sum(s.yaw is not None for s in got),
             "with_tilt": len(tilts),
             "max_tilt_deg": round(max(tilts), 3) if tilts else None,
@@ -216,7 +217,8 @@ def open_stills_telemetry(source, *, geo: str | Path | GeoFile | None = None) ->
         log.info("the %d stills carry no GPS or altitude: mapping by vision alone", s["stills"])
         return None
     focal = f"{s['focal_px']:.1f} px ({s['focal_source']})" if s["focal_px"] else "unknown"
-    log.info("telemetry from the stills (%s): %d of %d with GPS, %d with height above take-off, "
+    ranged = f" ({s['with_rangefinder']} by laser range finder)" if s["with_rangefinder"] else " above take-off"
+    log.info("telemetry from the stills (%s): %d of %d with GPS, %d with height%s, "
              "%d with attitude; focal length %s", s["source"], s["with_gps"], s["stills"],
-             s["with_height"], s["with_attitude"], focal)
+             s["with_height"], ranged, s["with_attitude"], focal)
     return tel

@@ -329,6 +329,8 @@ class SimulateConfig(_Section):
     k3: float = 0.0
     overlay: bool = False
     stills_bands: int = _num(1, 1, 5)
+    stills_home_below_m: float = _num(0.0, -1000.0, 1000.0)
+    stills_lrf: bool = False
 
     def _check(self) -> None:
         if self.object_size[0] > self.object_size[1]:

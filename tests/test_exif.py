@@ -583,3 +583,40 @@ def test_capture_time_from_a_png_exif_chunk(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert read_still_metadata(path).time == exif_time(path)
+
+
+def lrf_xmp(status: str | None, distance: str, gimbal_pitch: str = "-90.00", gimbal_roll: str = "+0.00") -> bytes:
+    """A DJI enterprise (M30T-style) XMP packet with its laser range finder's fields."""
+    status_attr = "" if status is None else f' drone-dji:LRFStatus="{status}"'
+    return ('<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+            '<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"'
+            ' drone-dji:RelativeAltitude="+120.20" drone-dji:GimbalYawDegree="+84.10"'
+            f' drone-dji:GimbalPitchDegree="{gimbal_pitch}" drone-dji:GimbalRollDegree="{gimbal_roll}"'
+            f'{status_attr} drone-dji:LRFTargetDistance="{distance}"/>'
+            '</rdf:RDF></x:xmpmeta>').encode()
+
+
+def test_laser_range_finder_gives_the_height_over_what_is_below(tmp_path):
+    """DJI enterprise stills: the height over the canopy or roof under the drone is the laser
+    range finder's distance (tilt-corrected like a MAVLink rangefinder), not the height over
+    the take-off point; a reading whose status is not Normal, or 0 (no return), is not used."""
+    path = tmp_path / "t.jpg"
+    path.write_bytes(jpeg_bytes(Image.Exif(), lrf_xmp("Normal", "54.103")))
+    meta = read_still_metadata(path)
+    assert meta.lrf_distance == pytest.approx(54.103) and meta.relative_alt == pytest.approx(120.2)
+    s = still_sample(meta, 0.0)
+    assert s.height_source == "rangefinder" and s.rangefinder == pytest.approx(54.103)
+    assert s.height_above_ground == pytest.approx(54.103, abs=1e-6) and s.relative_alt == pytest.approx(120.2)
+    # 20 deg of gimbal tilt: the slant range times cos(tilt)
+    path.write_bytes(jpeg_bytes(Image.Exif(), lrf_xmp("Normal", "60.000", gimbal_pitch="-70.00")))
+    s = still_sample(read_still_metadata(path), 0.0)
+    assert s.height_above_ground == pytest.approx(60.0 * math.cos(math.radians(20.0)), abs=1e-3)
+    for status, distance in (("TooFar", "54.1"), ("Normal", "0.000"), ("Normal", "-3")):
+        path.write_bytes(jpeg_bytes(Image.Exif(), lrf_xmp(status, distance)))
+        meta = read_still_metadata(path)
+        assert meta.lrf_distance is None and meta.problems == (), (status, distance)
+        s = still_sample(meta, 0.0)
+        assert s.height_source == "home" and s.height_above_ground == pytest.approx(120.2)
+    path.write_bytes(jpeg_bytes(Image.Exif(), lrf_xmp(None, "n/a")))
+    meta = read_still_metadata(path)
+    assert meta.lrf_distance is None and any("LRFTargetDistance" in p for p in meta.problems)

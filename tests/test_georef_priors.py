@@ -177,3 +177,30 @@ def test_stills_sharing_one_second_capture_times_keep_their_own_gps(tmp_path, ca
     skipped = len(times) - len(set(times))
     assert len(tum) == 1 and tum[0].startswith(f"TUM: {skipped} frame(s) skipped (frames "), tum
     assert tum[0].endswith("their times do not increase (e.g. capture times of one-second resolution)")
+
+
+def test_a_laser_range_finder_gives_the_camera_scale_that_the_height_over_take_off_does_not(tmp_path):
+    """A DJI enterprise survey taken off 20 m below the ground it maps (RelativeAltitude reads 80 m
+    over ground 60 m below): with the laser range finder in the XMP the camera's scale agrees
+    with the GPS (no prior dropped); the same stills without it drop the camera scale."""
+    out = tmp_path / "lrf"
+    simulate_flight(out, terrain="texture", terrain_size=(3400, 2400), mode="stills", strips=2, stills_per_strip=8,
+                    size=SIZE, altitude=(60.0, 60.0), seed=3, home_below_m=20.0, lrf=True)
+    meta = read_still_metadata(out / "stills" / "000004.jpg")
+    assert meta.relative_alt == pytest.approx(80.0, abs=0.01) and meta.lrf_distance == pytest.approx(60.0, rel=0.01)
+    summary = replay(str(out / "stills"), tmp_path / "with", load_config())
+    tel = summary["telemetry"]
+    assert summary["segments"] == 1 and tel["status"] == "ok" and tel["problems"] == [], tel["problems"]
+    assert summary["georeference"] is not None
+    cam = yaml.safe_load((out / "meta.yaml").read_text())["camera"]
+    assert summary["metres_per_pixel"] == pytest.approx(60.0 / cam["fx"] / (summary["map_scale"] or 1.0), rel=0.03)
+
+    without = tmp_path / "without"
+    without.mkdir()
+    for still in sorted((out / "stills").glob("*.jpg")):
+        (without / still.name).write_bytes(still.read_bytes())
+        rewrite_xmp(without / still.name, lambda text: re.sub(r'\s*drone-dji:LRF\w+="[^"]*"', "", text))
+    assert read_still_metadata(without / "000004.jpg").lrf_distance is None
+    tel = replay(str(without), tmp_path / "run_without", load_config())["telemetry"]
+    assert [p.split(":")[0] for p in tel["problems"]] == ["camera_scale"], tel["problems"]
+    assert "x0.75" in tel["problems"][0]

@@ -37,7 +37,7 @@ FLAGS = {"terrain": "terrain", "zoom": "terrain_zoom", "gsd": "gsd", "frames": "
          "stills_per_strip": "stills_per_strip", "forward_overlap": "forward_overlap",
          "stills_yaw": "stills_yaw", "hotspots": "hotspots", "hotspot_style": "hotspot_style",
          "k1": "k1", "k2": "k2", "p1": "p1", "p2": "p2", "k3": "k3", "overlay": "overlay",
-         "bands": "stills_bands"}
+         "bands": "stills_bands", "home_below": "stills_home_below_m", "lrf": "stills_lrf"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -91,6 +91,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       "(colour terrain, fire-orange spots)")
     a("--bands", type=int, metavar="N", help="stills mode: bands per capture (2-5: IMG_NNNN_B.tif, 16-bit, "
       "one lens per band)")
+    a("--home-below", type=float, metavar="M", help="stills mode: the take-off point M metres below the ground "
+      "under the flight (XMP RelativeAltitude reads M more than the height over the ground)")
+    a("--lrf", action="store_true", default=None, help="stills mode: a laser range finder's distance in the XMP "
+      "(LRFTargetDistance, as DJI enterprise cameras store it)")
     g = parser.add_argument_group("the camera's lens and overlay")
     a = g.add_argument
     for name in ("k1", "k2", "p1", "p2", "k3"):
@@ -121,7 +125,7 @@ def main(args: argparse.Namespace, cfg: Config) -> int:
         object_size=s.object_size, object_walls=s.object_walls, mode=s.mode, strips=s.strips,
         stills_per_strip=s.stills_per_strip, forward_overlap=s.forward_overlap, stills_yaw=s.stills_yaw,
         stills_quality=s.stills_quality, stills_xmp=s.stills_xmp, stills_bands=s.stills_bands, hotspots=s.hotspots,
-        hotspot_style=s.hotspot_style,
+        hotspot_style=s.hotspot_style, home_below_m=s.stills_home_below_m, lrf=s.stills_lrf,
         srt=bool(getattr(args, "srt", False)),
         distortion=(s.k1, s.k2, s.p1, s.p2, s.k3), osd=s.overlay)
     if s.mode == "stills":

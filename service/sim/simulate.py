@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import logging
+import math
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -78,7 +79,7 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                     forward_overlap: float = 0.65, stills_yaw: str = "flip", stills_quality: int = 92,
                     stills_xmp: bool = True, stills_bands: int = 1, hotspots: int = 0, hotspot_style: str = "thermal",
                     srt: bool = False, distortion: tuple[float, ...] = (), osd: bool = False,
-                    **params) -> Path:
+                    home_below_m: float = 0.0, lrf: bool = False, **params) -> Path:
     """Simulate a flight and write video, ground truth, telemetry and metadata into ``out_dir``.
 
     Parameters
@@ -118,6 +119,12 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         (:mod:`photomap.sim.lens`; () or zeros = an ideal pinhole camera). The ground truth is
         the ideal pinhole view: undistorting a frame with this model gives the truth's frame.
     osd : burn an overlay (text, crosshair, box) into every frame; ``mask.png`` marks it.
+    home_below_m : stills mode: the take-off point lies this many metres below the ground under
+        the flight (a canopy, a hillside): the stills' ``RelativeAltitude`` (height over take-off,
+        as DJI stores it) reads that much more than the height over the ground.
+    lrf : stills mode: the DJI XMP also carries a laser range finder's reading (DJI enterprise
+        cameras): ``LRFTargetDistance`` = the true distance along the optical axis to the
+        (flat) ground, height / (cos roll cos pitch).
     **params : :class:`photomap.sim.flight.Motion` and :class:`photomap.sim.flight.Effects` fields.
 
     Returns the output folder.
@@ -193,6 +200,13 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
                          lens=distorted, osd=osd_layer)
     if osd_layer is not None and not cv2.imwrite(str(out / "mask.png"), osd_layer.mask()):
         raise PhotomapError(f"cannot write {out / 'mask.png'}")
+    def lrf_range(i: int) -> float | None:
+        """The laser range finder's distance along the optical axis to the flat ground (m)."""
+        if not lrf:
+            return None
+        tilt = math.cos(math.radians(float(truth.roll_deg[i]))) * math.cos(math.radians(float(truth.pitch_deg[i])))
+        return float(truth.alt_m[i]) / tilt
+
     if stills and stills_bands > 1:
         media = out / "stills"
         media.mkdir(exist_ok=True)
@@ -201,10 +215,11 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
             i = int(shots[k])
             exif = still_exif(t_unix=t0_unix + float(truth.t[i]), lat=float(lat[i]), lon=float(lon[i]),
                               amsl_m=origin_amsl + float(truth.alt_m[i]), camera=camera)
-            dji = dji_attributes(rel_alt_m=float(truth.alt_m[i]), amsl_m=origin_amsl + float(truth.alt_m[i]),
+            dji = dji_attributes(rel_alt_m=float(truth.alt_m[i]) + home_below_m,
+                                 amsl_m=origin_amsl + float(truth.alt_m[i]),
                                  lat=float(lat[i]), lon=float(lon[i]), roll=float(truth.roll_deg[i]),
                                  pitch=float(truth.pitch_deg[i]), yaw=float(truth.yaw_deg[i]), camera=camera,
-                                 flight_yaw=float(flight_yaw[i])) if stills_xmp else None
+                                 flight_yaw=float(flight_yaw[i]), lrf_m=lrf_range(i)) if stills_xmp else None
             for b in range(stills_bands):
                 write_band_still(media / f"IMG_{k:04d}_{b + 1}.tif", band_image(frame, b, noise_rng), exif,
                                  micasense_xmp(capture_id=f"sim{seed}-{k:06d}", band=b, dji=dji))
@@ -217,9 +232,9 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
             i = int(shots[k])
             write_still(media / f"{k:06d}.jpg", frame, t_unix=t0_unix + float(truth.t[i]), lat=float(lat[i]),
                         lon=float(lon[i]), amsl_m=origin_amsl + float(truth.alt_m[i]),
-                        rel_alt_m=float(truth.alt_m[i]), camera=camera, roll=float(truth.roll_deg[i]),
-                        pitch=float(truth.pitch_deg[i]), yaw=float(truth.yaw_deg[i]),
-                        flight_yaw=float(flight_yaw[i]), quality=stills_quality, xmp=stills_xmp)
+                        rel_alt_m=float(truth.alt_m[i]) + home_below_m, camera=camera,
+                        roll=float(truth.roll_deg[i]), pitch=float(truth.pitch_deg[i]), yaw=float(truth.yaw_deg[i]),
+                        flight_yaw=float(flight_yaw[i]), quality=stills_quality, xmp=stills_xmp, lrf_m=lrf_range(i))
             if save_frames:
                 cv2.imwrite(str(frames_dir / f"{k:06d}.{frames_format}"), frame)
     else:
@@ -277,6 +292,10 @@ def simulate_flight(out_dir: str | Path, *, terrain: str = "aukerman", n_frames:
         meta["camera"].update({"model": "brown", "distortion": dict(zip(("k1", "k2", "p1", "p2", "k3"), lens.dist)),
                                "note": "frames seen through OpenCV's Brown-Conrady model (fx, fy, cx, cy, these "
                                        "coefficients); groundtruth H maps the undistorted (pinhole) frame"})
+    if stills and (home_below_m or lrf):
+        meta["stills_height"] = {"home_below_m": float(home_below_m), "lrf": bool(lrf),
+                                 "note": "XMP RelativeAltitude = height over the ground + home_below_m; "
+                                         "LRFTargetDistance = height / (cos roll cos pitch)"}
     if osd_layer is not None:
         meta["overlay"] = {"mask": "mask.png", "colour_bgr": list(OVERLAY_BGR),
                            "note": "text, crosshair and box burned into every frame; mask.png black there"}

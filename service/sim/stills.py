@@ -175,8 +175,11 @@ def focal_35mm(camera: Camera) -> float:
 
 
 def dji_attributes(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: float, pitch: float,
-                   yaw: float, camera: Camera, flight_yaw: float | None = None) -> dict[str, str]:
-    """The ``drone-dji:`` properties of :func:`dji_xmp` (name -> text)."""
+                   yaw: float, camera: Camera, flight_yaw: float | None = None,
+                   lrf_m: float | None = None) -> dict[str, str]:
+    """The ``drone-dji:`` properties of :func:`dji_xmp` (name -> text); with ``lrf_m``, a laser
+    range finder's reading as DJI enterprise cameras store it (``LRFStatus="Normal"``,
+    ``LRFTargetDistance``: metres along the optical axis to the ground at the image centre)."""
     def f(v: float, nd: int = 2) -> str:
         return f"{v:+.{nd}f}"
 
@@ -188,11 +191,11 @@ def dji_attributes(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, r
         "FlightPitchDegree": f(pitch),
         "CalibratedFocalLength": f"{camera.fx:.4f}", "CalibratedOpticalCenterX": f"{camera.cx:.4f}",
         "CalibratedOpticalCenterY": f"{camera.cy:.4f}",
-    }
+    } | ({} if lrf_m is None else {"LRFStatus": "Normal", "LRFTargetDistance": f"{lrf_m:.3f}"})
 
 
 def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: float, pitch: float, yaw: float,
-            camera: Camera, flight_yaw: float | None = None) -> bytes:
+            camera: Camera, flight_yaw: float | None = None, lrf_m: float | None = None) -> bytes:
     """A DJI-style XMP packet (``drone-dji:`` attributes, values like ``"+39.80"``).
 
     Gimbal angles are the camera's (deg; yaw clockwise from north), in DJI's convention (pitch
@@ -202,7 +205,7 @@ def dji_xmp(*, rel_alt_m: float, amsl_m: float, lat: float, lon: float, roll: fl
     ``CalibratedFocalLength`` and ``CalibratedOpticalCenterX/Y`` are in pixels (exact).
     """
     attrs = dji_attributes(rel_alt_m=rel_alt_m, amsl_m=amsl_m, lat=lat, lon=lon, roll=roll, pitch=pitch, yaw=yaw,
-                           camera=camera, flight_yaw=flight_yaw)
+                           camera=camera, flight_yaw=flight_yaw, lrf_m=lrf_m)
     body = "\n".join(f'   drone-dji:{k}="{v}"' for k, v in attrs.items())
     text = ('<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
             '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
@@ -260,7 +263,8 @@ def still_exif(*, t_unix: float, lat: float, lon: float, amsl_m: float, camera: 
 
 def write_still(path: str | Path, bgr: np.ndarray, *, t_unix: float, lat: float, lon: float, amsl_m: float,
                 rel_alt_m: float, camera: Camera, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0,
-                flight_yaw: float | None = None, quality: int = 92, xmp: bool = True) -> None:
+                flight_yaw: float | None = None, quality: int = 92, xmp: bool = True,
+                lrf_m: float | None = None) -> None:
     """Write a uint8 BGR still as JPEG with EXIF and, if ``xmp``, DJI-style XMP (Pillow >= 11.1).
 
     EXIF: Make/Model, Orientation 1, DateTimeOriginal + SubSecTimeOriginal (milliseconds) +
@@ -274,7 +278,7 @@ def write_still(path: str | Path, bgr: np.ndarray, *, t_unix: float, lat: float,
     kwargs = {"quality": int(quality), "exif": exif}
     if xmp:
         kwargs["xmp"] = dji_xmp(rel_alt_m=rel_alt_m, amsl_m=amsl_m, lat=lat, lon=lon, roll=roll, pitch=pitch,
-                                yaw=yaw, camera=camera, flight_yaw=flight_yaw)
+                                yaw=yaw, camera=camera, flight_yaw=flight_yaw, lrf_m=lrf_m)
     from PIL import Image
     try:
         Image.fromarray(np.ascontiguousarray(bgr[..., ::-1])).save(str(path), "JPEG", **kwargs)
