@@ -62,6 +62,26 @@ def test_the_circle_over_boxes_on_tiles_maps_on_the_floor(circle, tmp_path):
     assert result["scale_pct"]["max"] < 1.0
 
 
+def test_a_figure_eight_over_boxes_on_tiles_closes_its_loops(tmp_path):
+    """The figure-eight over the same ground (a terrain small enough that frame 283 is back over
+    frame 0, crossing its own track twice): one segment, loops closed, ATE within 0.5 % of the path."""
+    sim, run = tmp_path / "sim", tmp_path / "run"
+    flight = [a for a in FLIGHT if a not in ("circle", "200")]
+    flight[flight.index("--pattern") + 1:flight.index("--pattern") + 1] = ["figure8"]
+    flight[flight.index("--frames") + 1:flight.index("--frames") + 1] = ["300"]
+    assert photomap(["simulate", "--out", str(sim), *flight, "--set", "simulate.terrain_size=1500x1500", "-q"]) == 0
+    truth = read_groundtruth(sim / "groundtruth.csv").columns
+    xy = np.c_[truth["x"], truth["y"]]
+    assert np.linalg.norm(xy[200:] - xy[0], axis=1).min() < 10.0   # it comes back over its start
+    photomap(["replay", str(sim / "video.mkv"), "--out", str(run), "--no-progress", "-q"])
+    assert photomap(["evaluate", str(run), "--truth", str(sim / "groundtruth.csv"), "-q"]) == 0
+    summary = json.loads((run / "run.json").read_text())
+    result = json.loads((run / "evaluation.json").read_text())["headline"]
+    assert summary["segments"] == 1 and summary["registered"] == summary["frames_in"]
+    assert summary["loop_closure"]["loop_edges"] >= 1
+    assert result["ate"]["pct"] <= 0.5
+
+
 def test_a_pair_follows_the_floor_when_the_prior_expects_the_boxes(circle):
     """Pairs four frames apart (a keyframe's reach here), each registered with the motion model's
     prior where the boxes' layer would be (a tracker that followed them once): the results lie on
