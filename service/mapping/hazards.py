@@ -3,8 +3,9 @@
 :class:`HazardTracker` is a frame sink (:data:`~photomap.mapping.events.FrameSink`; it runs in the
 worker thread). For every posed frame it runs the detector (:mod:`photomap.core.hotspots`) on the
 input frame, places each blob on the map through the frame's pose (frame px -> map px of the
-frame's segment; through the telemetry's rectifying homography first when the pipeline rectified
-the frame) and associates it with the nearest hazard of the same segment within ``match_m``
+frame's segment; through the lens model first when the pipeline undistorted the frame, the
+event's ``view_points``, then the telemetry's rectifying homography when it rectified it) and
+associates it with the nearest hazard of the same segment within ``match_m``
 metres (``match_px`` input pixels when the ground scale is unknown). A hazard seen in
 ``min_frames`` frames is confirmed: it gets the next id, one STATUSTEXT goes out (when a sender
 is given) and the live files are rewritten. Candidates not confirmed within ``forget_frames``
@@ -51,8 +52,9 @@ _MIN_TILT_RAD = math.radians(0.2)  # as the telemetry join: below this, frames a
 
 @dataclass
 class _Obs:
-    """One sighting: input frame pixel ``(u, v)``, its live map position, the live estimate of
-    metres per map pixel and of WGS84 (None when unknown)."""
+    """One sighting: input frame pixel ``(u, v)`` undistorted (by the lens model, when the
+    frames were), its live map position, the live estimate of metres per map pixel and of WGS84
+    (None when unknown)."""
 
     frame: int
     t: float
@@ -209,7 +211,8 @@ class HazardTracker:
             return
         s = event.telemetry
         w, h = event.frame_size
-        uv = self._to_pose_px(blobs.xy, getattr(s, "roll", None), getattr(s, "pitch", None), event.focal_px, (w, h))
+        und = event.view_points(blobs.xy) if event.view_points is not None else blobs.xy  # undistorted
+        uv = self._to_pose_px(und, getattr(s, "roll", None), getattr(s, "pitch", None), event.focal_px, (w, h))
         pose = np.asarray(event.pose, float)
         mxy = uv @ pose[:, :2].T + pose[:, 2]
         scale = pose_scale(pose)
@@ -218,11 +221,11 @@ class HazardTracker:
             ground = s.height_above_ground / event.focal_px
         mpp = ground / scale if ground is not None and scale > 0 else None
         radius = self.match_m / mpp if mpp else self.match_px * scale
-        geo = self._live_latlon(blobs.xy, s, ground, (w, h))
+        geo = self._live_latlon(und, s, ground, (w, h))
         confirmed = []
         with self._lock:
             for k in range(len(blobs)):
-                ob = _Obs(event.index, float(event.t), float(blobs.xy[k, 0]), float(blobs.xy[k, 1]),
+                ob = _Obs(event.index, float(event.t), float(und[k, 0]), float(und[k, 1]),
                           float(blobs.peak[k]), float(blobs.area[k]), int(event.segment), float(mxy[k, 0]),
                           float(mxy[k, 1]), mpp, *(geo[k] if geo is not None else (None, None)))
                 track = self._nearest(ob, radius)

@@ -52,7 +52,7 @@ from photomap.errors import PhotomapError
 from photomap.io.keyframestore import KeyframeStore
 from photomap.mapping.checkpoint import state_folder
 from photomap.mapping.events import FrameEvent, FrameSink, GeoreferenceSink
-from photomap.mapping.frameprep import FramePrep
+from photomap.mapping.frameprep import FramePrep, view_points
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.memory import frozen_heap, limit_heap_growth, trimmed_heap
 from photomap.mapping.painter import Painter
@@ -635,7 +635,8 @@ class MappingPipeline:
             dropped_frames=int(self.source.stats.dropped), reconnects=int(self.source.stats.reconnects),
             telemetry=sample, focal_px=self.telemetry.focal(self.frame_size[0]) if self.telemetry else None,
             link_lost=int(link.get("link_lost", 0)),
-            link_regained=int(link.get("link_regained", 0)), path_after_correction=corrected_path))
+            link_regained=int(link.get("link_regained", 0)), path_after_correction=corrected_path,
+            view_points=view_points(self._prep, None)))
         self.stats.timing.add("sinks", time.perf_counter() - t5)
 
     def _emit(self, event: FrameEvent) -> None:
