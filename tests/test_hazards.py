@@ -160,7 +160,7 @@ def test_one_spot_over_many_frames_is_one_hazard(tmp_path):
     live = tracker.hazards()["features"]
     assert len(live) == 1 and live[0]["geometry"] is None  # no telemetry: no WGS84
     assert sent == ["photomap: hazard 1 at map 150,111"]
-    info = tracker.finish(rows, [], (W, H))
+    info = tracker.finish(rows, [])
     assert info["count"] == 1
     p = tracker.hazards()["features"][0]["properties"]
     assert p["id"] == 1 and p["frames"] == 40 and p["first_seen"] == 0 and p["last_seen"] == 39
@@ -184,7 +184,7 @@ def test_two_passes_split_by_drift_become_one_hazard_with_the_corrected_poses(tm
         tracker.on_frame(_event(k, world, _translation(60, 0)))  # drifted live
         rows.append(PoseRow(k, k / 10.0, _translation(0, 0), 0.9, "registered", 0))  # corrected
     assert [f["properties"]["id"] for f in tracker.hazards()["features"]] == [1, 2]
-    tracker.finish(rows, [], (W, H))
+    tracker.finish(rows, [])
     final = tracker.hazards()["features"]
     assert len(final) == 1
     p = final[0]["properties"]
@@ -210,7 +210,7 @@ def test_one_spot_seen_from_two_georeferenced_segments_is_one_hazard_in_wgs84(tm
                                             "map_to_crs": [[0.1, 0.0, 500000.0], [0.0, -0.1, 4550000.0]]}},
             {"segment": 1, "georeference": {"crs": "EPSG:32617", "gps_rms_m": 0.5,
                                             "map_to_crs": [[0.1, 0.0, 500010.0], [0.0, -0.1, 4550000.0]]}}]
-    assert tracker.finish(rows, maps, (W, H))["count"] == 1
+    assert tracker.finish(rows, maps)["count"] == 1
     (f,) = tracker.hazards()["features"]
     lat, lon = utm_inverse(np.array([500016.0]), np.array([4549988.0]), 32617)
     assert f["geometry"]["coordinates"] == pytest.approx([lon[0], lat[0]], abs=1e-7)
@@ -362,6 +362,14 @@ def test_planted_hot_spots_are_found_through_a_distorting_lens_as_through_a_pinh
     run = _fly_and_find(tmp_path, "thermal", "hot", 200, 5, flight=["--hfov", "50", "--k1", "-0.3"],
                         replay=["--set", "camera.k1=-0.3", "--set", "camera.hfov_deg=50"], within_m=0.1)
     assert run["frame_prep"]["lens"]["distortion"][0] == -0.3  # the frames were undistorted
+
+
+def test_planted_hot_spots_are_found_within_2_m_from_tilted_frames(tmp_path):
+    """Roll/pitch up to 4 degrees: frames rectified to nadir by the telemetry (the join's tilt
+    decision, ``TelemetryJoin.homography``), each spot placed through the rectified view's pose
+    (found within 0.02 m)."""
+    run = _fly_and_find(tmp_path, "thermal", "hot", 200, 5, flight=["--tilt", "4"], within_m=0.1)
+    assert run["telemetry"]["rectified"] > 150
 
 
 def test_the_viewer_shows_the_hazards_as_points_on_the_map(tmp_path):

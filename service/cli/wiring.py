@@ -262,7 +262,7 @@ def hazard_tracker(cfg: Config, out_dir: str | Path, reader: TelemetryReader | N
         return None
     send = (reader.send_status if cfg.hazards.statustext and cfg.telemetry.send_statustext and reader is not None
             and live else None)
-    return HazardTracker(cfg.hazards, out_dir, send_status=send, rectify_tilt=cfg.telemetry.rectify_tilt)
+    return HazardTracker(cfg.hazards, out_dir, send_status=send)
 
 
 # ---------------------------------------------------------------------------------- mapping
@@ -338,7 +338,7 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
         for sig, old in previous.items():
             signal.signal(sig, old)
     if hazards is not None:  # from the final poses and georeference; run.json says what was found
-        summary["hazards"] = hazards.finish(pipeline.rows, summary.get("mosaics") or [], pipeline.frame_size)
+        summary["hazards"] = hazards.finish(pipeline.rows, summary.get("mosaics") or [])
         try:
             write_json(Path(out_dir) / "run.json", summary)
         except OSError as exc:

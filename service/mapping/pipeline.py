@@ -636,7 +636,7 @@ class MappingPipeline:
             telemetry=sample, focal_px=self.telemetry.focal(self.frame_size[0]) if self.telemetry else None,
             link_lost=int(link.get("link_lost", 0)),
             link_regained=int(link.get("link_regained", 0)), path_after_correction=corrected_path,
-            view_points=view_points(self._prep, None)))
+            view_points=view_points(self._prep, self.telemetry.homography(frame.index) if self.telemetry else None)))
         self.stats.timing.add("sinks", time.perf_counter() - t5)
 
     def _emit(self, event: FrameEvent) -> None:
