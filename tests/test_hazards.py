@@ -430,3 +430,26 @@ def test_the_simulator_paints_its_spots_where_hotspots_csv_says(tmp_path):
                 seen += 1
         assert frame[..., 0][~hot].max() <= 125  # the ground, away from the spots
     assert seen >= 10
+
+
+def test_run_json_is_written_once_at_the_end_with_the_hazards_in_it(tmp_path, monkeypatch):
+    """The final run.json carries the hazards' summary: one write, not a second one after it."""
+    import photomap.mapping.run_outputs as run_outputs
+
+    sim, out = tmp_path / "sim", tmp_path / "run"
+    assert cli.main(["simulate", "--out", str(sim), "--frames", "60", "--size", "320x240", "--hotspots", "2",
+                     "--seed", "3", "-q"]) == 0
+    written = []
+    real = run_outputs.write_json
+
+    def counted(path, data, *a, **kw):
+        if path.name == "run.json" and data.get("complete"):
+            written.append(json.loads(json.dumps(data, default=str)))
+        return real(path, data, *a, **kw)
+
+    monkeypatch.setattr(run_outputs, "write_json", counted)
+    assert cli.main(["replay", str(sim / "video.mp4"), "--out", str(out), "--mavlink", str(sim / "telemetry.tlog"),
+                     "--hazards", "--no-progress", "-q"]) == 0
+    assert len(written) == 1
+    assert written[0]["hazards"]["geojson"] == "hazards.geojson"
+    assert json.loads((out / "run.json").read_text())["hazards"] == written[0]["hazards"]

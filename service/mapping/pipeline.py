@@ -32,7 +32,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -234,11 +234,13 @@ class MappingPipeline:
         Recorded in ``run.json``.
     telemetry : TelemetryJoin, optional
         MAVLink telemetry joined to the frames (priors, tilt, metric scale, georeference).
+    final_outputs : mapping, optional
+        More outputs written at the end, in ``run.json`` under their names (see :class:`RunOutputs`).
     """
 
     def __init__(self, source: FrameSource, cfg: Config, out_dir: str | Path, *,
                  sinks: Sequence[FrameSink] = (), input_name: str = "",
-                 telemetry: TelemetryJoin | None = None) -> None:
+                 telemetry: TelemetryJoin | None = None, final_outputs: Mapping[str, Callable] | None = None) -> None:
         self.source = source
         self.cfg = cfg
         self.out_dir = Path(out_dir)
@@ -256,8 +258,9 @@ class MappingPipeline:
         # has no frame deadline: throughput first)
         self._first = WorkerFirst(enabled=source.live)
         self.outputs = RunOutputs(self.out_dir, cfg.output, self._rows, self.segments, telemetry=telemetry,
-                                  first=self._first, input_name=input_name)  # what the run writes
-        self.outputs.band_source = source if getattr(source, "captures", None) else None  # multi-band stills
+                                  first=self._first, input_name=input_name,  # what the run writes
+                                  band_source=source if getattr(source, "captures", None) else None,  # multi-band
+                                  final_outputs=final_outputs)
         self._next_index = 0
         self._started = 0.0
         self._last_checkpoint = 0.0
@@ -792,8 +795,7 @@ class MappingPipeline:
                 self._painter.close()
         self.stats.timing.add("final_rerender", time.perf_counter() - t0)
         self._close_gaps()
-        self.outputs.placed = self._placed
-        summary = self.outputs.finish(self.summary, self.stats.timing, t0)
+        summary = self.outputs.finish(self.summary, self.stats.timing, t0, placed=self._placed)
         self.segments.close()
         if self._placer is not None:
             self._placer.close()
