@@ -588,7 +588,8 @@ class MappingPipeline:
                 self.telemetry.keep(frame.index, sample)
         self._rows.append(frame.index, frame.t, step.pose, step.confidence, step.status, step.segment, extra)
         if self.telemetry is not None and step.status == LOW_CONFIDENCE:  # placed at the end, if trusted
-            self._placer = self._placer or TelemetryPlacer(self.telemetry, self.frame_size)
+            self._placer = self._placer or TelemetryPlacer(self.telemetry, self.frame_size,
+                                                           self.segments.cache() / "unplaced")  # the run's scratch
             self._placer.keep(frame.index, frame.t, placed.image, placed.mask, placed.sample)
         return messages
 
