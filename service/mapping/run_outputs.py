@@ -396,7 +396,7 @@ class RunOutputs:
                 summary["bands"] = bands
         summary["mosaics"] = maps
         for name, write in self._final_outputs.items():  # e.g. the hazards, from the final poses
-            summary[name] = write(self._rows, maps)
+            summary[name] = self._attempt(name, write, self._rows, maps)
         summary["complete"] = True
         if unwritten:  # the map is not all on disk as outputs: the checkpoint must hold it
             georefs = {str(i["segment"]): i["georeference"] for i in maps + unwritten
