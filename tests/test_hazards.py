@@ -171,6 +171,30 @@ def test_one_spot_over_many_frames_is_one_hazard(tmp_path):
     assert [r["id"] for r in got] == ["1"] and got[0]["lat"] == ""
 
 
+def test_a_spot_is_placed_through_the_view_the_pose_maps(tmp_path):
+    """The pipeline gave the map another view of the frame (undistorted, rectified): the event's
+    view_points take the blob there before the pose; live and final positions are the pose of the
+    view pixel, not of the input pixel."""
+    import dataclasses
+
+    from photomap.mapping.frameprep import view_points
+
+    to_view = view_points(None, np.array([[1.1, 0.02, -5.0], [0.0, 1.1, -4.0], [2e-5, 0.0, 1.0]]))
+    frame = disc(ground(5), 250.0, 180.0, 5.0, 250)
+    tracker = HazardTracker(HazardsConfig(enabled=True, detect_px=0), tmp_path)
+    rows = []
+    for k in range(6):
+        tracker.on_frame(dataclasses.replace(_event(k, frame, _translation(10, 20)), view_points=to_view))
+        rows.append(PoseRow(k, k / 10.0, _translation(40, -5), 0.9, "registered", 0))  # corrected at the end
+    (vx, vy), = to_view(np.array([[250.0, 180.0]]))
+    assert math.hypot(vx - 250.0, vy - 180.0) > 10  # the view moves the spot
+    live = tracker.hazards()["features"][0]["properties"]
+    assert (live["x_px"], live["y_px"]) == pytest.approx((vx + 10, vy + 20), abs=0.3)
+    tracker.finish(rows, [])
+    final = tracker.hazards()["features"][0]["properties"]
+    assert (final["x_px"], final["y_px"]) == pytest.approx((vx + 40, vy - 5), abs=0.3)
+
+
 def test_two_passes_split_by_drift_become_one_hazard_with_the_corrected_poses(tmp_path):
     """Live, the second pass's poses have drifted by 60 px: the spot is a second hazard then. The
     final (loop-corrected) poses put both passes on one spot: one hazard, the first one's id."""
