@@ -26,6 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from photomap.drivers.native_log import opencv_log
+
 #: Suffixes of the formats every OpenCV build reads.
 _ALWAYS = (".jpg", ".jpeg", ".jpe", ".png", ".tif", ".tiff", ".bmp", ".dib",
            ".pgm", ".ppm", ".pbm", ".pnm")
@@ -33,8 +35,6 @@ _ALWAYS = (".jpg", ".jpeg", ".jpe", ".png", ".tif", ".tiff", ".bmp", ".dib",
 _OPTIONAL = {".webp": (".webp",), ".jp2": (".jp2", ".j2k", ".j2c", ".jpf", ".jpx"), ".avif": (".avif",),
              ".exr": (".exr",), ".hdr": (".hdr", ".pic"), ".pfm": (".pfm",), ".sr": (".sr", ".ras")}
 
-# "[ WARN:0@0.031] global grfmt_tiff.cpp:123 TIFF_Warning TIFFReadDirectory: ..." -> the message
-_OPENCV_LOG = re.compile(r"^\[\s*(WARN|ERROR|INFO)[^\]]*\]\s*(?:global\s+)?(?:\S+:\d+\s+)?(.*)$")
 _QUOTED = re.compile(r"'[^']*'")
 _DIGITS = re.compile(r"\b(0x[0-9a-fA-F]+|\d+)\b")
 _FD_LOCK = threading.Lock()
@@ -62,9 +62,9 @@ def warning_kind(line: str) -> tuple[str, str] | None:
     text = line.strip()
     if not text:
         return None
-    m = _OPENCV_LOG.match(text)
-    if m:
-        text = m.group(2).strip()
+    cv = opencv_log(text)  # "[ WARN:0@0.031] global grfmt_tiff.cpp:123 TIFF_Warning ..." -> the message
+    if cv is not None:
+        text = cv[1]
     elif not re.match(r"^(libpng|Corrupt JPEG|Premature end of JPEG|Invalid SOS|Warning:|TIFF)", text):
         return None
     if text.startswith("TIFF_Warning") or text.startswith("TIFF"):

@@ -23,13 +23,23 @@ from collections import Counter
 
 # "[h264 @ 0x55813e5c9880] non-existing PPS 0 referenced"
 _AV_LOG = re.compile(r"^\[([\w:.\-]+) @ (?:0x)?[0-9a-fA-F]+\] ?(.*)$")
-# "[ WARN:0@5.010] global cap_ffmpeg_impl.hpp:453 _opencv_ffmpeg_interrupt_callback Stream timeout ..."
-# (any of OpenCV's videoio sources: cap.cpp, cap_ffmpeg_impl.hpp, cap_gstreamer.cpp, ...)
-_CV_LOG = re.compile(r"^\[ ?(?:WARN|ERROR|INFO|DEBUG)[^\]]*\] global cap\w*\.[ch]pp(?::\d+)? (?:\w+ )?(.*)$")
+# OpenCV's own log: "[ WARN:0@5.010] global cap_ffmpeg_impl.hpp:453 _opencv_ffmpeg_interrupt_callback
+# Stream timeout ...", "[ WARN:0@0.031] global grfmt_tiff.cpp:123 TIFF_Warning TIFFReadDirectory: ..."
+_CV_LOG = re.compile(r"^\[\s*(?:WARN|ERROR|INFO|DEBUG)[^\]]*\]\s*(?:global\s+)?(?:(\S+?\.[ch]pp)(?::\d+)?\s+)?(.*)$")
+_FUNCTION = re.compile(r"^\w+ ")  # videoio's lines name the function first
 # av_log's own repeat suppression: "    Last message repeated 5 times"
 _REPEATED = re.compile(r"^\s*Last message repeated (\d+) times?\s*$")
 # Numbers that change from message to message (times, sizes, addresses), not parts of an address.
 _NUMBER = re.compile(r"(?<![.\d:])(?:0x[0-9a-fA-F]+|\d+\.\d+|\d{3,})(?![.\d:])")
+
+
+def opencv_log(line: str) -> tuple[str, str] | None:
+    """``(source file, message)`` of a line of OpenCV's own log (``[ WARN:0@t] global
+    file.cpp:line message``; the source ``""`` when the line names none), or None when the line
+    is not one. Shared by the decoder tap (videoio's ``cap*`` sources) and the still reader
+    (:mod:`photomap.drivers.imread`: imgcodecs' warnings during a read)."""
+    m = _CV_LOG.match(line.strip())
+    return None if m is None else (m.group(1) or "", m.group(2).strip())
 
 
 def decoder_message(line: str) -> str | None:
@@ -38,9 +48,9 @@ def decoder_message(line: str) -> str | None:
     m = _AV_LOG.match(line)
     if m:
         return f"{m.group(1)}: {_NUMBER.sub('N', m.group(2).strip())}"
-    m = _CV_LOG.match(line)
-    if m:
-        return f"opencv: {_NUMBER.sub('N', m.group(1).strip())}"
+    cv = opencv_log(line)
+    if cv is not None and cv[0].startswith("cap"):  # videoio: cap.cpp, cap_ffmpeg_impl.hpp, cap_gstreamer.cpp ...
+        return f"opencv: {_NUMBER.sub('N', _FUNCTION.sub('', cv[1], count=1))}"
     return None
 
 

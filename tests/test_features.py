@@ -322,3 +322,30 @@ def test_brighton_stills_link():
     # the strip over forest (parallax) included: iFMI alone breaks the set into segments
     assert sum(d.accept for _, d, _ in links) >= 16, [(d.method, d.reason) for _, d, _ in links]
     assert not consistent_with_gps(links)
+
+
+def test_a_fixed_mask_is_resized_once_and_a_new_mask_is_not_mistaken_for_it(terrain, monkeypatch):
+    """Keypoints only where the mask is 1, frame after frame; the mask's resized copy is made once
+    per mask and detection size, and another mask of the same shape gets its own."""
+    a, b, _ = pair(terrain, 0.0, 1.0, (0.0, 0.0))
+    left = np.zeros(SHAPE, np.float32)
+    left[:, : SHAPE[1] // 2] = 1.0
+    right = 1.0 - left
+    resized = []
+    real = cv2.resize
+
+    def counting(src, *args, **kwargs):
+        if src.dtype == np.float32:
+            resized.append(src.shape)
+        return real(src, *args, **kwargs)
+
+    matcher = FeatureMatcher("orb", working_size=320)
+    monkeypatch.setattr(cv2, "resize", counting)
+    first = [matcher.prepare(img, left) for img in (a, b, a)]
+    assert resized == [SHAPE]  # once for three frames
+    assert np.array_equal(first[0].points, first[2].points) and len(first[0])
+    assert (first[0].points[:, 0] < SHAPE[1] / 2).all() and (first[1].points[:, 0] < SHAPE[1] / 2).all()
+    other = matcher.prepare(a, right)
+    assert len(resized) == 2 and len(other) and (other.points[:, 0] > SHAPE[1] / 2 - 2).all()
+    fresh = FeatureMatcher("orb", working_size=320).prepare(b, left)
+    assert np.array_equal(matcher.prepare(b, left).points, fresh.points)

@@ -160,7 +160,7 @@ def test_one_spot_over_many_frames_is_one_hazard(tmp_path):
     live = tracker.hazards()["features"]
     assert len(live) == 1 and live[0]["geometry"] is None  # no telemetry: no WGS84
     assert sent == ["photomap: hazard 1 at map 150,111"]
-    info = tracker.finish(rows, [], (W, H))
+    info = tracker.finish(rows, [])
     assert info["count"] == 1
     p = tracker.hazards()["features"][0]["properties"]
     assert p["id"] == 1 and p["frames"] == 40 and p["first_seen"] == 0 and p["last_seen"] == 39
@@ -169,6 +169,30 @@ def test_one_spot_over_many_frames_is_one_hazard(tmp_path):
     with open(tmp_path / "hazards.csv", newline="") as f:
         got = list(csv.DictReader(f))
     assert [r["id"] for r in got] == ["1"] and got[0]["lat"] == ""
+
+
+def test_a_spot_is_placed_through_the_view_the_pose_maps(tmp_path):
+    """The pipeline gave the map another view of the frame (undistorted, rectified): the event's
+    view_points take the blob there before the pose; live and final positions are the pose of the
+    view pixel, not of the input pixel."""
+    import dataclasses
+
+    from photomap.mapping.frameprep import view_points
+
+    to_view = view_points(None, np.array([[1.1, 0.02, -5.0], [0.0, 1.1, -4.0], [2e-5, 0.0, 1.0]]))
+    frame = disc(ground(5), 250.0, 180.0, 5.0, 250)
+    tracker = HazardTracker(HazardsConfig(enabled=True, detect_px=0), tmp_path)
+    rows = []
+    for k in range(6):
+        tracker.on_frame(dataclasses.replace(_event(k, frame, _translation(10, 20)), view_points=to_view))
+        rows.append(PoseRow(k, k / 10.0, _translation(40, -5), 0.9, "registered", 0))  # corrected at the end
+    (vx, vy), = to_view(np.array([[250.0, 180.0]]))
+    assert math.hypot(vx - 250.0, vy - 180.0) > 10  # the view moves the spot
+    live = tracker.hazards()["features"][0]["properties"]
+    assert (live["x_px"], live["y_px"]) == pytest.approx((vx + 10, vy + 20), abs=0.3)
+    tracker.finish(rows, [])
+    final = tracker.hazards()["features"][0]["properties"]
+    assert (final["x_px"], final["y_px"]) == pytest.approx((vx + 40, vy - 5), abs=0.3)
 
 
 def test_two_passes_split_by_drift_become_one_hazard_with_the_corrected_poses(tmp_path):
@@ -184,7 +208,7 @@ def test_two_passes_split_by_drift_become_one_hazard_with_the_corrected_poses(tm
         tracker.on_frame(_event(k, world, _translation(60, 0)))  # drifted live
         rows.append(PoseRow(k, k / 10.0, _translation(0, 0), 0.9, "registered", 0))  # corrected
     assert [f["properties"]["id"] for f in tracker.hazards()["features"]] == [1, 2]
-    tracker.finish(rows, [], (W, H))
+    tracker.finish(rows, [])
     final = tracker.hazards()["features"]
     assert len(final) == 1
     p = final[0]["properties"]
@@ -210,7 +234,7 @@ def test_one_spot_seen_from_two_georeferenced_segments_is_one_hazard_in_wgs84(tm
                                             "map_to_crs": [[0.1, 0.0, 500000.0], [0.0, -0.1, 4550000.0]]}},
             {"segment": 1, "georeference": {"crs": "EPSG:32617", "gps_rms_m": 0.5,
                                             "map_to_crs": [[0.1, 0.0, 500010.0], [0.0, -0.1, 4550000.0]]}}]
-    assert tracker.finish(rows, maps, (W, H))["count"] == 1
+    assert tracker.finish(rows, maps)["count"] == 1
     (f,) = tracker.hazards()["features"]
     lat, lon = utm_inverse(np.array([500016.0]), np.array([4549988.0]), 32617)
     assert f["geometry"]["coordinates"] == pytest.approx([lon[0], lat[0]], abs=1e-7)
@@ -301,15 +325,18 @@ def _distance_m(lat, lon, lat0, lon0) -> float:
     return float(np.hypot(e[0], n[0]))
 
 
-@pytest.mark.parametrize("style, mode, frames, n", [("thermal", "hot", 200, 5), ("visible", "colour", 120, 3)])
-def test_planted_hot_spots_are_all_found_within_2_m_none_false_none_twice(tmp_path, style, mode, frames, n):
+def _fly_and_find(tmp_path, style: str, mode: str, frames: int, n: int, flight=(), replay=(),
+                  within_m: float = 2.0) -> dict:
+    """Simulate a flight with ``n`` planted spots (``flight``: more simulate flags), replay it with
+    hazards on (``replay``: more replay flags) and assert every spot is found once within
+    ``within_m`` (also its uncertainty) and nothing else is; returns run.json."""
     sim, out = tmp_path / "sim", tmp_path / "run"
     assert cli.main(["simulate", "--out", str(sim), "--frames", str(frames), "--size", "640x480",
-                     "--hotspots", str(n), "--hotspot-style", style, "--seed", "3", "-q"]) == 0
+                     "--hotspots", str(n), "--hotspot-style", style, "--seed", "3", *flight, "-q"]) == 0
     truth = read_hotspots_csv(sim / "hotspots.csv")
     assert len(truth) == n
     assert cli.main(["replay", str(sim / "video.mp4"), "--out", str(out), "--mavlink", str(sim / "telemetry.tlog"),
-                     "--hazards", "--set", f"hazards.mode={mode}", "--no-progress", "-q"]) == 0
+                     "--hazards", "--set", f"hazards.mode={mode}", *replay, "--no-progress", "-q"]) == 0
     run = json.loads((out / "run.json").read_text())
     assert run["georeference"] is not None  # with telemetry: positions in WGS84
     assert run["hazards"]["count"] == n and run["hazards"]["geojson"] == "hazards.geojson"
@@ -322,11 +349,11 @@ def test_planted_hot_spots_are_all_found_within_2_m_none_false_none_twice(tmp_pa
         lon, lat = f["geometry"]["coordinates"]
         d = {t["id"]: _distance_m(lat, lon, t["lat"], t["lon"]) for t in truth}
         best = min(d, key=d.get)
-        assert d[best] < 2.0, f"hazard {f['properties']['id']} is {d[best]:.2f} m from the nearest spot"
+        assert d[best] < within_m, f"hazard {f['properties']['id']} is {d[best]:.2f} m from the nearest spot"
         matched.add(best)
         p = f["properties"]
         assert p["frames"] >= 3 and p["first_seen"] <= p["last_seen"] and p["peak"] > 200
-        assert p["uncertainty_m"] is not None and p["uncertainty_m"] < 2.0
+        assert p["uncertainty_m"] is not None and p["uncertainty_m"] < within_m
     assert len(matched) == n  # each spot once: none twice
 
     ns = {"k": "http://www.opengis.net/kml/2.2"}
@@ -342,6 +369,31 @@ def test_planted_hot_spots_are_all_found_within_2_m_none_false_none_twice(tmp_pa
         assert (lon, lat) == pytest.approx(tuple(f["geometry"]["coordinates"]), abs=1e-9)
         assert (float(row["lat"]), float(row["lon"])) == pytest.approx((lat, lon), abs=1e-9)
         assert int(row["first_seen"]) == f["properties"]["first_seen"]
+    return run
+
+
+@pytest.mark.parametrize("style, mode, frames, n", [("thermal", "hot", 200, 5), ("visible", "colour", 120, 3)])
+def test_planted_hot_spots_are_all_found_within_2_m_none_false_none_twice(tmp_path, style, mode, frames, n):
+    _fly_and_find(tmp_path, style, mode, frames, n)
+
+
+def test_planted_hot_spots_are_found_through_a_distorting_lens_as_through_a_pinhole(tmp_path):
+    """Frames through k1 = -0.3 with the lens model given: the map is made of the undistorted
+    frames, and each spot seen in a distorted frame is taken through the lens model to the pixels
+    the pose maps. Found within 0.1 m, uncertainty below 0.1 m, as through an ideal lens (this
+    flight without distortion: 0.005 m, 0.015 m; placed from the distorted pixels, a spot seen
+    far from the frame centre is off by up to 1 m: 0.5 m off, 0.9 m uncertain)."""
+    run = _fly_and_find(tmp_path, "thermal", "hot", 200, 5, flight=["--hfov", "50", "--k1", "-0.3"],
+                        replay=["--set", "camera.k1=-0.3", "--set", "camera.hfov_deg=50"], within_m=0.1)
+    assert run["frame_prep"]["lens"]["distortion"][0] == -0.3  # the frames were undistorted
+
+
+def test_planted_hot_spots_are_found_within_2_m_from_tilted_frames(tmp_path):
+    """Roll/pitch up to 4 degrees: frames rectified to nadir by the telemetry (the join's tilt
+    decision, ``TelemetryJoin.homography``), each spot placed through the rectified view's pose
+    (found within 0.02 m)."""
+    run = _fly_and_find(tmp_path, "thermal", "hot", 200, 5, flight=["--tilt", "4"], within_m=0.1)
+    assert run["telemetry"]["rectified"] > 150
 
 
 def test_the_viewer_shows_the_hazards_as_points_on_the_map(tmp_path):
@@ -402,3 +454,26 @@ def test_the_simulator_paints_its_spots_where_hotspots_csv_says(tmp_path):
                 seen += 1
         assert frame[..., 0][~hot].max() <= 125  # the ground, away from the spots
     assert seen >= 10
+
+
+def test_run_json_is_written_once_at_the_end_with_the_hazards_in_it(tmp_path, monkeypatch):
+    """The final run.json carries the hazards' summary: one write, not a second one after it."""
+    import photomap.mapping.run_outputs as run_outputs
+
+    sim, out = tmp_path / "sim", tmp_path / "run"
+    assert cli.main(["simulate", "--out", str(sim), "--frames", "60", "--size", "320x240", "--hotspots", "2",
+                     "--seed", "3", "-q"]) == 0
+    written = []
+    real = run_outputs.write_json
+
+    def counted(path, data, *a, **kw):
+        if path.name == "run.json" and data.get("complete"):
+            written.append(json.loads(json.dumps(data, default=str)))
+        return real(path, data, *a, **kw)
+
+    monkeypatch.setattr(run_outputs, "write_json", counted)
+    assert cli.main(["replay", str(sim / "video.mp4"), "--out", str(out), "--mavlink", str(sim / "telemetry.tlog"),
+                     "--hazards", "--no-progress", "-q"]) == 0
+    assert len(written) == 1
+    assert written[0]["hazards"]["geojson"] == "hazards.geojson"
+    assert json.loads((out / "run.json").read_text())["hazards"] == written[0]["hazards"]

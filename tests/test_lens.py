@@ -14,7 +14,7 @@ from photomap.config import load_config
 from photomap.errors import ConfigError, InputError
 from photomap.geo.lens import LensModel, Undistortion, folds_inside
 from photomap.io.camera_files import read_calibration, read_mask, write_calibration
-from photomap.mapping.frameprep import FramePrep
+from photomap.mapping.frameprep import FramePrep, view_points
 from photomap.sim.lens import DistortedRender
 
 BROWN = LensModel("brown", 640, 480, 610.0, 612.0, 322.5, 236.0, (-0.28, 0.09, 0.0012, -0.0008, -0.01))
@@ -193,6 +193,34 @@ def test_frameprep_from_a_calibration_file_scales_it_and_tells_the_focal_length(
     with pytest.raises(InputError, match="aspect ratio"):
         FramePrep.from_config(load_config(overrides=[f"camera.calibration={path}"])).setup(320, 180)
     assert FramePrep.from_config(load_config()) is None  # nothing to do: frames pass untouched
+
+
+def _spot_centre(img: np.ndarray) -> tuple[float, float]:
+    m = cv2.moments(img.astype(np.float32))
+    return m["m10"] / m["m00"], m["m01"] / m["m00"]
+
+
+def test_view_points_follow_a_spot_through_the_undistorted_and_rectified_frames():
+    """A spot near the corner of a distorted frame: where the frame's undistortion (and a
+    rectifying homography) put its pixels is where view_points puts its centre."""
+    from photomap.geo.georef import rectifying_homography
+
+    prep = FramePrep.from_config(load_config(overrides=["camera.k1=-0.3", "camera.hfov_deg=50"]))
+    prep.setup(320, 240)
+    yy, xx = np.mgrid[:240, :320].astype(np.float32)
+    raw = (250.0 * np.exp(-((xx - 285.0) ** 2 + (yy - 205.0) ** 2) / (2 * 1.5 ** 2))).astype(np.uint8)
+    view = prep.apply(raw)
+    assert prep.undistort_points(np.array([[285.0, 205.0]])) == pytest.approx(np.array([_spot_centre(view)]), abs=0.1)
+    assert np.hypot(*(np.array(_spot_centre(view)) - (285.0, 205.0))) > 5.0  # the lens moves it
+    hmg = rectifying_homography(prep.fx, 320, 240, math.radians(3.0), math.radians(-2.0))
+    tilted = cv2.warpPerspective(view, hmg, (320, 240), flags=cv2.INTER_LINEAR)
+    assert view_points(prep, hmg)(np.array([[285.0, 205.0]])) == pytest.approx(np.array([_spot_centre(tilted)]),
+                                                                               abs=0.15)
+    assert view_points(prep, None)(np.array([[285.0, 205.0]])) == pytest.approx(
+        prep.undistort_points(np.array([[285.0, 205.0]])))
+    assert view_points(None, None) is None  # the view is the input frame
+    assert view_points(None, hmg)(np.array([[10.0, 20.0]])) == pytest.approx(
+        cv2.perspectiveTransform(np.array([[[10.0, 20.0]]]), hmg)[0])
 
 
 def test_distortion_keys_need_a_focal_length():

@@ -8,7 +8,10 @@ import threading
 
 import pytest
 
-from photomap.mapping.memory import _glibc, trimmed_heap
+import logging
+
+from photomap.mapping import memory
+from photomap.mapping.memory import _glibc, limit_heap_growth, trimmed_heap
 from photomap.mapping.threads import WorkerFirst
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux") or _glibc() is None,
@@ -48,3 +51,13 @@ def test_freed_heap_memory_goes_back_between_the_workers_frames():
             threading.Event().wait(0.01)
         assert rss_mb() < freed - 100
     assert len(kept) == 3
+
+
+def test_the_heap_limit_is_said_in_one_debug_line(monkeypatch, caplog):
+    """``-v`` logs the malloc settings as a run applies them (no mmap threshold): the line
+    formats (a None given to ``%d`` was a logging traceback on stderr)."""
+    monkeypatch.setattr(memory, "_applied", False)  # once per process: as if not applied yet
+    with caplog.at_level(logging.DEBUG, logger="photomap.mapping.memory"):
+        assert limit_heap_growth()
+    lines = [r.getMessage() for r in caplog.records if r.name == "photomap.mapping.memory"]
+    assert lines == ["malloc: 2 arenas, mmap threshold malloc's own: set"]

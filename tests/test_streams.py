@@ -325,6 +325,11 @@ def test_decoder_message_keys():
     assert native_log.decoder_message("[tcp @ 0x55a0] Connection to tcp://127.0.0.1:8562?timeout=0 failed") == \
         "tcp: Connection to tcp://127.0.0.1:8562?timeout=0 failed"
     assert native_log.decoder_message("[ WARN:0@1.2] global matrix.cpp:10 something else") is None
+    # OpenCV's log prefix, read once for the decoder tap and the still reader (drivers.imread)
+    assert native_log.opencv_log("[ WARN:0@0.031] global grfmt_tiff.cpp:123 TIFF_Warning TIFFReadDirectory: x") == \
+        ("grfmt_tiff.cpp", "TIFF_Warning TIFFReadDirectory: x")
+    assert native_log.opencv_log("[ERROR:0@2.5] something without a source") == ("", "something without a source")
+    assert native_log.opencv_log("[h264 @ 0x5581] no frame!") is None
 
 
 @pytest.mark.parametrize("how", ["--camera", "capture.device"])

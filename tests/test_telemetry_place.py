@@ -8,6 +8,7 @@ Truth: the simulator's frame -> terrain homographies (``groundtruth.csv``) and t
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -131,3 +132,27 @@ def test_a_strip_cut_by_a_blank_patch_stays_one_map(tmp_path, monkeypatch):
     est = np.linalg.solve(np.vstack([rows[5].M, [0, 0, 1]]), np.vstack([rows[10].M, [0, 0, 1]])) @ c
     true = np.linalg.solve(gt.H[5], gt.H[10]) @ c
     assert np.hypot(*(est[:2] - true[:2] / true[2])) * MPP < 6.0   # metres: joined through 14 noisy fixes
+
+
+def test_the_kept_views_live_in_the_runs_scratch_folder_and_go_with_it(survey, tmp_path, monkeypatch):
+    """The unplaced stills' views go to the run's cache folder (``mosaic.cache_dir`` here), not
+    to a temporary folder of their own, and are removed at the end of the run."""
+    import tempfile
+
+    import photomap.mapping.telemetry_place as telemetry_place
+
+    stores = []
+
+    class Recorded(telemetry_place.KeyframeStore):
+        def __init__(self, folder, *args, **kwargs):
+            stores.append(Path(folder))
+            super().__init__(folder, *args, **kwargs)
+
+    monkeypatch.setattr(telemetry_place, "KeyframeStore", Recorded)
+    before = set(Path(tempfile.gettempdir()).glob("photomap-unplaced-*"))
+    cache = tmp_path / "cache"
+    summary = replay(str(survey / "stills"), tmp_path / "run", load_config(overrides=[f"mosaic.cache_dir={cache}"]))
+    assert summary["telemetry"]["placed"]["placed"] == len(BLANK)
+    assert stores == [cache / "unplaced"]
+    assert cache.is_dir() and not (cache / "unplaced").exists()  # the user's folder stays, the views do not
+    assert set(Path(tempfile.gettempdir()).glob("photomap-unplaced-*")) == before

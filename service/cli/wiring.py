@@ -28,7 +28,6 @@ from photomap.drivers.srt import is_srt, read_srt, srt_beside
 from photomap.drivers.stills_telemetry import open_stills_telemetry as stills_telemetry
 from photomap.errors import InputError
 from photomap.io.preflight import check_output_dir
-from photomap.io.trajectory_files import write_json
 from photomap.live.mapserver import MapServer, write_run_tiles
 from photomap.live.viewer import Viewer
 from photomap.mapping.events import FrameEvent, FrameSink
@@ -262,7 +261,7 @@ def hazard_tracker(cfg: Config, out_dir: str | Path, reader: TelemetryReader | N
         return None
     send = (reader.send_status if cfg.hazards.statustext and cfg.telemetry.send_statustext and reader is not None
             and live else None)
-    return HazardTracker(cfg.hazards, out_dir, send_status=send, rectify_tilt=cfg.telemetry.rectify_tilt)
+    return HazardTracker(cfg.hazards, out_dir, send_status=send)
 
 
 # ---------------------------------------------------------------------------------- mapping
@@ -311,7 +310,8 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
             server.hazards = hazards.hazards  # /hazards.geojson and the page's markers
     if realtime:
         sinks.append(pacing_sink())
-    pipeline = MappingPipeline(source, cfg, out_dir, sinks=sinks, input_name=input_name, telemetry=telemetry)
+    pipeline = MappingPipeline(source, cfg, out_dir, sinks=sinks, input_name=input_name, telemetry=telemetry,
+                               final_outputs={"hazards": hazards.finish} if hazards is not None else None)
     if server is not None:
         pipeline.on_georeference = server.on_georeference
         server.gate = pipeline.worker_first
@@ -337,12 +337,6 @@ def map_source(source: FrameSource, cfg: Config, out_dir: str | Path, *, input_n
             server.close()
         for sig, old in previous.items():
             signal.signal(sig, old)
-    if hazards is not None:  # from the final poses and georeference; run.json says what was found
-        summary["hazards"] = hazards.finish(pipeline.rows, summary.get("mosaics") or [], pipeline.frame_size)
-        try:
-            write_json(Path(out_dir) / "run.json", summary)
-        except OSError as exc:
-            log.error("cannot write run.json: %s", exc.strerror or exc)
     _log_summary(summary, out_dir)
     return summary
 

@@ -220,20 +220,18 @@ class FeatureMatcher:
                                              contrastThreshold=contrast_threshold)
             self._norm = cv2.NORM_L2
         self._matcher = cv2.BFMatcher(self._norm)
+        self._keep: tuple[np.ndarray, tuple[int, int], np.ndarray] | None = None  # (mask, size, keypoint mask)
 
     # ------------------------------------------------------------------ per frame
     def prepare(self, frame: np.ndarray, mask: np.ndarray | None = None) -> FeatureFrame:
         """Detect and describe keypoints of a frame (grey or BGR, uint8 or float).
 
         ``mask``: pixel weights in [0, 1] of frames of this aspect ratio, at any size (e.g. a
-        registrar's :attr:`~photomap.core.ifmi.Registrar.mask`): keypoints only where it is 1."""
+        registrar's :attr:`~photomap.core.ifmi.Registrar.mask`): keypoints only where it is 1.
+        A mask is taken as fixed: the same array at the same detection size is resized once."""
         gray = _to_uint8(_gray(frame))
         small, f = _resize(gray, self.working_size)
-        keep = None
-        if mask is not None:
-            weights = cv2.resize(np.asarray(mask, np.float32), (small.shape[1], small.shape[0]),
-                                 interpolation=cv2.INTER_LINEAR)
-            keep = np.where(weights >= 0.999, np.uint8(255), np.uint8(0))
+        keep = None if mask is None else self._keypoint_mask(mask, (small.shape[1], small.shape[0]))
         kps, desc = self._detector.detectAndCompute(small, keep)
         n = len(kps)
         pts = np.array([k.pt for k in kps], np.float32).reshape(n, 2)
@@ -243,6 +241,16 @@ class FeatureMatcher:
         if desc is None or n == 0:
             desc = None
         return FeatureFrame(self.kind, (gray.shape[0], gray.shape[1]), f, pts, angles, sizes, desc)
+
+    def _keypoint_mask(self, mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+        """uint8 255 where ``mask`` is 1 at the detection size ``(w, h)``; kept for the next frame
+        of the same mask and size (one tuple read and written whole: safe from two threads)."""
+        cached = self._keep
+        if cached is None or cached[0] is not mask or cached[1] != size:
+            weights = cv2.resize(np.asarray(mask, np.float32), size, interpolation=cv2.INTER_LINEAR)
+            cached = (mask, size, np.where(weights >= 0.999, np.uint8(255), np.uint8(0)))
+            self._keep = cached
+        return cached[2]
 
     # ------------------------------------------------------------------ per pair
     def _match(self, ref: FeatureFrame, mov: FeatureFrame) -> tuple[np.ndarray, np.ndarray]:

@@ -39,7 +39,8 @@ class TileReader(Protocol):
 class FrameEvent:
     """One frame, mapped (or not).
 
-    Poses are 2x3 (input pixels -> map pixels of ``segment``); ``t`` is the frame time (live:
+    Poses are 2x3 (pixels of the view the map got -> map pixels of ``segment``: the input
+    frame's own unless ``view_points`` says otherwise); ``t`` is the frame time (live:
     host monotonic seconds at capture, ``live`` True; replay: seconds from the first frame).
     """
 
@@ -71,6 +72,9 @@ class FrameEvent:
     # after a pose-graph correction of ``segment``: what computes its whole path again (see
     # corrected_path); None otherwise
     path_after_correction: Callable[[], np.ndarray] | None = None
+    # input frame pixels (n, 2) -> the pixels ``pose`` maps (the frame undistorted by the lens
+    # model and rectified by the telemetry, as the map got it); None: the input frame's own
+    view_points: Callable[[np.ndarray], np.ndarray] | None = None
 
     @functools.cached_property
     def corrected_path(self) -> np.ndarray | None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -144,6 +145,13 @@ class FramePrep:
             fill_invalid(image, self.mask, self._invalid)
         return image
 
+    def undistort_points(self, uv: np.ndarray) -> np.ndarray:
+        """Input frame pixels (n, 2) -> pixels of the undistorted view (:meth:`apply`'s frame);
+        the same pixels without a lens model."""
+        if self.undistortion is None:
+            return np.asarray(uv, np.float64)
+        return self.undistortion.lens.undistort_points(uv)
+
     def window(self, size: tuple[int, int]) -> np.ndarray | None:
         """The mask at the working size ``(w, h)`` as registration weights in [0, 1] (a pixel
         is 0 where any of the input pixels under it is masked, then the edge is tapered over
@@ -156,3 +164,21 @@ class FramePrep:
         taper = max(2.0, 0.02 * max(size))
         return np.clip(dist / taper, 0.0, 1.0).astype(np.float32)
 
+
+def view_points(prep: FramePrep | None,
+                homography: np.ndarray | None) -> Callable[[np.ndarray], np.ndarray] | None:
+    """Input frame pixels (n, 2) -> pixels of the view the map got of the frame, i.e. the pixels
+    its pose maps: undistorted by ``prep``'s lens, then through the telemetry's rectifying
+    ``homography`` (3x3 undistorted pixels -> view pixels; None: not rectified). None when the
+    view is the input frame itself."""
+    lens = prep is not None and prep.undistortion is not None
+    if not lens and homography is None:
+        return None
+
+    def to_view(uv: np.ndarray) -> np.ndarray:
+        p = prep.undistort_points(uv) if lens else np.asarray(uv, np.float64).reshape(-1, 2)
+        if homography is None:
+            return p
+        q = np.c_[p, np.ones(len(p))] @ np.asarray(homography, np.float64).T
+        return q[:, :2] / q[:, 2:3]
+    return to_view

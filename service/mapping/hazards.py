@@ -2,10 +2,11 @@
 
 :class:`HazardTracker` is a frame sink (:data:`~photomap.mapping.events.FrameSink`; it runs in the
 worker thread). For every posed frame it runs the detector (:mod:`photomap.core.hotspots`) on the
-input frame, places each blob on the map through the frame's pose (frame px -> map px of the
-frame's segment; through the telemetry's rectifying homography first when the pipeline rectified
-the frame) and associates it with the nearest hazard of the same segment within ``match_m``
-metres (``match_px`` input pixels when the ground scale is unknown). A hazard seen in
+input frame, takes each blob to the pixels the frame's pose maps (the event's ``view_points``:
+through the lens model when the pipeline undistorted the frame, then the telemetry's rectifying
+homography when it rectified it), places it on the map through the pose (-> map px of the
+frame's segment) and associates it with the nearest hazard of the same segment within ``match_m``
+metres (``match_px`` view pixels when the ground scale is unknown). A hazard seen in
 ``min_frames`` frames is confirmed: it gets the next id, one STATUSTEXT goes out (when a sender
 is given) and the live files are rewritten. Candidates not confirmed within ``forget_frames``
 frames of their last sighting are dropped (noise, a glint).
@@ -36,7 +37,7 @@ import numpy as np
 
 from photomap.config import HazardsConfig
 from photomap.core.hotspots import HotSpotDetector
-from photomap.geo.georef import latlon_from_enu, rectifying_homography
+from photomap.geo.georef import latlon_from_enu
 from photomap.geometry import frame_centre, pose_scale
 from photomap.io.hazardfiles import write_hazard_files
 from photomap.io.trackfiles import map_to_lonlat
@@ -46,13 +47,13 @@ from photomap.mapping.geo_outputs import georefs_from_maps
 log = logging.getLogger(__name__)
 
 _POSED = ("reference", "registered")
-_MIN_TILT_RAD = math.radians(0.2)  # as the telemetry join: below this, frames are not rectified
 
 
 @dataclass
 class _Obs:
-    """One sighting: input frame pixel ``(u, v)``, its live map position, the live estimate of
-    metres per map pixel and of WGS84 (None when unknown)."""
+    """One sighting: pixel ``(u, v)`` of the view the frame's pose maps (the input frame's
+    undistorted, rectified view), its live map position, the live estimate of metres per map
+    pixel and of WGS84 (None when unknown)."""
 
     frame: int
     t: float
@@ -149,15 +150,13 @@ class HazardTracker:
     cfg : the ``hazards`` config section.
     out_dir : where the hazard files go (live: rewritten when a hazard is confirmed).
     send_status : sends one STATUSTEXT line per new hazard (e.g. ``TelemetryReader.send_status``), or None.
-    rectify_tilt : whether the pipeline rectifies tilted frames (``telemetry.rectify_tilt``).
     """
 
-    def __init__(self, cfg: HazardsConfig, out_dir: str | Path, *, send_status: Callable[[str], None] | None = None,
-                 rectify_tilt: bool = True) -> None:
+    def __init__(self, cfg: HazardsConfig, out_dir: str | Path, *,
+                 send_status: Callable[[str], None] | None = None) -> None:
         self.cfg = cfg
         self.out_dir = Path(out_dir)
         self.send_status = send_status
-        self.rectify_tilt = rectify_tilt
         self.match_m, self.match_px = cfg.match_m, cfg.match_px
         self.detector = HotSpotDetector(cfg.mode, k=cfg.k, min_excess=cfg.min_excess, min_area_px=cfg.min_area_px,
                                         max_area_px=cfg.max_area_px, detect_px=cfg.detect_px,
@@ -191,16 +190,6 @@ class HazardTracker:
         self.detect_s += took
         self.max_frame_s = max(self.max_frame_s, took)
 
-    def _to_pose_px(self, uv: np.ndarray, roll: float | None, pitch: float | None, fx: float | None,
-                    size: tuple[int, int]) -> np.ndarray:
-        """Input frame pixels -> the pixels the pose maps (the rectified view of a tilted frame)."""
-        if not self.rectify_tilt or roll is None or pitch is None or not fx \
-                or (abs(roll) < _MIN_TILT_RAD and abs(pitch) < _MIN_TILT_RAD):
-            return uv
-        h = rectifying_homography(fx, size[0], size[1], roll, pitch)
-        p = np.c_[uv, np.ones(len(uv))] @ h.T
-        return p[:, :2] / p[:, 2:3]
-
     def _on_frame(self, event: FrameEvent) -> None:
         blobs = self.detector.detect(event.image)
         if not len(blobs):
@@ -209,20 +198,20 @@ class HazardTracker:
             return
         s = event.telemetry
         w, h = event.frame_size
-        uv = self._to_pose_px(blobs.xy, getattr(s, "roll", None), getattr(s, "pitch", None), event.focal_px, (w, h))
+        uv = event.view_points(blobs.xy) if event.view_points is not None else blobs.xy
         pose = np.asarray(event.pose, float)
         mxy = uv @ pose[:, :2].T + pose[:, 2]
         scale = pose_scale(pose)
-        ground = None  # metres per input pixel, from the telemetry's height
+        ground = None  # metres per view pixel, from the telemetry's height
         if s is not None and s.height_above_ground and s.height_above_ground > 0 and event.focal_px:
             ground = s.height_above_ground / event.focal_px
         mpp = ground / scale if ground is not None and scale > 0 else None
         radius = self.match_m / mpp if mpp else self.match_px * scale
-        geo = self._live_latlon(blobs.xy, s, ground, (w, h))
+        geo = self._live_latlon(uv, s, ground, (w, h))
         confirmed = []
         with self._lock:
             for k in range(len(blobs)):
-                ob = _Obs(event.index, float(event.t), float(blobs.xy[k, 0]), float(blobs.xy[k, 1]),
+                ob = _Obs(event.index, float(event.t), float(uv[k, 0]), float(uv[k, 1]),
                           float(blobs.peak[k]), float(blobs.area[k]), int(event.segment), float(mxy[k, 0]),
                           float(mxy[k, 1]), mpp, *(geo[k] if geo is not None else (None, None)))
                 track = self._nearest(ob, radius)
@@ -256,7 +245,7 @@ class HazardTracker:
 
     @staticmethod
     def _live_latlon(uv: np.ndarray, s, ground: float | None, size: tuple[int, int]) -> list | None:
-        """(lat, lon) of input pixels from the telemetry alone (nadir pinhole camera at the
+        """(lat, lon) of view pixels from the telemetry alone (nadir pinhole camera at the
         sample's position, image up along its yaw), or None when a value is unknown."""
         if s is None or ground is None or s.lat is None or s.lon is None or s.yaw is None:
             return None
@@ -300,9 +289,10 @@ class HazardTracker:
         return {"type": "FeatureCollection", "features": features}
 
     # ------------------------------------------------------------------ end of run
-    def finish(self, rows: Sequence, maps: Sequence[dict], frame_size: tuple[int, int] | None) -> dict:
+    def finish(self, rows: Sequence, maps: Sequence[dict]) -> dict:
         """The final hazards from the final poses (``rows``: the run's rows, RowView/PoseRow with
-        ``frame``, ``M``, ``segment``, ``glued``, ``extra``) and georeference (``maps``: run.json
+        ``frame``, ``M``, ``segment``, ``glued``; a pose maps the same view pixels as the live one
+        did) and georeference (``maps``: run.json
         ``mosaics[]`` entries); writes the hazard files; returns a summary for the run."""
         if self._writer is not None:  # a live write must not land after the final one
             self._writer.shutdown(wait=True)
@@ -323,16 +313,8 @@ class HazardTracker:
                 r = by_frame.get(o.frame)
                 if r is None:
                     continue
-                ex = r.extra or {}
-                roll, pitch = ex.get("rect_roll_deg"), ex.get("rect_pitch_deg")
-                uv = np.array([[o.u, o.v]])
-                if roll is not None and pitch is not None and ex.get("rect_fx_px") and frame_size:
-                    hm = rectifying_homography(float(ex["rect_fx_px"]), frame_size[0], frame_size[1],
-                                               math.radians(roll), math.radians(pitch))
-                    p = hm @ [o.u, o.v, 1.0]
-                    uv = np.array([[p[0] / p[2], p[1] / p[2]]])
                 m = np.asarray(r.M, float)
-                groups.setdefault(int(r.segment), []).append((o, (uv @ m[:2, :2].T + m[:2, 2])[0]))
+                groups.setdefault(int(r.segment), []).append((o, m[:2, :2] @ (o.u, o.v) + m[:2, 2]))
             if groups:
                 seg = max(groups, key=lambda s: len(groups[s]))
                 placed.append((seg, [o for o, _ in groups[seg]], np.array([xy for _, xy in groups[seg]]), t.id))

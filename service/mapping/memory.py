@@ -69,7 +69,8 @@ def limit_heap_growth(arenas: int = 2, mmap_threshold: int | None = None) -> boo
     if mmap_threshold is not None:
         ok = ok and bool(libc.mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold)))
     _applied = ok
-    log.debug("malloc: mmap threshold %d B, %d arenas: %s", mmap_threshold, arenas, "set" if ok else "refused")
+    log.debug("malloc: %d arenas, mmap threshold %s: %s", arenas,
+              "malloc's own" if mmap_threshold is None else f"{int(mmap_threshold)} B", "set" if ok else "refused")
     return ok
 
 

@@ -32,7 +32,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -52,7 +52,7 @@ from photomap.errors import PhotomapError
 from photomap.io.keyframestore import KeyframeStore
 from photomap.mapping.checkpoint import state_folder
 from photomap.mapping.events import FrameEvent, FrameSink, GeoreferenceSink
-from photomap.mapping.frameprep import FramePrep
+from photomap.mapping.frameprep import FramePrep, view_points
 from photomap.mapping.loopclosure import Correction, Join, LoopCloser
 from photomap.mapping.memory import frozen_heap, limit_heap_growth, trimmed_heap
 from photomap.mapping.painter import Painter
@@ -234,11 +234,13 @@ class MappingPipeline:
         Recorded in ``run.json``.
     telemetry : TelemetryJoin, optional
         MAVLink telemetry joined to the frames (priors, tilt, metric scale, georeference).
+    final_outputs : mapping, optional
+        More outputs written at the end, in ``run.json`` under their names (see :class:`RunOutputs`).
     """
 
     def __init__(self, source: FrameSource, cfg: Config, out_dir: str | Path, *,
                  sinks: Sequence[FrameSink] = (), input_name: str = "",
-                 telemetry: TelemetryJoin | None = None) -> None:
+                 telemetry: TelemetryJoin | None = None, final_outputs: Mapping[str, Callable] | None = None) -> None:
         self.source = source
         self.cfg = cfg
         self.out_dir = Path(out_dir)
@@ -256,8 +258,9 @@ class MappingPipeline:
         # has no frame deadline: throughput first)
         self._first = WorkerFirst(enabled=source.live)
         self.outputs = RunOutputs(self.out_dir, cfg.output, self._rows, self.segments, telemetry=telemetry,
-                                  first=self._first, input_name=input_name)  # what the run writes
-        self.outputs.band_source = source if getattr(source, "captures", None) else None  # multi-band stills
+                                  first=self._first, input_name=input_name,  # what the run writes
+                                  band_source=source if getattr(source, "captures", None) else None,  # multi-band
+                                  final_outputs=final_outputs)
         self._next_index = 0
         self._started = 0.0
         self._last_checkpoint = 0.0
@@ -585,7 +588,8 @@ class MappingPipeline:
                 self.telemetry.keep(frame.index, sample)
         self._rows.append(frame.index, frame.t, step.pose, step.confidence, step.status, step.segment, extra)
         if self.telemetry is not None and step.status == LOW_CONFIDENCE:  # placed at the end, if trusted
-            self._placer = self._placer or TelemetryPlacer(self.telemetry, self.frame_size)
+            self._placer = self._placer or TelemetryPlacer(self.telemetry, self.frame_size,
+                                                           self.segments.cache() / "unplaced")  # the run's scratch
             self._placer.keep(frame.index, frame.t, placed.image, placed.mask, placed.sample)
         return messages
 
@@ -635,7 +639,8 @@ class MappingPipeline:
             dropped_frames=int(self.source.stats.dropped), reconnects=int(self.source.stats.reconnects),
             telemetry=sample, focal_px=self.telemetry.focal(self.frame_size[0]) if self.telemetry else None,
             link_lost=int(link.get("link_lost", 0)),
-            link_regained=int(link.get("link_regained", 0)), path_after_correction=corrected_path))
+            link_regained=int(link.get("link_regained", 0)), path_after_correction=corrected_path,
+            view_points=view_points(self._prep, self.telemetry.homography(frame.index) if self.telemetry else None)))
         self.stats.timing.add("sinks", time.perf_counter() - t5)
 
     def _emit(self, event: FrameEvent) -> None:
@@ -791,8 +796,7 @@ class MappingPipeline:
                 self._painter.close()
         self.stats.timing.add("final_rerender", time.perf_counter() - t0)
         self._close_gaps()
-        self.outputs.placed = self._placed
-        summary = self.outputs.finish(self.summary, self.stats.timing, t0)
+        summary = self.outputs.finish(self.summary, self.stats.timing, t0, placed=self._placed)
         self.segments.close()
         if self._placer is not None:
             self._placer.close()

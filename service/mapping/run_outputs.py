@@ -22,7 +22,7 @@ import shutil
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Mapping
 
 import cv2
 import numpy as np
@@ -72,10 +72,18 @@ class RunOutputs:
         Paces the writer thread's Python work behind the worker's frames (live).
     input_name : str
         Recorded in the checkpoint manifest.
+    band_source : frame source, optional
+        Multi-band stills (their ``captures``): every band's map is written at the end.
+    final_outputs : mapping, optional
+        ``name -> write(rows, maps)``: more outputs written at the end, once the poses and the
+        georeference are final (``rows``: the run's rows; ``maps``: run.json ``mosaics[]``), each
+        returning its summary, which ``run.json`` gets under ``name`` (e.g. ``hazards``:
+        :meth:`~photomap.mapping.hazards.HazardTracker.finish`).
     """
 
     def __init__(self, out_dir: Path, cfg: OutputConfig, rows: TrajectoryRows, segments: SegmentMaps, *,
-                 telemetry: TelemetryJoin | None, first: WorkerFirst, input_name: str) -> None:
+                 telemetry: TelemetryJoin | None, first: WorkerFirst, input_name: str, band_source=None,
+                 final_outputs: Mapping[str, Callable[[Iterable[RowView], list[dict]], dict]] | None = None) -> None:
         self.out_dir = out_dir
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -103,14 +111,14 @@ class RunOutputs:
         self._write_errors: dict[str, str] = {}  # output -> why it could not be written (once each)
         # told each live GPS fit of the main map (writer thread) and the final one: (segment, fit)
         self.on_georeference: GeoreferenceSink | None = None
-        self.placed: dict | None = None  # what telemetry placed of what vision did not (run.json telemetry.placed)
         self._tum_skipped: list[int] = []  # frames the final trajectory.tum left out (said once)
         # a checkpoint's trajectory.csv (10,000 rows take ~0.25 s to format: a stall in the worker)
         # and run.json are written by this thread; the worker hands it the rows' fields
         self._writer: ThreadPoolExecutor | None = None
         self._checkpoint_files: Future | None = None
         self._files_due = 0.0  # monotonic s: the next checkpoint's files not before (_WRITER_SHARE)
-        self.band_source = None  # multi-band stills (their ``captures``): every band's map at the end
+        self.band_source = band_source  # multi-band stills (their ``captures``): every band's map at the end
+        self._final_outputs = dict(final_outputs or {})
         self._composite = cfg.composite  # ... and their composite.png's bands
 
     def start(self, frame_size: tuple[int, int], loops: LoopCloser | None, painter: Painter) -> None:
@@ -332,10 +340,12 @@ class RunOutputs:
             self._write_failed("band maps", exc)
             return None
 
-    def finish(self, summary_of: Callable[[], dict], timing: StageTimes, t0: float) -> dict:
+    def finish(self, summary_of: Callable[[], dict], timing: StageTimes, t0: float, *,
+               placed: dict | None = None) -> dict:
         """Write the final outputs once the map is final; returns the run summary (``summary_of()``
         once the trajectory is written; also in ``run.json``, with ``timing``'s stages, the
-        ``final_outputs`` one from ``t0``, perf_counter s).
+        ``final_outputs`` one from ``t0``, perf_counter s). ``placed``: what telemetry placed of
+        what vision did not (``run.json`` ``telemetry.placed``; :mod:`photomap.mapping.telemetry_place`).
 
         Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
         ``write_errors``; when the map itself could not be written, the checkpoint keeps it
@@ -371,7 +381,7 @@ class RunOutputs:
         (self.out_dir / "preview.png").unlink(missing_ok=True)
         if self.telemetry is not None:
             self._attempt("georeference", self._georeference, summary, maps + [u for u in unwritten if u not in maps])
-            summary["telemetry"]["placed"] = self.placed
+            summary["telemetry"]["placed"] = placed
             for info in unwritten:
                 if info not in maps:
                     remove_sidecars(self.out_dir, info["file"])  # no PNG for them
@@ -385,6 +395,8 @@ class RunOutputs:
             if bands:
                 summary["bands"] = bands
         summary["mosaics"] = maps
+        for name, write in self._final_outputs.items():  # e.g. the hazards, from the final poses
+            summary[name] = self._attempt(name, write, self._rows, maps)
         summary["complete"] = True
         if unwritten:  # the map is not all on disk as outputs: the checkpoint must hold it
             georefs = {str(i["segment"]): i["georeference"] for i in maps + unwritten

@@ -32,7 +32,6 @@ from __future__ import annotations
 import logging
 import math
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -62,14 +61,15 @@ class TelemetryPlacer:
     """Unplaced frames with a GPS fix, kept while mapping and placed at the end (module docstring).
 
     ``join``: the run's telemetry join; ``frame_size``: (w, h) of the input frames; ``folder``:
-    where the kept views go (default: a temporary folder, removed by :meth:`close`).
+    where the kept views go, a folder of its own in the run's scratch space (the maps' cache,
+    :meth:`~photomap.mapping.segments.SegmentMaps.cache`): made with the first kept view,
+    removed by :meth:`close`.
     """
 
-    def __init__(self, join: TelemetryJoin, frame_size: tuple[int, int], folder: str | Path | None = None) -> None:
+    def __init__(self, join: TelemetryJoin, frame_size: tuple[int, int], folder: str | Path) -> None:
         self.join = join
         self.frame_size = frame_size
-        self._folder = Path(folder) if folder is not None else None
-        self._own = folder is None
+        self._folder = Path(folder)
         self._store: KeyframeStore | None = None
         self._kept: dict[int, _Unplaced] = {}
         self._last_t = -math.inf
@@ -88,8 +88,6 @@ class TelemetryPlacer:
             self.skipped += 1
             return
         if self._store is None:
-            if self._folder is None:
-                self._folder = Path(tempfile.mkdtemp(prefix="photomap-unplaced-"))
             self._store = KeyframeStore(self._folder)
         failures = self._store.failures
         self._store.put_image(index, image, mask)
@@ -243,7 +241,7 @@ class TelemetryPlacer:
         return pose
 
     def close(self) -> None:
-        """Remove the kept views (the folder too when it is this placer's own)."""
-        if self._folder is not None and self._own:
+        """Remove the kept views and their folder."""
+        if self._store is not None:
             shutil.rmtree(self._folder, ignore_errors=True)
         self._store = None
