@@ -17,10 +17,10 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from photomap.core.stretch import RunningStretch
+from photomap.core.stretch import RunningStretch, to_8bit
 from photomap.errors import InputError
 
-from photomap.core.bands import robust_range_16bit, texture_energy, to_8bit
+from photomap.core.bands import robust_range_16bit, texture_energy
 from photomap.drivers.captures import BAND_ALIASES, Capture, band_folders, group_band_folders, group_captures, read_band
 from photomap.drivers.exif import parse_exif_datetime, read_capture_time
 from photomap.drivers.frames import CaptureStats, Frame, SourceBase

@@ -38,7 +38,8 @@ import cv2
 import numpy as np
 
 from photomap.config import MosaicConfig
-from photomap.core.bands import BandAlignment, align_capture, corner_shift_px, robust_range_16bit, to_8bit
+from photomap.core.bands import BandAlignment, align_capture, corner_shift_px, robust_range_16bit
+from photomap.core.stretch import to_8bit
 from photomap.core.mosaic import TiledMosaic
 from photomap.drivers.captures import BAND_ALIASES, Capture, read_band
 from photomap.geo.georef import compose
