@@ -258,6 +258,7 @@ class MappingPipeline:
         self.outputs = RunOutputs(self.out_dir, cfg.output, self._rows, self.segments, telemetry=telemetry,
                                   first=self._first, input_name=input_name)  # what the run writes
         self.outputs.band_source = source if getattr(source, "captures", None) else None  # multi-band stills
+        self.outputs.raw_frame = getattr(source, "raw_frame", None)  # 16-bit stills: map_raw.tif at the end
         self._next_index = 0
         self._started = 0.0
         self._last_checkpoint = 0.0

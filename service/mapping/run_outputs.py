@@ -9,7 +9,8 @@ telemetry, the live ``track.kml`` / ``track.geojson``. At the end it writes ``tr
 segment; other segments as ``mosaic_segment{N}.png``; full-resolution ``tiles/`` when the PNG is
 downscaled), the georeference (world files, GeoTIFF, track files: :mod:`photomap.mapping.outputs`,
 :mod:`photomap.mapping.geo_outputs`) when the telemetry fits the images, every band's map of
-multi-band captures (:mod:`photomap.mapping.band_maps`), ``run.json`` and
+multi-band captures and the raw values of 16-bit stills (:mod:`photomap.mapping.band_maps`),
+``run.json`` and
 ``report.html`` (README, "What a run writes"); all atomically. A write that fails (e.g. disk
 full) is logged once per output and listed in ``run.json`` ``write_errors``, never raised: when
 the map itself could not be written the checkpoint keeps it (``photomap recover``).
@@ -33,7 +34,7 @@ from photomap.geometry import pose_angle_deg
 from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
 from photomap.io.trajectory_files import tum_skipped_message, write_json, write_trajectory_csv, write_tum
-from photomap.mapping.band_maps import write_band_maps
+from photomap.mapping.band_maps import write_band_maps, write_raw_map
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import GeoreferenceSink
 from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs
@@ -112,6 +113,8 @@ class RunOutputs:
         self._files_due = 0.0  # monotonic s: the next checkpoint's files not before (_WRITER_SHARE)
         self.band_source = None  # multi-band stills (their ``captures``): every band's map at the end
         self._composite = cfg.composite  # ... and their composite.png's bands
+        # single-band stills: frame index -> its pixels when 16-bit (else None): map_raw.tif at the end
+        self.raw_frame: Callable[[int], np.ndarray | None] | None = None
 
     def start(self, frame_size: tuple[int, int], loops: LoopCloser | None, painter: Painter) -> None:
         """The first frame came: its size (w, h), the loop closer (its keyframe graphs go into
@@ -332,6 +335,21 @@ class RunOutputs:
             self._write_failed("band maps", exc)
             return None
 
+    def _raw_map(self, maps: list[dict]) -> dict | None:
+        """``map_raw.tif`` of a georeferenced flight of 16-bit stills, on the main map's final poses
+        (:func:`photomap.mapping.band_maps.write_raw_map`); a failure is one line."""
+        main = maps[0]
+        georef = georefs_from_maps(maps).get(main["segment"])
+        if georef is None or not self.cfg.geotiff:
+            return None
+        view = self.telemetry.homography if self.telemetry is not None else (lambda index: None)
+        try:
+            return write_raw_map(self.out_dir, self.raw_frame, self._rows.glued(main["segment"]), self._frame_size,
+                                 self.segments.cfg, main, georef, view=view)
+        except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
+            self._write_failed("map_raw.tif", exc)
+            return None
+
     def finish(self, summary_of: Callable[[], dict], timing: StageTimes, t0: float) -> dict:
         """Write the final outputs once the map is final; returns the run summary (``summary_of()``
         once the trajectory is written; also in ``run.json``, with ``timing``'s stages, the
@@ -378,6 +396,10 @@ class RunOutputs:
             exports = self._attempt("geo outputs", write_geo_outputs, self.out_dir, maps, self.segments.mosaics, self._rows,
                                     self._frame_size, t0_unix=summary["video_start_unix"],
                                     cog=self.cfg.geotiff, footprints=self.cfg.footprints)
+            if exports and self.band_source is None and self.raw_frame is not None and maps:
+                raw = self._raw_map(maps)
+                if raw:
+                    exports["raw"] = raw
             if exports:
                 summary["exports"] = exports
         if self.band_source is not None and maps:

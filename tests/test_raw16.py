@@ -1,0 +1,152 @@
+"""The raw values of 16-bit flights in the GeoTIFFs: ``map_bands.tif`` of 16-bit band captures and
+``map_raw.tif`` of single-band 16-bit stills, uint16 on the grid of ``map.tif``.
+
+Truth: a simulated 5-band survey (``photomap simulate --bands 5``: 16-bit MicaSense-style TIFFs
+with EXIF GPS, the lens homographies in ``meta.yaml``). A GeoTIFF pixel is traced back through
+``map.tif``'s georeference (run.json ``georeference.map_to_crs``) and the last capture's final pose
+(``trajectory.csv``: it is painted last, so it is on top) into the capture's band file, and the
+file's raw value there is compared with the GeoTIFF's.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from photomap.cli.replay import replay
+from photomap.config import load_config
+from photomap.drivers.captures import read_band
+from photomap.io.trajectory_files import read_trajectory_csv
+from photomap.sim.bands import write_band_still
+from photomap.sim.simulate import simulate_flight
+
+rasterio = pytest.importorskip("rasterio", reason="the geo extra (rasterio) writes the GeoTIFFs")
+
+SIZE = (480, 360)
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    out = tmp_path_factory.mktemp("raw16") / "flight"
+    simulate_flight(out, mode="stills", stills_bands=5, strips=2, stills_per_strip=5, size=SIZE, seed=3)
+    return out
+
+
+def _single_band(survey: Path, folder: Path, band: int = 4, to_8bit: bool = False) -> list[Path]:
+    """Band ``band``'s files of the survey as a folder of single-band stills (``NNNN.tif``, the same
+    EXIF GPS and XMP), 16-bit as simulated or reduced to 8 bits."""
+    folder.mkdir()
+    out = []
+    for k, src in enumerate(sorted((survey / "stills").glob(f"IMG_*_{band}.tif"))):
+        dst = folder / f"{k:04d}.tif"
+        if to_8bit:
+            with Image.open(src) as im:  # the EXIF's sub-IFDs are read from the open file
+                write_band_still(dst, (np.array(im) >> 8).astype(np.uint8), im.getexif(), im.tag_v2[700])
+        else:
+            shutil.copy(src, dst)
+        out.append(dst)
+    return out
+
+
+def _grid(path: Path) -> tuple:
+    with rasterio.open(path) as ds:
+        return ds.transform, ds.width, ds.height, ds.crs
+
+
+def _compare(run: Path, tif: Path, band: int, raw: np.ndarray, band_to_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(GeoTIFF values, the raw file's values bilinearly there) at the GeoTIFF pixels inside the
+    last capture (``raw``: its band file; ``band_to_frame``: 3x3 band pixels -> frame pixels)."""
+    info = json.loads((run / "run.json").read_text())
+    A = np.vstack([np.array(info["georeference"]["map_to_crs"], float), [0.0, 0.0, 1.0]])
+    rows = [r for r in read_trajectory_csv(run / "trajectory.csv") if r.M is not None]
+    last = max(rows, key=lambda r: r.frame)
+    M = np.vstack([np.asarray(last.M, float)[:2], [0.0, 0.0, 1.0]])
+    with rasterio.open(tif) as ds:
+        data = ds.read(band)
+        T = ds.transform
+    r, c = np.mgrid[0:data.shape[0], 0:data.shape[1]]
+    cx, ry = c.ravel() + 0.5, r.ravel() + 0.5  # GeoTIFF pixel centres -> CRS metres
+    e, n = T.a * cx + T.b * ry + T.c, T.d * cx + T.e * ry + T.f
+    # CRS -> map pixels -> frame pixels -> band pixels
+    to_band = np.linalg.inv(band_to_frame) @ np.linalg.inv(M) @ np.linalg.inv(A)
+    p = to_band @ np.vstack([e, n, np.ones_like(e)])
+    u, v = p[0] / p[2], p[1] / p[2]
+    h, w = raw.shape
+    inside = (u > 8) & (u < w - 9) & (v > 8) & (v < h - 9)
+    assert inside.sum() > 5000
+    u, v = u[inside], v[inside]
+    x0, y0 = np.floor(u).astype(int), np.floor(v).astype(int)
+    fx, fy = u - x0, v - y0
+    f = raw.astype(np.float64)
+    truth = ((1 - fy) * ((1 - fx) * f[y0, x0] + fx * f[y0, x0 + 1])
+             + fy * ((1 - fx) * f[y0 + 1, x0] + fx * f[y0 + 1, x0 + 1]))  # bilinear
+    return data.ravel()[inside].astype(np.float64), truth
+
+
+def _assert_raw(got: np.ndarray, truth: np.ndarray) -> None:
+    """The GeoTIFF holds the raw values (not a stretched copy), within the two bilinear resamplings
+    (frame -> map -> north-up grid) of a textured scene."""
+    spread = np.percentile(truth, 99) - np.percentile(truth, 1)
+    assert truth.max() > 1000 and spread > 1000, "the simulated bands are 16-bit counts"
+    diff = np.abs(got - truth)
+    assert np.median(diff) < 0.01 * spread and np.percentile(diff, 90) < 0.04 * spread, \
+        (np.median(diff), np.percentile(diff, 90), spread)
+    assert abs(np.median(got - truth)) < 0.005 * spread  # no offset, no gain
+    assert np.corrcoef(got, truth)[0, 1] > 0.98
+
+
+def test_band_captures_write_their_raw_16bit_values_on_map_tifs_grid(survey, tmp_path):
+    run = tmp_path / "run"
+    summary = replay(str(survey / "stills"), run, load_config())
+    assert summary["registered"] == 10 and summary["segments"] == 1
+    info = json.loads((run / "run.json").read_text())
+    assert info["telemetry"]["rectified"] == 0  # nadir: the pose maps the band file's own pixels
+    assert info["bands"]["geotiff"]["dtype"] == "uint16" and "raw" not in info["exports"]
+    assert _grid(run / "map_bands.tif") == _grid(run / "map.tif")
+    with rasterio.open(run / "map_bands.tif") as ds:
+        assert ds.count == 5 and ds.dtypes == ("uint16",) * 5 and ds.nodata == 0
+        assert list(ds.descriptions) == info["bands"]["bands"]
+    meta = yaml.safe_load((survey / "meta.yaml").read_text())
+    G = [np.array(b["lens_H"], float) for b in meta["bands"]]
+    names = info["bands"]["bands"]
+    r = names.index(info["bands"]["registering"])
+    last = max(p for p in (survey / "stills").glob("IMG_*_1.tif"))
+    for b in {r, names.index("Blue")}:
+        raw = read_band(last.with_name(last.name.replace("_1.tif", f"_{b + 1}.tif")))
+        assert raw.dtype == np.uint16
+        got, truth = _compare(run, run / "map_bands.tif", b + 1, raw, np.linalg.inv(G[r]) @ G[b])
+        _assert_raw(got, truth)
+    assert not (run / "map_raw.tif").exists()
+
+
+def test_16bit_stills_write_map_raw_tif_with_their_raw_values(survey, tmp_path):
+    stills = _single_band(survey, tmp_path / "stills")
+    run = tmp_path / "run"
+    summary = replay(str(tmp_path / "stills"), run, load_config())
+    assert summary["registered"] == 10 and summary["segments"] == 1 and "bands" not in summary
+    info = json.loads((run / "run.json").read_text())
+    assert info["exports"]["raw"]["file"] == "map_raw.tif" and info["exports"]["raw"]["dtype"] == "uint16"
+    assert _grid(run / "map_raw.tif") == _grid(run / "map.tif")
+    with rasterio.open(run / "map_raw.tif") as ds:
+        assert ds.count == 1 and ds.dtypes == ("uint16",) and ds.nodata == 0
+        covered = ds.read(1) > 0
+    with rasterio.open(run / "map.tif") as ds:
+        assert abs(covered.mean() - (ds.read(4) >= 128).mean()) < 0.01  # the map's footprint
+    got, truth = _compare(run, run / "map_raw.tif", 1, read_band(stills[-1]), np.eye(3))
+    _assert_raw(got, truth)
+
+
+def test_8bit_stills_write_no_raw_file(survey, tmp_path):
+    stills = _single_band(survey, tmp_path / "stills", to_8bit=True)
+    assert read_band(stills[0]).dtype == np.uint8
+    run = tmp_path / "run"
+    replay(str(tmp_path / "stills"), run, load_config())
+    info = json.loads((run / "run.json").read_text())
+    assert (run / "map.tif").exists() and "raw" not in info["exports"]
+    assert not (run / "map_raw.tif").exists()
