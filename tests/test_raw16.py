@@ -150,3 +150,43 @@ def test_8bit_stills_write_no_raw_file(survey, tmp_path):
     info = json.loads((run / "run.json").read_text())
     assert (run / "map.tif").exists() and "raw" not in info["exports"]
     assert not (run / "map_raw.tif").exists()
+
+
+# ----------------------------------------------------------------------------- the pieces
+
+@pytest.mark.parametrize("blend", ["overwrite", "feather"])
+def test_a_uint16_mosaic_keeps_16bit_values_through_tiles_spill_and_render(blend, tmp_path):
+    from dataclasses import replace as dc_replace
+
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.errors import InputError
+    from photomap.io.tilestore import DiskTileStore
+    rng = np.random.default_rng(4)
+    frame = rng.integers(0, 65536, (90, 130)).astype(np.uint16)
+    cfg = dc_replace(MosaicConfig(), channels=1, exposure="none", blend=blend, tile_size=64, border=0,
+                     max_tiles_in_memory=2)
+    store = DiskTileStore(tmp_path / "tiles")
+    mosaic = TiledMosaic(cfg, store, dtype=np.uint16)
+    mosaic.add(frame, np.array([[1.0, 0.0, 37.0], [0.0, 1.0, -20.0]]))  # across tiles, some spilled
+    image, alpha, origin = mosaic.render()
+    assert image.dtype == np.uint16 and origin == (37, -20) and alpha.all()
+    assert np.array_equal(image, frame)  # an integer translation: every raw value as it was
+    small, _, _ = mosaic.render(scale=0.5)
+    assert small.dtype == np.uint16 and small.max() > 255
+    with pytest.raises(InputError, match="uint16"):
+        mosaic.add(frame.astype(np.uint8), np.eye(2, 3))
+    with pytest.raises(ValueError, match="exposure"):
+        TiledMosaic(dc_replace(cfg, exposure="gain"), store, dtype=np.uint16)
+    store.close()
+
+
+def test_resample_block_keeps_the_renders_depth():
+    from photomap.io.geotiff import resample_block
+    values = np.full((40, 40), 40000, np.uint16)
+
+    def render(x, y, w, h, scale):
+        return values[:h, :w], np.full((h, w), 255, np.uint8)
+
+    image, alpha = resample_block(render, (0, 0, 40, 40), np.array([[1.0, 0.0, 5.0], [0.0, 1.0, 5.0]]), (20, 20))
+    assert image.dtype == np.uint16 and alpha.min() == 255 and (image == 40000).all()
