@@ -53,6 +53,7 @@ from photomap.io.geotiff import north_up_grid, rasterio_available, resample_bloc
 from photomap.io.mapsource import MapRaster, mosaic_source
 from photomap.io.pngstream import PngStreamWriter
 from photomap.io.tilestore import DiskTileStore
+from photomap.mapping.frameprep import FramePrep
 from photomap.mapping.rows import RowView
 
 log = logging.getLogger(__name__)
@@ -147,34 +148,59 @@ def _ranges(captures: Sequence[Capture], names: Sequence[str], indices: Sequence
     return out
 
 
+def _warp(image: np.ndarray, inside: np.ndarray | None, K: np.ndarray, size: tuple[int, int]
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` and its validity (None: all valid) through the homography ``K`` onto a ``size``
+    grid; the validity eroded by a pixel (no interpolated edge)."""
+    warped = cv2.warpPerspective(image, K, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    valid = np.full(image.shape[:2], 255, np.uint8) if inside is None else inside
+    valid = cv2.warpPerspective(valid, K, size, flags=cv2.INTER_NEAREST)
+    return warped, cv2.erode(valid, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def _frame_view(image: np.ndarray, H: np.ndarray, rect: np.ndarray | None, prep: FramePrep | None,
+                size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray | None]:
+    """A band image as the map's frame was painted: through ``H`` onto the registering band's pixels
+    (the input frame), the lens undistortion and frame mask of ``prep`` (as
+    :class:`~photomap.mapping.frameprep.FramePrep` prepared the frame), then the rectification
+    ``rect``. Returns the view and its validity (None: all valid)."""
+    undistort = prep.undistortion if prep is not None else None
+    mask = prep.mask if prep is not None else None
+    own = np.allclose(H, np.eye(3)) and image.shape[:2] == (size[1], size[0])
+    if undistort is None and mask is None:  # one warp for the whole chain
+        K = H if rect is None else rect @ H
+        if np.allclose(K, np.eye(3)) and own:  # the frame's own pixels (one-band flights)
+            return image, None
+        return _warp(image, None, K, size)
+    warped, inside = (image, None) if own else _warp(image, None, H, size)
+    if undistort is not None:
+        warped = undistort.apply(warped)
+        inside = undistort.apply_mask(inside if inside is not None else np.full(warped.shape[:2], 255, np.uint8))
+    if mask is not None:  # the lens's valid view and capture.mask
+        inside = mask if inside is None else cv2.min(inside, mask)
+    return (warped, inside) if rect is None else _warp(warped, inside, rect, size)
+
+
 def _paint_band(read: Callable[[int], np.ndarray | None], rows: Sequence[RowView],
                 band_to_frame: Callable[[int], np.ndarray | None], frame_size: tuple[int, int], cfg: MosaicConfig,
                 view: Callable[[int], np.ndarray | None], store: DiskTileStore | None, *,
-                dtype: type = np.uint8, channels: int = 1) -> TiledMosaic:
+                prep: FramePrep | None = None, dtype: type = np.uint8, channels: int = 1) -> TiledMosaic:
     """One band of every posed frame painted into a map of its own (``dtype``, ``channels``; no
     exposure gain; spilling to ``store`` under ``mosaic.max_tiles_in_memory``, as the run's maps
     do) with the frames' final poses: ``read(frame)`` gives the band's image as stored (None: none),
     ``band_to_frame(frame)`` the 3x3 homography from its pixels to the registering band's (None:
-    the frame is not painted), then ``view(frame)`` (the rectification, if any) and the pose.
+    the frame is not painted), then the run's lens undistortion and frame mask (``prep``),
+    ``view(frame)`` (the rectification, if any) and the pose (:func:`_frame_view`).
     A uint8 image goes into a uint16 map as it is; a uint16 one into a uint8 map over 0..65535."""
     mosaic = TiledMosaic(replace(cfg, channels=channels, exposure="none"), store, dtype=dtype)
-    w, h = frame_size
     for row in rows:
-        K = band_to_frame(row.frame)
-        image = read(row.frame) if K is not None else None
+        H = band_to_frame(row.frame)
+        image = read(row.frame) if H is not None else None
         if image is None:
             continue
         if image.dtype != mosaic.dtype:
             image = image.astype(mosaic.dtype) if image.dtype == np.uint8 else to_8bit(image, (0.0, 65535.0))
-        rect = view(row.frame)
-        if rect is not None:
-            K = rect @ K
-        if np.allclose(K, np.eye(3)) and image.shape[:2] == (h, w):  # the frame's own pixels (one-band flights)
-            warped, inside = image, None
-        else:
-            warped = cv2.warpPerspective(image, K, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            inside = cv2.warpPerspective(np.full(image.shape[:2], 255, np.uint8), K, (w, h), flags=cv2.INTER_NEAREST)
-            inside = cv2.erode(inside, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        warped, inside = _frame_view(image, H, view(row.frame), prep, frame_size)
         mosaic.add(warped, np.asarray(row.M, np.float64), inside)
     return mosaic
 
@@ -256,7 +282,8 @@ class _BandGeoTiff:
 
 def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: tuple[int, int],
                     cfg: MosaicConfig, main: dict, *, composite: str = "", georef: tuple[np.ndarray, int] | None = None,
-                    geotiff: bool = True, view: Callable[[int], np.ndarray | None] = lambda index: None) -> dict:
+                    geotiff: bool = True, view: Callable[[int], np.ndarray | None] = lambda index: None,
+                    prep: FramePrep | None = None) -> dict:
     """Write the band maps of a multi-band flight (module docstring); returns ``run.json`` ``bands``.
 
     Parameters
@@ -267,8 +294,9 @@ def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: 
     main : the main map's ``run.json`` ``mosaics[]`` entry (``bounds``, ``scale``: the band maps use
         ``mosaic.png``'s pixel grid).
     georef : ``(map_to_crs 2x3, epsg)`` of the main map, or None (no GeoTIFF).
-    view : frame index -> 3x3 homography from the input frame to the view the map got (the
-        telemetry's tilt rectification), or None.
+    view : frame index -> 3x3 homography from the (undistorted) input frame to the view the map
+        got (the telemetry's tilt rectification), or None.
+    prep : the run's lens undistortion and frame mask (None: neither).
     """
     captures: list[Capture] = source.captures
     names = list(max((c.bands for c in captures), key=len))
@@ -294,7 +322,7 @@ def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: 
                 mosaic = _paint_band(
                     lambda i, n=name: read_band(p) if (p := captures[i].path(n)) is not None else None,
                     rows, lambda i, b=b: homographies[i][b] if i in homographies else None, frame_size, cfg,
-                    view, store, dtype=np.uint16 if deep[name] else np.uint8)
+                    view, store, prep=prep, dtype=np.uint16 if deep[name] else np.uint8)
                 if mosaic.bounds() is None:
                     continue
                 files[name] = band_file_name(name)
@@ -324,7 +352,8 @@ def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: 
 
 def write_raw_map(out_dir: Path, raw_frame: Callable[[int], np.ndarray | None], rows: Sequence[RowView],
                   frame_size: tuple[int, int], cfg: MosaicConfig, main: dict, georef: tuple[np.ndarray, int],
-                  view: Callable[[int], np.ndarray | None] = lambda index: None) -> dict | None:
+                  view: Callable[[int], np.ndarray | None] = lambda index: None,
+                  prep: FramePrep | None = None) -> dict | None:
     """``map_raw.tif`` of a single-band flight of 16-bit stills (module docstring); returns its
     ``run.json`` ``exports.raw`` entry, or None (nothing written) when the frames are not 16-bit
     or rasterio is missing.
@@ -332,7 +361,7 @@ def write_raw_map(out_dir: Path, raw_frame: Callable[[int], np.ndarray | None], 
     ``raw_frame(i)``: frame ``i``'s pixels as stored when they are 16-bit (uint16, gray or BGR),
     else None; the frames are painted with ``rows``' poses (the main map's) and ``view``, on the
     grid of ``map.tif`` (``main``: the main map's ``run.json`` ``mosaics[]`` entry, ``georef``:
-    its ``(map_to_crs 2x3, epsg)``).
+    its ``(map_to_crs 2x3, epsg)``; ``prep``: the run's lens undistortion and frame mask).
     """
     first = next((image for r in rows if (image := raw_frame(int(r.frame))) is not None), None)
     if first is None or first.dtype != np.uint16 or not rasterio_available():
@@ -346,7 +375,7 @@ def write_raw_map(out_dir: Path, raw_frame: Callable[[int], np.ndarray | None], 
     ok = False
     try:
         identity = np.eye(3)
-        mosaic = _paint_band(raw_frame, rows, lambda i: identity, frame_size, cfg, view, store,
+        mosaic = _paint_band(raw_frame, rows, lambda i: identity, frame_size, cfg, view, store, prep=prep,
                              dtype=np.uint16, channels=channels)
         if mosaic.bounds() is not None:
             tif.write_band(1, mosaic)

@@ -268,6 +268,7 @@ class MappingPipeline:
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
         self._prep = FramePrep.from_config(cfg)  # lens undistortion and frame mask (None: neither)
+        self.outputs.frame_prep = self._prep  # ... the band and raw maps' too
         self._placer: TelemetryPlacer | None = None  # frames vision left unplaced, with telemetry
         self._placed: dict | None = None  # what the placer did (run.json telemetry.placed)
         self._deep = RunningStretch()  # deep frames a source delivers raw (a Y16 camera) to uint8, one range a flight

@@ -37,6 +37,7 @@ from photomap.io.trajectory_files import tum_skipped_message, write_json, write_
 from photomap.mapping.band_maps import write_band_maps, write_raw_map
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import GeoreferenceSink
+from photomap.mapping.frameprep import FramePrep
 from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import LoopCloser
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
@@ -115,6 +116,7 @@ class RunOutputs:
         self._composite = cfg.composite  # ... and their composite.png's bands
         # single-band stills: frame index -> its pixels when 16-bit (else None): map_raw.tif at the end
         self.raw_frame: Callable[[int], np.ndarray | None] | None = None
+        self.frame_prep: FramePrep | None = None  # the run's lens undistortion and frame mask: the band and raw maps' too
 
     def start(self, frame_size: tuple[int, int], loops: LoopCloser | None, painter: Painter) -> None:
         """The first frame came: its size (w, h), the loop closer (its keyframe graphs go into
@@ -330,7 +332,7 @@ class RunOutputs:
         try:
             return write_band_maps(self.out_dir, self.band_source, self._rows.glued(seg), self._frame_size,
                                    self.segments.cfg, main, composite=self._composite, georef=georef,
-                                   geotiff=self.cfg.geotiff, view=view)
+                                   geotiff=self.cfg.geotiff, view=view, prep=self.frame_prep)
         except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
             self._write_failed("band maps", exc)
             return None
@@ -345,7 +347,7 @@ class RunOutputs:
         view = self.telemetry.homography if self.telemetry is not None else (lambda index: None)
         try:
             return write_raw_map(self.out_dir, self.raw_frame, self._rows.glued(main["segment"]), self._frame_size,
-                                 self.segments.cfg, main, georef, view=view)
+                                 self.segments.cfg, main, georef, view=view, prep=self.frame_prep)
         except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
             self._write_failed("map_raw.tif", exc)
             return None
