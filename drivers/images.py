@@ -200,8 +200,8 @@ class ImageFolderSource(SourceBase):
         """Single-band stills: frame ``index``'s pixels as stored when they are 16-bit (uint16, gray
         or BGR; read again), else None (8-bit or float stills, multi-band captures, unreadable): the
         raw values of ``map_raw.tif`` (:func:`photomap.mapping.band_maps.write_raw_map`)."""
-        if self.captures is not None or not 0 <= index < len(self.paths):
-            return None
+        if self.captures is not None or not self.stretch.frames or not 0 <= index < len(self.paths):
+            return None  # no still deeper than 8 bits came: nothing read again
         reader = ImageReader()  # its library warnings were said when the still was first read
         try:
             image = reader.read(self.paths[index])

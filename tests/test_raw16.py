@@ -203,3 +203,27 @@ def test_resample_block_keeps_the_renders_depth():
 
     image, alpha = resample_block(render, (0, 0, 40, 40), np.array([[1.0, 0.0, 5.0], [0.0, 1.0, 5.0]]), (20, 20))
     assert image.dtype == np.uint16 and alpha.min() == 255 and (image == 40000).all()
+
+
+def test_colour_16bit_stills_give_a_red_green_blue_raw_map(tmp_path):
+    """A 16-bit colour still's raw map has bands red, green, blue with its values (BGR in, RGB out)."""
+    from types import SimpleNamespace
+
+    from photomap.config import MosaicConfig
+    from photomap.mapping.band_maps import write_raw_map
+    rng = np.random.default_rng(2)
+    still = np.dstack([np.full((60, 80), v, np.uint16) for v in (1000, 30000, 60000)])  # B, G, R
+    still[..., 1] += rng.integers(0, 50, (60, 80)).astype(np.uint16)
+    rows = [SimpleNamespace(frame=0, M=np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))]
+    map_to_crs = np.array([[0.1, 0.0, 500000.0], [0.0, -0.1, 4500000.0]])  # north-up, 10 cm
+    info = write_raw_map(tmp_path, lambda i: still, rows, (80, 60), MosaicConfig(), {"bounds": [0, 0, 80, 60]},
+                         (map_to_crs, 32633))
+    assert info["file"] == "map_raw.tif" and info["bands"] == ["red", "green", "blue"]
+    with rasterio.open(tmp_path / "map_raw.tif") as ds:
+        assert ds.count == 3 and ds.dtypes == ("uint16",) * 3 and list(ds.descriptions) == ["red", "green", "blue"]
+        red, green, blue = ds.read()
+    inner = (slice(5, -5), slice(5, -5))
+    assert (red[inner] == 60000).all() and (blue[inner] == 1000).all()
+    assert abs(float(np.median(green[inner])) - float(np.median(still[5:-5, 5:-5, 1]))) < 3
+    assert write_raw_map(tmp_path, lambda i: None, rows, (80, 60), MosaicConfig(), {"bounds": [0, 0, 80, 60]},
+                         (map_to_crs, 32633)) is None  # not 16-bit: no file

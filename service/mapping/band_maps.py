@@ -12,9 +12,10 @@ of the run :func:`write_band_maps`:
    were mapped with);
 2. paints each band in turn into a map of its own (:class:`~photomap.core.mosaic.TiledMosaic`, gray,
    no exposure gain, the band's own depth: a 16-bit band's map holds its raw values), band
-   ``b``'s pixels going through ``H_b`` onto the registering band's, then the frame's
-   rectification (if any) and pose; each capture's band file is read again (one capture's bands
-   in memory at a time, one band's map);
+   ``b``'s pixels going through ``H_b`` onto the registering band's, then the run's lens
+   undistortion and frame mask (as the frames were prepared), the frame's rectification (if any)
+   and pose; each capture's band file is read again (one capture's bands in memory at a time, one
+   band's map);
 3. writes ``mosaic_band_{name}.png`` per band (8-bit, stretched per band over the flight as
    ``run.json`` ``bands.ranges`` says, BGRA transparent where empty) on the very pixel grid of
    ``mosaic.png`` (same rectangle, same downscale), ``composite.png`` (three bands as red, green,
@@ -363,7 +364,7 @@ def write_raw_map(out_dir: Path, raw_frame: Callable[[int], np.ndarray | None], 
     grid of ``map.tif`` (``main``: the main map's ``run.json`` ``mosaics[]`` entry, ``georef``:
     its ``(map_to_crs 2x3, epsg)``; ``prep``: the run's lens undistortion and frame mask).
     """
-    first = next((image for r in rows if (image := raw_frame(int(r.frame))) is not None), None)
+    first = raw_frame(int(rows[0].frame)) if rows else None
     if first is None or first.dtype != np.uint16 or not rasterio_available():
         return None
     channels = 1 if first.ndim == 2 else first.shape[2]

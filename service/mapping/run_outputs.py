@@ -10,8 +10,7 @@ segment; other segments as ``mosaic_segment{N}.png``; full-resolution ``tiles/``
 downscaled), the georeference (world files, GeoTIFF, track files: :mod:`photomap.mapping.outputs`,
 :mod:`photomap.mapping.geo_outputs`) when the telemetry fits the images, every band's map of
 multi-band captures and the raw values of 16-bit stills (:mod:`photomap.mapping.band_maps`),
-``run.json`` and
-``report.html`` (README, "What a run writes"); all atomically. A write that fails (e.g. disk
+``run.json`` and ``report.html`` (README, "What a run writes"); all atomically. A write that fails (e.g. disk
 full) is logged once per output and listed in ``run.json`` ``write_errors``, never raised: when
 the map itself could not be written the checkpoint keeps it (``photomap recover``).
 """
