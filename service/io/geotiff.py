@@ -6,7 +6,9 @@ GIS tools want a grid aligned with easting and northing. :func:`write_cog` build
 ``block`` x ``block`` window at a time: each window's pixel centres are mapped back to source
 pixels, the source region under them is rendered (area-averaged when the GeoTIFF is coarser than
 the source) and resampled bilinearly, alpha-premultiplied so that empty map pixels do not darken
-the edges. Only one window (and the source region under it) is in memory at a time.
+the edges. Only one window (and the source region under it) is in memory at a time. The window
+loop (:func:`resample_blocks`) also writes the raw 16-bit GeoTIFFs of
+:mod:`photomap.mapping.band_maps` on the same grid.
 
 The windows go into a temporary tiled GeoTIFF (sparse: blocks the map does not cover are not
 written; ZSTD level 1, written once and read twice, a third of DEFLATE's time both ways), which GDAL's COG driver then copies into the final layout: RGBA (band 4 is alpha),
