@@ -142,7 +142,8 @@ def test_16bit_stills_write_map_raw_tif_with_their_raw_values(survey, tmp_path, 
     summary = replay(str(tmp_path / "stills"), run, cfg)
     assert summary["registered"] == 10 and summary["segments"] == 1 and "bands" not in summary
     info = json.loads((run / "run.json").read_text())
-    assert info["exports"]["raw"]["file"] == "map_raw.tif" and info["exports"]["raw"]["dtype"] == "uint16"
+    raw = info["exports"]["raw"]
+    assert raw["file"] == "map_raw.tif" and raw["dtype"] == "uint16" and raw["frames"] == 10
     assert _grid(run / "map_raw.tif") == _grid(run / "map.tif")
     with rasterio.open(run / "map_raw.tif") as ds:
         assert ds.count == 1 and ds.dtypes == ("uint16",) and ds.nodata == 0
@@ -227,3 +228,52 @@ def test_colour_16bit_stills_give_a_red_green_blue_raw_map(tmp_path):
     assert abs(float(np.median(green[inner])) - float(np.median(still[5:-5, 5:-5, 1]))) < 3
     assert write_raw_map(tmp_path, lambda i: None, rows, (80, 60), MosaicConfig(), {"bounds": [0, 0, 80, 60]},
                          (map_to_crs, 32633)) is None  # not 16-bit: no file
+
+
+# ----------------------------------------------------------------------------- a live Y16 camera
+
+class _DeepLive:
+    """A live source that delivers raw 16-bit frames, as a Y16 V4L2 thermal core does."""
+
+    live = True
+
+    def __init__(self, frames, fps):
+        from photomap.drivers.frames import CaptureStats
+        self.frames, self.fps, self.stats = frames, fps, CaptureStats()
+
+    def __iter__(self):
+        from photomap.drivers.frames import Frame
+        for i, image in enumerate(self.frames):
+            self.stats.read += 1
+            yield Frame(i, i / self.fps, image, "y16")
+
+    def close(self):
+        pass
+
+
+def test_a_live_y16_source_writes_map_raw_tif_from_the_frames_it_kept(tmp_path):
+    from photomap.cli.wiring import open_telemetry
+    from photomap.mapping.pipeline import MappingPipeline
+    sim = tmp_path / "sim"
+    simulate_flight(sim, n_frames=60, size=(320, 240), fps=15.0, seed=5, save_frames=True)
+    deep = [(np.asarray(Image.open(p).convert("L"), np.uint32) * 180 + 2500).astype(np.uint16)
+            for p in sorted((sim / "frames").glob("*.png"))]
+    join, _, cfg = open_telemetry(str(sim / "telemetry.tlog"), load_config(), input_spec=str(sim / "video.mp4"))
+    run = tmp_path / "run"
+    summary = MappingPipeline(_DeepLive(deep, 15.0), cfg, run, telemetry=join).run()
+    assert summary["registered"] == 60 and summary["segments"] == 1 and summary.get("georeference")
+    info = json.loads((run / "run.json").read_text())
+    assert info["telemetry"]["rectified"] == 0  # nadir: the pose maps the frame's own pixels
+    raw = info["exports"]["raw"]
+    assert raw["file"] == "map_raw.tif" and raw["dtype"] == "uint16"
+    assert 5 <= raw["frames"] < 40  # the frames kept, not all 60
+    assert _grid(run / "map_raw.tif") == _grid(run / "map.tif")
+    with rasterio.open(run / "map_raw.tif") as ds:
+        covered = ds.read(1) > 0
+    with rasterio.open(run / "map.tif") as ds:
+        mapped = ds.read(4) >= 128
+    # the kept frames cover the map's footprint (measured: 0.3 % of the grid differs either way)
+    assert (covered & ~mapped).mean() < 0.01 and (mapped & ~covered).mean() < 0.01
+    got, truth = _compare(run, run / "map_raw.tif", 1, deep[-1], np.eye(3))
+    _assert_raw(got, truth)
+    assert not list(run.glob(".raw_frames*"))  # the kept frames are removed

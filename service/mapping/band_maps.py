@@ -29,6 +29,8 @@ Only the main map (the largest segment) is written per band.
 A single-band flight of 16-bit stills gets the same for its one band (:func:`write_raw_map`):
 ``map_raw.tif``, the stills' raw values (uint16; 3 bands R, G, B for colour stills) on the grid of
 ``map.tif``, painted from each posed still read again; its 8-bit map is ``mosaic.png`` itself.
+A live source of raw 16-bit frames (a Y16 camera) gets it from the frames
+:class:`~photomap.mapping.raw_frames.RawFrameKeeper` kept during the run.
 """
 
 from __future__ import annotations
@@ -355,28 +357,36 @@ def write_raw_map(out_dir: Path, raw_frame: Callable[[int], np.ndarray | None], 
                   frame_size: tuple[int, int], cfg: MosaicConfig, main: dict, georef: tuple[np.ndarray, int],
                   view: Callable[[int], np.ndarray | None] = lambda index: None,
                   prep: FramePrep | None = None) -> dict | None:
-    """``map_raw.tif`` of a single-band flight of 16-bit stills (module docstring); returns its
-    ``run.json`` ``exports.raw`` entry, or None (nothing written) when the frames are not 16-bit
-    or rasterio is missing.
+    """``map_raw.tif`` of a single-band flight of 16-bit frames (module docstring); returns its
+    ``run.json`` ``exports.raw`` entry (with ``frames``: how many were painted), or None (nothing
+    written) when the frames are not 16-bit or rasterio is missing.
 
     ``raw_frame(i)``: frame ``i``'s pixels as stored when they are 16-bit (uint16, gray or BGR),
-    else None; the frames are painted with ``rows``' poses (the main map's) and ``view``, on the
-    grid of ``map.tif`` (``main``: the main map's ``run.json`` ``mosaics[]`` entry, ``georef``:
-    its ``(map_to_crs 2x3, epsg)``; ``prep``: the run's lens undistortion and frame mask).
+    else None (cheaply: it is asked for every row); the frames are painted with ``rows``' poses
+    (the main map's) and ``view``, on the grid of ``map.tif`` (``main``: the main map's
+    ``run.json`` ``mosaics[]`` entry, ``georef``: its ``(map_to_crs 2x3, epsg)``; ``prep``: the
+    run's lens undistortion and frame mask).
     """
-    first = raw_frame(int(rows[0].frame)) if rows else None
+    first = next((image for r in rows if (image := raw_frame(int(r.frame))) is not None), None)
     if first is None or first.dtype != np.uint16 or not rasterio_available():
         return None
     channels = 1 if first.ndim == 2 else first.shape[2]
     names = ["raw"] if channels == 1 else ["red", "green", "blue"]
     bounds = tuple(int(v) for v in main["bounds"])
-    log.info("raw map: painting the 16-bit values of %d stills into map_raw.tif", len(rows))
     tif = _BandGeoTiff(out_dir / "map_raw.tif", names, bounds, *georef, dtype=np.uint16)
     store = DiskTileStore() if cfg.max_tiles_in_memory else None
     ok = False
+    painted = 0
+
+    def read(index: int) -> np.ndarray | None:
+        nonlocal painted
+        image = raw_frame(index)
+        painted += image is not None
+        return image
+
     try:
         identity = np.eye(3)
-        mosaic = _paint_band(raw_frame, rows, lambda i: identity, frame_size, cfg, view, store, prep=prep,
+        mosaic = _paint_band(read, rows, lambda i: identity, frame_size, cfg, view, store, prep=prep,
                              dtype=np.uint16, channels=channels)
         if mosaic.bounds() is not None:
             tif.write_band(1, mosaic)
@@ -385,4 +395,7 @@ def write_raw_map(out_dir: Path, raw_frame: Callable[[int], np.ndarray | None], 
         written = tif.close(ok)
         if store is not None:
             store.close()
+    if written is not None:
+        written["frames"] = painted
+        log.info("raw map: the 16-bit values of %d of %d posed frames in map_raw.tif", painted, len(rows))
     return written

@@ -473,7 +473,9 @@ class MappingPipeline:
         self._gaps(frame.index)  # frames before this one that never came: dropped or undecodable
         self._next_index = max(self._next_index, frame.index + 1)
         self.stats.frames_in += 1
+        raw = None  # a deep frame as delivered: map_raw.tif's values
         if frame.image.dtype != np.uint8:
+            raw = frame.image
             frame = dataclasses.replace(frame, image=self._deep(frame.image))
         image = frame.image
         if self.tracker is None:
@@ -495,6 +497,8 @@ class MappingPipeline:
             self._skip(frame, "corrupt", t0)
             return
         messages = self._record(frame, placed)
+        if raw is not None:
+            self.outputs.offer_raw(frame.index, raw, placed.step.pose, placed.step.segment)
         corrected_path = self._close_loops(frame, placed, messages)
         t4 = time.perf_counter()
         step = placed.step

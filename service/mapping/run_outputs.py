@@ -41,6 +41,7 @@ from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files,
 from photomap.mapping.loopclosure import LoopCloser
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
+from photomap.mapping.raw_frames import RawFrameKeeper
 from photomap.mapping.rows import RowView, TrajectoryRows
 from photomap.mapping.segments import SegmentMaps
 from photomap.mapping.telemetry_join import SegmentFit, TelemetryJoin
@@ -116,6 +117,7 @@ class RunOutputs:
         # single-band stills: frame index -> its pixels when 16-bit (else None): map_raw.tif at the end
         self.raw_frame: Callable[[int], np.ndarray | None] | None = None
         self.frame_prep: FramePrep | None = None  # the run's lens undistortion and frame mask: the band and raw maps' too
+        self._raw_keeper: RawFrameKeeper | None = None  # a live deep source's raw frames (offer_raw)
 
     def start(self, frame_size: tuple[int, int], loops: LoopCloser | None, painter: Painter) -> None:
         """The first frame came: its size (w, h), the loop closer (its keyframe graphs go into
@@ -336,16 +338,29 @@ class RunOutputs:
             self._write_failed("band maps", exc)
             return None
 
+    def offer_raw(self, index: int, image: np.ndarray, pose: np.ndarray | None, segment: int) -> None:
+        """A raw deep frame (uint16) of a source that delivers them raw, with its live pose: kept
+        on disk where the flight has moved on (:class:`~photomap.mapping.raw_frames.RawFrameKeeper`)
+        for ``map_raw.tif`` at the end."""
+        if self._raw_keeper is None:
+            self._raw_keeper = RawFrameKeeper(self.out_dir)
+        self._raw_keeper.offer(index, image, pose, segment)
+
     def _raw_map(self, maps: list[dict]) -> dict | None:
-        """``map_raw.tif`` of a georeferenced flight of 16-bit stills, on the main map's final poses
+        """``map_raw.tif`` of a georeferenced flight of 16-bit frames (stills, or a live source's
+        kept raw frames), on the main map's final poses
         (:func:`photomap.mapping.band_maps.write_raw_map`); a failure is one line."""
+        raw_frame = self.raw_frame
+        if self._raw_keeper is not None:
+            self._raw_keeper.finish()
+            raw_frame = self._raw_keeper.read
         main = maps[0]
         georef = georefs_from_maps(maps).get(main["segment"])
-        if georef is None or not self.cfg.geotiff:
+        if georef is None or not self.cfg.geotiff or raw_frame is None:
             return None
         view = self.telemetry.homography if self.telemetry is not None else (lambda index: None)
         try:
-            return write_raw_map(self.out_dir, self.raw_frame, self._rows.glued(main["segment"]), self._frame_size,
+            return write_raw_map(self.out_dir, raw_frame, self._rows.glued(main["segment"]), self._frame_size,
                                  self.segments.cfg, main, georef, view=view, prep=self.frame_prep)
         except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
             self._write_failed("map_raw.tif", exc)
@@ -397,7 +412,7 @@ class RunOutputs:
             exports = self._attempt("geo outputs", write_geo_outputs, self.out_dir, maps, self.segments.mosaics, self._rows,
                                     self._frame_size, t0_unix=summary["video_start_unix"],
                                     cog=self.cfg.geotiff, footprints=self.cfg.footprints)
-            if exports and self.band_source is None and self.raw_frame is not None and maps:
+            if exports and self.band_source is None and maps:
                 raw = self._raw_map(maps)
                 if raw:
                     exports["raw"] = raw
@@ -407,6 +422,8 @@ class RunOutputs:
             bands = self._band_maps(maps)
             if bands:
                 summary["bands"] = bands
+        if self._raw_keeper is not None:
+            self._raw_keeper.close()
         summary["mosaics"] = maps
         summary["complete"] = True
         if unwritten:  # the map is not all on disk as outputs: the checkpoint must hold it
