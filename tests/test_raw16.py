@@ -11,6 +11,7 @@ file's raw value there is compared with the GeoTIFF's.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -277,3 +278,26 @@ def test_a_live_y16_source_writes_map_raw_tif_from_the_frames_it_kept(tmp_path):
     got, truth = _compare(run, run / "map_raw.tif", 1, deep[-1], np.eye(3))
     _assert_raw(got, truth)
     assert not list(run.glob(".raw_frames*"))  # the kept frames are removed
+
+
+def test_the_raw_frame_keeper_keeps_spaced_frames_and_the_last(tmp_path):
+    from photomap.mapping.raw_frames import RawFrameKeeper
+    (tmp_path / ".raw_frames.old").mkdir()  # a run that stopped
+    keeper = RawFrameKeeper(tmp_path, spacing=0.25)
+    frame = np.arange(40 * 60, dtype=np.uint16).reshape(40, 60) * 20
+    centre = np.array([29.5, 19.5])
+    for i in range(30):  # 2 px a frame to the right up to frame 19, then turning 4 deg a frame about the centre
+        angle = math.radians(4.0 * max(0, i - 19))
+        R = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+        t = centre + [2.0 * min(i, 19), 0.0] - R @ centre
+        keeper.offer(i, frame + i, np.hstack([R, t[:, None]]), segment=0)
+    keeper.offer(30, frame.astype(np.uint8), np.eye(2, 3), segment=0)  # 8-bit: never kept
+    keeper.offer(31, frame, None, segment=0)  # not posed: never kept
+    keeper.finish()
+    # moved 10 px (a quarter of the shorter side) every 5 frames; then turned 15 deg (16 at frame
+    # 23, 16 again at 27); and the newest frame not kept (29) at the end
+    assert sorted(keeper.kept) == [0, 5, 10, 15, 23, 27, 29]
+    assert np.array_equal(keeper.read(29), frame + 29) and keeper.read(3) is None
+    assert not (tmp_path / ".raw_frames.old").exists()
+    keeper.close()
+    assert not list(tmp_path.glob(".raw_frames*")) and keeper.read(29) is None

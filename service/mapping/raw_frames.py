@@ -11,7 +11,8 @@ kept waits in memory (one frame) and is written at :meth:`finish`, so the map's 
 covered too. Kept frames overlap by ``1 - spacing`` (90 % by default): their union is the map's
 footprint to about 1 % (on a simulated 60-frame flight, 0.2 % of the map either way; the live map
 paints only new ground between its keyframes), at one frame in a few of a video's (a 640 x 512 Y16
-frame is about 0.4 MB). The folder is removed by :meth:`close`.
+frame is about 0.4 MB). The folder is removed by :meth:`close` (one a run that stopped left, by
+the next run's first kept frame).
 
 Used by the worker thread only. Poses are 2x3, input-frame pixels -> map pixels.
 """
@@ -57,8 +58,8 @@ class RawFrameKeeper:
         if self._due(image.shape[:2], pose, segment):
             self._write(index, image, pose, segment)
             self._pending = None
-        else:
-            self._pending = (index, image, segment, pose)
+        else:  # a copy: a driver may fill the next frame into the same buffer
+            self._pending = (index, image.copy(), segment, pose)
 
     def _due(self, shape: tuple[int, int], pose: np.ndarray, segment: int) -> bool:
         if self._last is None or self._last[0] != segment:
@@ -73,6 +74,8 @@ class RawFrameKeeper:
     def _write(self, index: int, image: np.ndarray, pose: np.ndarray, segment: int) -> None:
         try:
             if self.folder is None:
+                for stale in self._parent.glob(".raw_frames.*"):  # left by a run that stopped
+                    shutil.rmtree(stale, ignore_errors=True)
                 self.folder = Path(tempfile.mkdtemp(prefix=".raw_frames.", dir=self._parent))
             if not cv2.imwrite(str(self._path(index)), image, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
                 raise OSError(f"cannot write {self._path(index)}")
