@@ -320,3 +320,23 @@ def test_band_maps_take_the_frame_mask_the_map_got(survey, tmp_path):
             # 0.6 % of the map's edge missing (the lenses' offsets)
             assert (covered & ~mapped).mean() < 0.002, name
             assert (mapped & ~covered).mean() < 0.01, name
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.37])
+def test_a_16bit_band_png_is_the_stretched_render_written_a_tile_row_at_a_time(scale, tmp_path):
+    from dataclasses import replace as dc_replace
+
+    import cv2
+
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.core.stretch import to_8bit
+    from photomap.mapping.band_maps import _write_png
+    rng = np.random.default_rng(1)
+    mosaic = TiledMosaic(dc_replace(MosaicConfig(), channels=1, exposure="none", tile_size=64), dtype=np.uint16)
+    mosaic.add(rng.integers(0, 65535, (150, 200)).astype(np.uint16), np.array([[0.9, 0.2, -37.0], [-0.2, 0.9, 11.0]]))
+    bounds = mosaic.bounds()
+    _write_png(tmp_path / "band.png", mosaic, bounds, scale, (1000.0, 60000.0))
+    image, alpha, _ = mosaic.render(scale=scale, bounds=bounds)  # the whole map at once
+    expected = np.dstack([cv2.cvtColor(to_8bit(image, (1000.0, 60000.0)), cv2.COLOR_GRAY2BGR), alpha])
+    assert np.array_equal(cv2.imread(str(tmp_path / "band.png"), cv2.IMREAD_UNCHANGED), expected)

@@ -210,12 +210,19 @@ def _paint_band(read: Callable[[int], np.ndarray | None], rows: Sequence[RowView
 
 def _write_png(path: Path, mosaic: TiledMosaic, bounds: tuple[int, int, int, int], scale: float,
                value_range: tuple[float, float] | None) -> None:
-    """The band's map as an 8-bit BGRA PNG (a 16-bit map stretched over ``value_range``)."""
-    image, alpha, _ = mosaic.render(scale=scale, bounds=bounds)
-    if image.dtype != np.uint8:
-        image = to_8bit(image, value_range or (0.0, 65535.0))
-    with PngStreamWriter(path, alpha.shape[1], alpha.shape[0], channels=4) as png:
-        png.write(np.dstack([cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), alpha]))
+    """The band's map as an 8-bit BGRA PNG (a 16-bit map stretched over ``value_range``); at full
+    resolution a tile row at a time, downscaled at once (the area weights span the rows)."""
+    x, y, w, h = bounds
+    size = (w, h) if scale == 1 else (max(1, round(w * scale)), max(1, round(h * scale)))
+    ts = mosaic.tile_size
+    cuts = [y, *range((y // ts + 1) * ts, y + h, ts), y + h] if scale == 1 else [y, y + h]  # tile rows
+    strips = list(zip(cuts[:-1], np.diff(cuts).tolist()))
+    with PngStreamWriter(path, size[0], size[1], channels=4) as png:
+        for top, rows in strips:
+            image, alpha, _ = mosaic.render(scale=scale, bounds=(x, top, w, rows))
+            if image.dtype != np.uint8:
+                image = to_8bit(image, value_range or (0.0, 65535.0))
+            png.write(np.dstack([cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), alpha]))
 
 
 def _write_composite(out_dir: Path, files: dict[str, str], bands: tuple[str, str, str]) -> str:
