@@ -255,10 +255,11 @@ class MappingPipeline:
         # live: the background threads' Python code waits while the worker maps a frame (a replay
         # has no frame deadline: throughput first)
         self._first = WorkerFirst(enabled=source.live)
+        self._prep = FramePrep.from_config(cfg)  # lens undistortion and frame mask (None: neither)
         self.outputs = RunOutputs(self.out_dir, cfg.output, self._rows, self.segments, telemetry=telemetry,
-                                  first=self._first, input_name=input_name)  # what the run writes
+                                  first=self._first, input_name=input_name,  # what the run writes
+                                  raw_frame=getattr(source, "raw_frame", None), frame_prep=self._prep)
         self.outputs.band_source = source if getattr(source, "captures", None) else None  # multi-band stills
-        self.outputs.raw_frame = getattr(source, "raw_frame", None)  # 16-bit stills: map_raw.tif at the end
         self._next_index = 0
         self._started = 0.0
         self._last_checkpoint = 0.0
@@ -267,8 +268,6 @@ class MappingPipeline:
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
-        self._prep = FramePrep.from_config(cfg)  # lens undistortion and frame mask (None: neither)
-        self.outputs.frame_prep = self._prep  # ... the band and raw maps' too
         self._placer: TelemetryPlacer | None = None  # frames vision left unplaced, with telemetry
         self._placed: dict | None = None  # what the placer did (run.json telemetry.placed)
         self._deep = RunningStretch()  # deep frames a source delivers raw (a Y16 camera) to uint8, one range a flight

@@ -74,10 +74,17 @@ class RunOutputs:
         Paces the writer thread's Python work behind the worker's frames (live).
     input_name : str
         Recorded in the checkpoint manifest.
+    raw_frame : callable, optional
+        Single-band stills: frame index -> its pixels when 16-bit, else None
+        (:meth:`~photomap.drivers.images.ImageFolderSource.raw_frame`): ``map_raw.tif`` at the end.
+    frame_prep : FramePrep, optional
+        The run's lens undistortion and frame mask: the band and raw maps prepare frames as the map's.
     """
 
     def __init__(self, out_dir: Path, cfg: OutputConfig, rows: TrajectoryRows, segments: SegmentMaps, *,
-                 telemetry: TelemetryJoin | None, first: WorkerFirst, input_name: str) -> None:
+                 telemetry: TelemetryJoin | None, first: WorkerFirst, input_name: str,
+                 raw_frame: Callable[[int], np.ndarray | None] | None = None,
+                 frame_prep: FramePrep | None = None) -> None:
         self.out_dir = out_dir
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -114,9 +121,8 @@ class RunOutputs:
         self._files_due = 0.0  # monotonic s: the next checkpoint's files not before (_WRITER_SHARE)
         self.band_source = None  # multi-band stills (their ``captures``): every band's map at the end
         self._composite = cfg.composite  # ... and their composite.png's bands
-        # single-band stills: frame index -> its pixels when 16-bit (else None): map_raw.tif at the end
-        self.raw_frame: Callable[[int], np.ndarray | None] | None = None
-        self.frame_prep: FramePrep | None = None  # the run's lens undistortion and frame mask: the band and raw maps' too
+        self._raw_frame = raw_frame  # single-band stills: frame index -> its 16-bit pixels (map_raw.tif)
+        self._frame_prep = frame_prep  # the band and raw maps prepare frames as the map's
         self._raw_keeper: RawFrameKeeper | None = None  # a live deep source's raw frames (offer_raw)
 
     def start(self, frame_size: tuple[int, int], loops: LoopCloser | None, painter: Painter) -> None:
@@ -333,7 +339,7 @@ class RunOutputs:
         try:
             return write_band_maps(self.out_dir, self.band_source, self._rows.glued(seg), self._frame_size,
                                    self.segments.cfg, main, composite=self._composite, georef=georef,
-                                   geotiff=self.cfg.geotiff, view=view, prep=self.frame_prep)
+                                   geotiff=self.cfg.geotiff, view=view, prep=self._frame_prep)
         except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
             self._write_failed("band maps", exc)
             return None
@@ -350,7 +356,7 @@ class RunOutputs:
         """``map_raw.tif`` of a georeferenced flight of 16-bit frames (stills, or a live source's
         kept raw frames), on the main map's final poses
         (:func:`photomap.mapping.band_maps.write_raw_map`); a failure is one line."""
-        raw_frame = self.raw_frame
+        raw_frame = self._raw_frame
         if self._raw_keeper is not None:
             self._raw_keeper.finish()
             raw_frame = self._raw_keeper.read
@@ -361,7 +367,7 @@ class RunOutputs:
         view = self.telemetry.homography if self.telemetry is not None else (lambda index: None)
         try:
             return write_raw_map(self.out_dir, raw_frame, self._rows.glued(main["segment"]), self._frame_size,
-                                 self.segments.cfg, main, georef, view=view, prep=self.frame_prep)
+                                 self.segments.cfg, main, georef, view=view, prep=self._frame_prep)
         except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
             self._write_failed("map_raw.tif", exc)
             return None
