@@ -1,11 +1,13 @@
-"""The raw values of 16-bit flights in the GeoTIFFs: ``map_bands.tif`` of 16-bit band captures and
-``map_raw.tif`` of single-band 16-bit stills, uint16 on the grid of ``map.tif``.
+"""The raw values of 16-bit flights in the GeoTIFFs: ``map_bands.tif`` of 16-bit band captures,
+``map_raw.tif`` of single-band 16-bit stills and of a live Y16 source, uint16 on the grid of
+``map.tif``; and the pieces (the uint16 map, the window loop, the raw frame keeper, the band PNGs).
 
 Truth: a simulated 5-band survey (``photomap simulate --bands 5``: 16-bit MicaSense-style TIFFs
-with EXIF GPS, the lens homographies in ``meta.yaml``). A GeoTIFF pixel is traced back through
-``map.tif``'s georeference (run.json ``georeference.map_to_crs``) and the last capture's final pose
-(``trajectory.csv``: it is painted last, so it is on top) into the capture's band file, and the
-file's raw value there is compared with the GeoTIFF's.
+with EXIF GPS, the lens homographies in ``meta.yaml``; one band of it as single-band stills) and a
+simulated video flight with its telemetry.tlog (frames turned into 16-bit counts). A GeoTIFF pixel
+is traced back through ``map.tif``'s georeference (run.json ``georeference.map_to_crs``) and the
+last frame's final pose (``trajectory.csv``: it is painted last, so it is on top) into the frame's
+file, and the file's raw value there is compared with the GeoTIFF's.
 """
 
 from __future__ import annotations
