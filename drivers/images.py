@@ -17,10 +17,10 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from photomap.core.stretch import RunningStretch
+from photomap.core.stretch import RunningStretch, to_8bit
 from photomap.errors import InputError
 
-from photomap.core.bands import robust_range_16bit, texture_energy, to_8bit
+from photomap.core.bands import robust_range_16bit, texture_energy
 from photomap.drivers.captures import BAND_ALIASES, Capture, band_folders, group_band_folders, group_captures, read_band
 from photomap.drivers.exif import parse_exif_datetime, read_capture_time
 from photomap.drivers.frames import CaptureStats, Frame, SourceBase
@@ -159,11 +159,13 @@ class ImageFolderSource(SourceBase):
     def _choose_band(self, spec: str, where: str) -> None:
         """The registering band, its files as ``paths``, and its 16-bit range (multi-band)."""
         names = max((c.bands for c in self.captures), key=len)
+        first: dict[Path, np.ndarray | None] = {}  # the first capture's bands, read once
         if spec:
             self.band = select_band(spec, names)
         else:
-            first = [(f.band, read_band(f.path)) for f in self.captures[0].files]
-            scored = [(texture_energy(img), name) for name, img in first if img is not None]
+            first = {f.path: read_band(f.path) for f in self.captures[0].files}
+            scored = [(texture_energy(img), f.band) for f in self.captures[0].files
+                      if (img := first[f.path]) is not None]
             if not scored:
                 raise InputError(f"{where}: the first capture's band files are unreadable")
             self.band = max(scored)[1]
@@ -176,7 +178,8 @@ class ImageFolderSource(SourceBase):
         if not self.paths:
             raise InputError(f"no capture in {where} has a {self.band} band")
         step = max(1, len(self.paths) // RANGE_SAMPLES)
-        sample = [img for p in self.paths[::step][:RANGE_SAMPLES] if (img := read_band(p)) is not None]
+        sample = [img for p in self.paths[::step][:RANGE_SAMPLES]
+                  if (img := first[p] if p in first else read_band(p)) is not None]
         if any(img.dtype == np.uint16 for img in sample):
             self.band_range = robust_range_16bit(sample)
         log.info("%d captures of %d bands (%s) in %s: %s registers%s", len(kept), len(names), ", ".join(names),
@@ -192,6 +195,21 @@ class ImageFolderSource(SourceBase):
         if image is not None and image.dtype != np.uint8:
             image = to_8bit(image, self.band_range or (0.0, 65535.0))
         return image
+
+    def raw_frame(self, index: int) -> np.ndarray | None:
+        """Single-band stills: frame ``index``'s pixels as stored when they are 16-bit (uint16, gray
+        or BGR; read again), else None (8-bit or float stills, multi-band captures, unreadable): the
+        raw values of ``map_raw.tif`` (:func:`photomap.mapping.band_maps.write_raw_map`)."""
+        if self.captures is not None or not self.stretch.frames or not 0 <= index < len(self.paths):
+            return None  # no still deeper than 8 bits came: nothing read again
+        reader = ImageReader()  # its library warnings were said when the still was first read
+        try:
+            image = reader.read(self.paths[index])
+        finally:
+            reader.close()
+        if image is None or image.dtype != np.uint16:
+            return None
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR) if image.ndim == 3 and image.shape[2] == 4 else image
 
     def __iter__(self) -> Iterator[Frame]:
         reader = ImageReader()

@@ -19,7 +19,8 @@ import yaml
 from photomap.cli.replay import replay
 from photomap.config import load_config
 from photomap.core.bands import (align_band, align_capture, corner_shift_px, gradient_correlation,
-                                 robust_range_16bit, texture_energy, to_8bit)
+                                 robust_range_16bit, texture_energy)
+from photomap.core.stretch import to_8bit
 from photomap.drivers.captures import group_captures, read_band
 from photomap.drivers.images import ImageFolderSource
 from photomap.drivers.stills_telemetry import stills_telemetry_for
@@ -157,6 +158,9 @@ def test_16bit_range_and_stretch():
     assert 1000 < lo < 1500 and 49500 < hi < 50000
     out = to_8bit(img, (lo, hi))
     assert out.dtype == np.uint8 and out.min() == 0 and out.max() == 255
+    # below the range saturates at 0 (it does not fold back up), above at 255, linear between
+    probe = np.array([[0, 900, 1000, 1500, 2000, 2100, 65535]], np.uint16)
+    assert to_8bit(probe, (1000.0, 2000.0)).tolist() == [[0, 0, 0, 128, 255, 255, 255]]
 
 
 # ----------------------------------------------------------------------------- simulated survey

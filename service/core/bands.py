@@ -65,7 +65,8 @@ class BandAlignment:
 def robust_range_16bit(images: Sequence[np.ndarray], low: float = 0.5, high: float = 99.5) -> tuple[float, float]:
     """A per-flight display range ``(lo, hi)`` of one band: the ``low`` and ``high`` percentiles of
     the values of ``images`` (some captures of the flight, any dtype), sampled on a grid of about
-    250,000 pixels in all. ``hi > lo`` always. The one place that decides how 16-bit becomes 8-bit.
+    250,000 pixels in all. ``hi > lo`` always. The range of a flight whose frames are all known
+    up front (multi-band captures); :func:`photomap.core.stretch.to_8bit` maps it to 8 bits.
     """
     values = []
     per = max(1, 250_000 // max(1, len(images)))
@@ -80,12 +81,6 @@ def robust_range_16bit(images: Sequence[np.ndarray], low: float = 0.5, high: flo
     v = np.concatenate(values)
     lo, hi = (float(x) for x in np.percentile(v, [low, high]))
     return lo, (hi if hi > lo else lo + 1.0)
-
-
-def to_8bit(image: np.ndarray, value_range: tuple[float, float]) -> np.ndarray:
-    """``image`` linearly stretched from ``value_range`` to 0..255 (clipped), uint8."""
-    lo, hi = value_range
-    return cv2.convertScaleAbs(np.asarray(image, np.float32), alpha=255.0 / (hi - lo), beta=-255.0 * lo / (hi - lo))
 
 
 def _normalised(image: np.ndarray) -> np.ndarray:

@@ -106,11 +106,22 @@ class TiledMosaic:
         :class:`InputError`, so that a wild pose cannot exhaust memory). ``cache_dir`` is the caller's (where ``store`` keeps its files).
     store : TileStore or None
         Where spilled tiles go; required with ``max_tiles_in_memory``.
+    dtype : ``np.uint8`` (default) or ``np.uint16``
+        The pixel type of the frames it takes and of its renders: a ``uint16`` map keeps a
+        16-bit camera's raw values (the raw GeoTIFFs, :mod:`photomap.mapping.band_maps`); it has
+        no exposure gain.
     """
 
-    def __init__(self, params: MosaicConfig = MosaicConfig(), store: TileStore | None = None) -> None:
+    def __init__(self, params: MosaicConfig = MosaicConfig(), store: TileStore | None = None, *,
+                 dtype: type = np.uint8) -> None:
         if params.max_tiles_in_memory is not None and store is None:
             raise ValueError("a mosaic with max_tiles_in_memory needs a tile store to spill to")
+        self.dtype = np.dtype(dtype)
+        if self.dtype not in (np.uint8, np.uint16):
+            raise ValueError(f"a mosaic holds uint8 or uint16 pixels, not {self.dtype}")
+        if self.dtype != np.uint8 and params.exposure != "none":
+            raise ValueError("a 16-bit mosaic has no exposure gain (mosaic.exposure none)")
+        self._max = float(np.iinfo(self.dtype).max)
         self.tile_size = params.tile_size
         self.channels = params.channels
         self.blend = params.blend
@@ -149,7 +160,8 @@ class TiledMosaic:
 
         Parameters
         ----------
-        frame : uint8 array (h, w) gray, (h, w, 3) BGR or (h, w, 4) BGRA (alpha ignored)
+        frame : array (h, w) gray, (h, w, 3) BGR or (h, w, 4) BGRA (alpha ignored), of the
+            map's ``dtype``
         M : array-like 2x3
             Pose: frame pixel ``(u, v)`` goes to map pixel ``M @ (u, v, 1)``.
         mask : array (h, w) or None
@@ -449,10 +461,10 @@ class TiledMosaic:
         return self._gain.update(new[both], old[both], new_fraction)
 
     def _to_channels(self, frame: np.ndarray) -> np.ndarray:
-        """``frame`` as uint8 (h, w, channels)."""
+        """``frame`` as (h, w, channels) of the map's dtype."""
         frame = np.asarray(frame)
-        if frame.dtype != np.uint8:
-            raise InputError(f"mosaic frames must be uint8, got {frame.dtype}")
+        if frame.dtype != self.dtype:
+            raise InputError(f"mosaic frames must be {self.dtype}, got {frame.dtype}")
         if frame.ndim == 3 and frame.shape[2] == 1:
             frame = frame[..., 0]
         if frame.ndim == 2:
@@ -508,7 +520,7 @@ class TiledMosaic:
     def _new_tile(self) -> Tile:
         ts, C = self.tile_size, self.channels
         if self.blend == "overwrite":
-            return {"color": np.zeros((ts, ts, C), np.uint8), "cover": np.zeros((ts, ts), np.uint8)}
+            return {"color": np.zeros((ts, ts, C), self.dtype), "cover": np.zeros((ts, ts), np.uint8)}
         return {"sum": np.zeros((ts, ts, C), np.float32), "weight": np.zeros((ts, ts), np.float32)}
 
     def _load(self, key: TileKey, write: bool = False) -> Tile:
@@ -643,7 +655,7 @@ class TiledMosaic:
         return key[0] * self.tile_size, key[1] * self.tile_size
 
     def tile_image(self, key: TileKey) -> tuple[np.ndarray, np.ndarray]:
-        """One tile as ``(image uint8 (ts, ts, C) or (ts, ts), alpha uint8 (ts, ts))``.
+        """One tile as ``(image (ts, ts, C) or (ts, ts) of the map's dtype, alpha uint8 (ts, ts))``.
 
         Alpha is 255 where covered, 0 where empty (image 0 there). The arrays are copies.
         Raises KeyError if no such tile.
@@ -683,12 +695,12 @@ class TiledMosaic:
         return read
 
     def set_tile(self, key: TileKey, image: np.ndarray, alpha: np.ndarray) -> None:
-        """Replace tile ``key`` by the pixels ``image`` (uint8 (ts, ts, C) or (ts, ts)) where
+        """Replace tile ``key`` by the pixels ``image`` (dtype (ts, ts, C) or (ts, ts)) where
         ``alpha`` (uint8 (ts, ts)) is non-zero, e.g. a tile saved by :meth:`tile_image`; the
         inverse of :meth:`tile_image` (a feather tile gets weight 1 where covered)."""
         key = (int(key[0]), int(key[1]))
         ts = self.tile_size
-        img = np.asarray(image, np.uint8).reshape(ts, ts, -1)
+        img = np.asarray(image, self.dtype).reshape(ts, ts, -1)
         if img.shape[2] != self.channels:
             raise InputError(f"tile {key} has {img.shape[2]} channels, the map {self.channels}")
         covered = np.asarray(alpha).reshape(ts, ts) != 0
@@ -715,14 +727,14 @@ class TiledMosaic:
         return (image[..., 0] if self.channels == 1 else image), alpha
 
     def _tile_pixels(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
-        """(image uint8 (ts, ts, C), alpha uint8 (ts, ts)) of a tile's arrays (maybe views)."""
+        """(image dtype (ts, ts, C), alpha uint8 (ts, ts)) of a tile's arrays (maybe views)."""
         if self.blend == "overwrite":
             return tile["color"], tile["cover"]
         weight = tile["weight"]
         covered = weight > 0
-        image = np.zeros(tile["sum"].shape, np.uint8)
+        image = np.zeros(tile["sum"].shape, self.dtype)
         ratio = tile["sum"][covered] / weight[covered][:, None]
-        image[covered] = np.clip(np.rint(ratio), 0, 255).astype(np.uint8)
+        image[covered] = np.clip(np.rint(ratio), 0, self._max).astype(self.dtype)
         return image, np.where(covered, np.uint8(255), np.uint8(0))
 
     def clear_tiles(self, keys: Iterable[TileKey]) -> None:
@@ -826,7 +838,7 @@ class TiledMosaic:
 
         Returns
         -------
-        image : uint8 (H, W, 3) BGR, or (H, W) for a gray map; 0 where empty
+        image : (H, W, 3) BGR, or (H, W) for a gray map, of the map's dtype; 0 where empty
         alpha : uint8 (H, W); 255 covered, 0 empty
         origin_xy : (x, y)
             Map coordinates of the top-left pixel of the rendered rectangle. At ``scale`` 1 this is
@@ -840,7 +852,7 @@ class TiledMosaic:
         C = self.channels
         if region is None:
             shape = (0, 0) if C == 1 else (0, 0, C)
-            return np.zeros(shape, np.uint8), np.zeros((0, 0), np.uint8), (0, 0)
+            return np.zeros(shape, self.dtype), np.zeros((0, 0), np.uint8), (0, 0)
         x, y, w, h = region
         if w <= 0 or h <= 0:
             raise ValueError(f"render bounds need a positive size, got {region}")
@@ -869,7 +881,7 @@ class TiledMosaic:
                 yield key, self._peek(key), (mx0, my0, mx1, my1), (ox, oy)
 
     def _render_full(self, x: int, y: int, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
-        image = np.zeros((h, w, self.channels), np.uint8)
+        image = np.zeros((h, w, self.channels), self.dtype)
         alpha = np.zeros((h, w), np.uint8)
         for _, tile, (mx0, my0, mx1, my1), (ox, oy) in self._region_tiles(x, y, w, h):
             t_img, t_alpha = self._tile_pixels(tile)
@@ -897,9 +909,9 @@ class TiledMosaic:
             block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)  # (oh', ow', C+1)
             acc[v0:v0 + wy.shape[0], u0:u0 + wx.shape[0]] += block
         cover = acc[..., C]
-        image = np.zeros((oh, ow, C), np.uint8)
+        image = np.zeros((oh, ow, C), self.dtype)
         covered = cover > 1e-6
-        image[covered] = np.clip(np.rint(acc[..., :C][covered] / cover[covered][:, None]), 0, 255)
+        image[covered] = np.clip(np.rint(acc[..., :C][covered] / cover[covered][:, None]), 0, self._max)
         alpha = np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
         return image, alpha
 

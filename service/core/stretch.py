@@ -15,11 +15,38 @@ way (brighter or darker ground soon fits, instead of saturating for the rest of 
 one whose percentiles lie inside narrows it by ``rate`` of the way (an exponential average over
 about ``1 / rate`` frames, by default 500: the range is nearly the flight's envelope). Values
 outside the range saturate at 0 and 255. ``uint8`` frames pass through unchanged.
+
+:func:`to_8bit` is the linear map of a range to 0..255 itself: the running stretch uses it, and
+so do the multi-band captures, whose files are all known up front and get one fixed range per
+band from a sample of the flight (:func:`photomap.core.bands.robust_range_16bit`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+
+def to_8bit(image: np.ndarray, value_range: tuple[float, float]) -> np.ndarray:
+    """``image`` (any dtype) linearly mapped from ``value_range = (lo, hi)`` to 0..255, rounded;
+    values outside it saturate at 0 and 255, NaN -> 0. The one mapping of deep values to 8 bits
+    (:class:`RunningStretch`, the band maps of multi-band flights); ``uint8`` is mapped too.
+    ``uint16`` goes through a table of all 65536 values (no float copy of the frame)."""
+    lo, hi = float(value_range[0]), float(value_range[1])
+    scale = 255.0 / max(hi - lo, 1e-12)
+    if image.dtype == np.uint16:
+        return np.take(_map(np.arange(65536, dtype=np.float32), lo, scale), image)
+    return _map(np.array(image, dtype=np.float32), lo, scale)  # a copy: the input stays
+
+
+def _map(values: np.ndarray, lo: float, scale: float) -> np.ndarray:
+    """float32 ``values`` -> ``uint8`` of ``(values - lo) * scale``, rounded and saturated
+    (NaN -> 0); ``values`` is overwritten."""
+    out = values
+    out -= np.float32(lo)
+    out *= np.float32(scale)
+    np.nan_to_num(out, copy=False, nan=0.0, posinf=255.0, neginf=0.0)
+    np.clip(out, 0.0, 255.0, out=out)
+    return (out + 0.5).astype(np.uint8)
 
 
 class RunningStretch:
@@ -99,29 +126,13 @@ class RunningStretch:
 
     def apply(self, image: np.ndarray) -> np.ndarray:
         """``image`` mapped to ``uint8`` through the current range, without updating it
-        (NaN -> 0; before any range is known, the dtype's full range is used)."""
+        (:func:`to_8bit`; before any range is known, the dtype's full range is used)."""
         if image.dtype == np.uint8:
             return image
         if self.low is None or self.high is None:
             info = np.iinfo(image.dtype) if np.issubdtype(image.dtype, np.integer) else None
-            lo, hi = (float(info.min), float(info.max)) if info else (0.0, 1.0)
-        else:
-            lo, hi = self.low, self.high
-        scale = 255.0 / max(hi - lo, 1e-12)
-        if image.dtype == np.uint16:   # a table of all 65536 values: no float copy of the frame
-            return np.take(self._map(np.arange(65536, dtype=np.float32), lo, scale), image)
-        return self._map(np.array(image, dtype=np.float32), lo, scale)   # a copy: the input stays
-
-    @staticmethod
-    def _map(values: np.ndarray, lo: float, scale: float) -> np.ndarray:
-        """float32 ``values`` -> ``uint8`` of ``(values - lo) * scale``, rounded and saturated
-        (NaN -> 0); ``values`` is overwritten."""
-        out = values
-        out -= np.float32(lo)
-        out *= np.float32(scale)
-        np.nan_to_num(out, copy=False, nan=0.0, posinf=255.0, neginf=0.0)
-        np.clip(out, 0.0, 255.0, out=out)
-        return (out + 0.5).astype(np.uint8)
+            return to_8bit(image, (float(info.min), float(info.max)) if info else (0.0, 1.0))
+        return to_8bit(image, (self.low, self.high))
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """:meth:`update` with ``image``, then :meth:`apply` it (``uint8`` passes unchanged)."""

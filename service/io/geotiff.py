@@ -6,7 +6,9 @@ GIS tools want a grid aligned with easting and northing. :func:`write_cog` build
 ``block`` x ``block`` window at a time: each window's pixel centres are mapped back to source
 pixels, the source region under them is rendered (area-averaged when the GeoTIFF is coarser than
 the source) and resampled bilinearly, alpha-premultiplied so that empty map pixels do not darken
-the edges. Only one window (and the source region under it) is in memory at a time.
+the edges. Only one window (and the source region under it) is in memory at a time. The window
+loop (:func:`resample_blocks`) also writes the raw 16-bit GeoTIFFs of
+:mod:`photomap.mapping.band_maps` on the same grid.
 
 The windows go into a temporary tiled GeoTIFF (sparse: blocks the map does not cover are not
 written; ZSTD level 1, written once and read twice, a third of DEFLATE's time both ways), which GDAL's COG driver then copies into the final layout: RGBA (band 4 is alpha),
@@ -25,7 +27,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -77,7 +79,8 @@ def north_up_grid(bounds: tuple[int, int, int, int], src_to_crs: np.ndarray, gsd
 def resample_block(render: RenderFn, bounds: tuple[int, int, int, int], out_to_src: np.ndarray,
                    size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
     """Render output pixels ``(0..w-1, 0..h-1)`` whose centres map to source pixels by
-    ``out_to_src`` (2x3). Returns ``(bgr uint8, alpha uint8)`` or None when nothing is covered.
+    ``out_to_src`` (2x3). Returns ``(bgr, alpha uint8)`` or None when nothing is covered; ``bgr``
+    has the render's dtype (uint8, or uint16 for a 16-bit map's raw values).
 
     The source region under the block is rendered at ``scale = min(1, 1 / step)`` (``step``:
     source pixels per output pixel, so it is area-averaged to about the output resolution),
@@ -116,8 +119,28 @@ def resample_block(render: RenderFn, bounds: tuple[int, int, int, int], out_to_s
         return None
     with np.errstate(divide="ignore", invalid="ignore"):  # uncovered pixels: 0 below
         colour = np.rint(warped[..., :3] / cover[..., None])
-    out = np.where((cover > 1e-6)[..., None], np.clip(colour, 0, 255), 0).astype(np.uint8)
+    top = np.iinfo(image.dtype).max if np.issubdtype(image.dtype, np.integer) else 255
+    out = np.where((cover > 1e-6)[..., None], np.clip(colour, 0, top), 0).astype(image.dtype)
     return out, np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
+
+
+Block = tuple[int, int, int, int]
+
+
+def resample_blocks(raster: MapRaster, gsd: float, block: int
+                    ) -> Iterator[tuple[Block, tuple[np.ndarray, np.ndarray] | None]]:
+    """The north-up grid of ``raster`` at ``gsd`` metres (:func:`north_up_grid`) one ``block`` x
+    ``block`` window at a time, row by row: ``((col, row, w, h), resample_block(...))`` for every
+    window (None where the map covers none of it). Only one window is in memory at a time."""
+    west, north, width, height = north_up_grid(raster.bounds, raster.src_to_crs, gsd)
+    # output pixel centre (u, v) -> CRS (west + (u + .5) gsd, north - (v + .5) gsd) -> source
+    out_to_crs = np.array([[gsd, 0.0, west + 0.5 * gsd], [0.0, -gsd, north - 0.5 * gsd]])
+    out_to_src = compose(_invert(raster.src_to_crs), out_to_crs)
+    for by in range(0, height, block):
+        for bx in range(0, width, block):
+            bw, bh = min(block, width - bx), min(block, height - by)
+            shift = np.array([[1.0, 0.0, bx], [0.0, 1.0, by]])
+            yield (bx, by, bw, bh), resample_block(raster.render, raster.bounds, compose(out_to_src, shift), (bw, bh))
 
 
 def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, block: int = 512,
@@ -155,9 +178,6 @@ def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, 
     west, north, width, height = north_up_grid(raster.bounds, raster.src_to_crs, gsd)
     if width * height > 4e10:
         raise InputError(f"GeoTIFF of {width} x {height} pixels at {gsd} m is too large; choose a coarser gsd")
-    # output pixel centre (u, v) -> CRS (west + (u + .5) gsd, north - (v + .5) gsd) -> source
-    out_to_crs = np.array([[gsd, 0.0, west + 0.5 * gsd], [0.0, -gsd, north - 0.5 * gsd]])
-    out_to_src = compose(_invert(raster.src_to_crs), out_to_crs)
     transform = Affine(gsd, 0.0, west, 0.0, -gsd, north)
     profile = dict(driver="GTiff", width=width, height=height, count=4, dtype="uint8",
                    crs=f"EPSG:{raster.epsg}", transform=transform, tiled=True, blockxsize=block,
@@ -167,7 +187,7 @@ def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, 
     os.close(fd)
     fd, part = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
-    blocks = [(bx, by) for by in range(0, height, block) for bx in range(0, width, block)]
+    blocks = math.ceil(width / block) * math.ceil(height / block)
     written = 0
     try:
         # GDAL_CACHEMAX bounds GDAL's block cache (default 5 % of the RAM) on small onboard computers;
@@ -177,17 +197,14 @@ def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, 
                 threadpool_limits(limits=1, user_api="blas"):
             with rasterio.open(tmp, "w", **profile) as dst:
                 dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-                for i, (bx, by) in enumerate(blocks):
-                    bw, bh = min(block, width - bx), min(block, height - by)
-                    shift = np.array([[1.0, 0.0, bx], [0.0, 1.0, by]])
-                    out = resample_block(raster.render, raster.bounds, compose(out_to_src, shift), (bw, bh))
+                for i, (window, out) in enumerate(resample_blocks(raster, gsd, block)):
                     if out is not None:
                         bgr, alpha = out
                         data = np.stack([bgr[..., 2], bgr[..., 1], bgr[..., 0], alpha])
-                        dst.write(data, window=Window(bx, by, bw, bh))
+                        dst.write(data, window=Window(*window))
                         written += 1
                     if progress is not None:
-                        progress(i + 1, len(blocks))
+                        progress(i + 1, blocks)
             if written == 0:
                 raise InputError("the map covers no pixel of the GeoTIFF grid: nothing to write")
             level = {"LEVEL": "1"} if compress.upper() in ("DEFLATE", "ZSTD") else {}

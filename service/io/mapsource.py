@@ -5,8 +5,8 @@ An export (GeoTIFF, XYZ tiles) never holds the whole map: it asks a *render func
 :meth:`photomap.core.mosaic.TiledMosaic.render` with ``bounds=(x, y, w, h)``: the region's
 source pixels ``x .. x + w - 1``, ``y .. y + h - 1`` (OpenCV pixel centres) rendered to
 ``max(1, round(w * scale))`` x ``max(1, round(h * scale))`` pixels, area-averaged and
-alpha-weighted when ``scale < 1``; ``bgr`` uint8 (H, W, 3), 0 where empty; ``alpha`` uint8
-(H, W), 255 covered, 0 empty. Output pixel ``(u, v)`` covers the source pixels
+alpha-weighted when ``scale < 1``; ``bgr`` (H, W, 3) uint8 (uint16 from a 16-bit map: its raw
+values), 0 where empty; ``alpha`` uint8 (H, W), 255 covered, 0 empty. Output pixel ``(u, v)`` covers the source pixels
 ``x + [u, u + 1) * w / W`` (the same for y), so :func:`photomap.geo.georef.png_to_map` with
 ``origin_xy = (x, y)`` and ``scale = (W / w, H / h)`` maps its pixel centres to source pixels.
 

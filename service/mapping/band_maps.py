@@ -11,17 +11,26 @@ of the run :func:`write_band_maps`:
    (:func:`~photomap.core.bands.robust_range_16bit`; the registering band keeps the one the frames
    were mapped with);
 2. paints each band in turn into a map of its own (:class:`~photomap.core.mosaic.TiledMosaic`, gray,
-   no exposure gain: the values stay the camera's, linearly stretched), band ``b``'s pixels going
-   through ``H_b`` onto the registering band's, then the frame's rectification (if any) and pose;
-   each capture's band file is read again (one capture's bands in memory at a time, one band's map);
+   no exposure gain, the band's own depth: a 16-bit band's map holds its raw values), band
+   ``b``'s pixels going through ``H_b`` onto the registering band's, then the run's lens
+   undistortion and frame mask (as the frames were prepared), the frame's rectification (if any)
+   and pose; each capture's band file is read again (one capture's bands in memory at a time, one
+   band's map);
 3. writes ``mosaic_band_{name}.png`` per band (8-bit, stretched per band over the flight as
    ``run.json`` ``bands.ranges`` says, BGRA transparent where empty) on the very pixel grid of
    ``mosaic.png`` (same rectangle, same downscale), ``composite.png`` (three bands as red, green,
    blue: ``output.composite``, default false colour nir,red,green) and, georeferenced and with the
-   ``geo`` extra, ``map_bands.tif``: one north-up GeoTIFF band per camera band (uint8, band
-   descriptions = band names, 0 = no data, covered pixels 1..255).
+   ``geo`` extra, ``map_bands.tif``: one north-up GeoTIFF band per camera band on the grid of
+   ``map.tif``, the camera's values unstretched (uint16 when a band is 16-bit, else uint8; band
+   descriptions = band names; 0 = no data, a covered pixel's 0 is written as 1).
 
 Only the main map (the largest segment) is written per band.
+
+A single-band flight of 16-bit stills gets the same for its one band (:func:`write_raw_map`):
+``map_raw.tif``, the stills' raw values (uint16; 3 bands R, G, B for colour stills) on the grid of
+``map.tif``, painted from each posed still read again; its 8-bit map is ``mosaic.png`` itself.
+A live source of raw 16-bit frames (a Y16 camera) gets it from the frames
+:class:`~photomap.mapping.raw_frames.RawFrameKeeper` kept during the run.
 """
 
 from __future__ import annotations
@@ -38,15 +47,16 @@ import cv2
 import numpy as np
 
 from photomap.config import MosaicConfig
-from photomap.core.bands import BandAlignment, align_capture, corner_shift_px, robust_range_16bit, to_8bit
+from photomap.core.bands import BandAlignment, align_capture, corner_shift_px, robust_range_16bit
+from photomap.core.stretch import to_8bit
 from photomap.core.mosaic import TiledMosaic
 from photomap.drivers.captures import BAND_ALIASES, Capture, read_band
-from photomap.geo.georef import compose
 from photomap.geometry import pose_scale
-from photomap.io.geotiff import north_up_grid, rasterio_available, resample_block
-from photomap.io.mapsource import mosaic_source
+from photomap.io.geotiff import north_up_grid, rasterio_available, resample_blocks
+from photomap.io.mapsource import MapRaster, mosaic_source
 from photomap.io.pngstream import PngStreamWriter
 from photomap.io.tilestore import DiskTileStore
+from photomap.mapping.frameprep import FramePrep
 from photomap.mapping.rows import RowView
 
 log = logging.getLogger(__name__)
@@ -141,36 +151,78 @@ def _ranges(captures: Sequence[Capture], names: Sequence[str], indices: Sequence
     return out
 
 
-def _paint_band(name: str, captures: Sequence[Capture], rows: Sequence[RowView], homographies: dict[int, list[np.ndarray]],
-                b: int, value_range: tuple[float, float] | None, frame_size: tuple[int, int], cfg: MosaicConfig,
-                view: Callable[[int], np.ndarray | None], store: DiskTileStore | None) -> TiledMosaic:
-    """Band ``b`` of every posed capture painted into a gray map of its own (spilling to ``store``
-    under ``mosaic.max_tiles_in_memory``, as the run's maps do)."""
-    mosaic = TiledMosaic(replace(cfg, channels=1, exposure="none"), store)
-    w, h = frame_size
+def _warp(image: np.ndarray, inside: np.ndarray | None, K: np.ndarray, size: tuple[int, int]
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` and its validity (None: all valid) through the homography ``K`` onto a ``size``
+    grid; the validity eroded by a pixel (no interpolated edge)."""
+    warped = cv2.warpPerspective(image, K, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    valid = np.full(image.shape[:2], 255, np.uint8) if inside is None else inside
+    valid = cv2.warpPerspective(valid, K, size, flags=cv2.INTER_NEAREST)
+    return warped, cv2.erode(valid, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def _frame_view(image: np.ndarray, H: np.ndarray, rect: np.ndarray | None, prep: FramePrep | None,
+                size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray | None]:
+    """A band image as the map's frame was painted: through ``H`` onto the registering band's pixels
+    (the input frame), the lens undistortion and frame mask of ``prep`` (as
+    :class:`~photomap.mapping.frameprep.FramePrep` prepared the frame), then the rectification
+    ``rect``. Returns the view and its validity (None: all valid)."""
+    undistort = prep.undistortion if prep is not None else None
+    mask = prep.mask if prep is not None else None
+    own = np.allclose(H, np.eye(3)) and image.shape[:2] == (size[1], size[0])
+    if undistort is None and mask is None:  # one warp for the whole chain
+        K = H if rect is None else rect @ H
+        if np.allclose(K, np.eye(3)) and own:  # the frame's own pixels (one-band flights)
+            return image, None
+        return _warp(image, None, K, size)
+    warped, inside = (image, None) if own else _warp(image, None, H, size)
+    if undistort is not None:
+        warped = undistort.apply(warped)
+        inside = undistort.apply_mask(inside if inside is not None else np.full(warped.shape[:2], 255, np.uint8))
+    if mask is not None:  # the lens's valid view and capture.mask
+        inside = mask if inside is None else cv2.min(inside, mask)
+    return (warped, inside) if rect is None else _warp(warped, inside, rect, size)
+
+
+def _paint_band(read: Callable[[int], np.ndarray | None], rows: Sequence[RowView],
+                band_to_frame: Callable[[int], np.ndarray | None], frame_size: tuple[int, int], cfg: MosaicConfig,
+                view: Callable[[int], np.ndarray | None], store: DiskTileStore | None, *,
+                prep: FramePrep | None = None, dtype: type = np.uint8, channels: int = 1) -> TiledMosaic:
+    """One band of every posed frame painted into a map of its own (``dtype``, ``channels``; no
+    exposure gain; spilling to ``store`` under ``mosaic.max_tiles_in_memory``, as the run's maps
+    do) with the frames' final poses: ``read(frame)`` gives the band's image as stored (None: none),
+    ``band_to_frame(frame)`` the 3x3 homography from its pixels to the registering band's (None:
+    the frame is not painted), then the run's lens undistortion and frame mask (``prep``),
+    ``view(frame)`` (the rectification, if any) and the pose (:func:`_frame_view`).
+    A uint8 image goes into a uint16 map as it is; a uint16 one into a uint8 map over 0..65535."""
+    mosaic = TiledMosaic(replace(cfg, channels=channels, exposure="none"), store, dtype=dtype)
     for row in rows:
-        hs = homographies.get(row.frame)
-        path = captures[row.frame].path(name) if hs is not None else None
-        image = read_band(path) if path is not None else None
+        H = band_to_frame(row.frame)
+        image = read(row.frame) if H is not None else None
         if image is None:
             continue
-        if image.dtype != np.uint8:
-            image = to_8bit(image, value_range or (0.0, 65535.0))
-        K = hs[b]  # band pixels -> registering band pixels (a band of another size included)
-        rect = view(row.frame)
-        if rect is not None:
-            K = rect @ K
-        warped = cv2.warpPerspective(image, K, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        inside = cv2.warpPerspective(np.full(image.shape[:2], 255, np.uint8), K, (w, h), flags=cv2.INTER_NEAREST)
-        inside = cv2.erode(inside, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        if image.dtype != mosaic.dtype:
+            image = image.astype(mosaic.dtype) if image.dtype == np.uint8 else to_8bit(image, (0.0, 65535.0))
+        warped, inside = _frame_view(image, H, view(row.frame), prep, frame_size)
         mosaic.add(warped, np.asarray(row.M, np.float64), inside)
     return mosaic
 
 
-def _write_png(path: Path, mosaic: TiledMosaic, bounds: tuple[int, int, int, int], scale: float) -> None:
-    image, alpha, _ = mosaic.render(scale=scale, bounds=bounds)
-    with PngStreamWriter(path, alpha.shape[1], alpha.shape[0], channels=4) as png:
-        png.write(np.dstack([cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), alpha]))
+def _write_png(path: Path, mosaic: TiledMosaic, bounds: tuple[int, int, int, int], scale: float,
+               value_range: tuple[float, float] | None) -> None:
+    """The band's map as an 8-bit BGRA PNG (a 16-bit map stretched over ``value_range``); at full
+    resolution a tile row at a time, downscaled at once (the area weights span the rows)."""
+    x, y, w, h = bounds
+    size = (w, h) if scale == 1 else (max(1, round(w * scale)), max(1, round(h * scale)))
+    ts = mosaic.tile_size
+    cuts = [y, *range((y // ts + 1) * ts, y + h, ts), y + h] if scale == 1 else [y, y + h]  # tile rows
+    strips = list(zip(cuts[:-1], np.diff(cuts).tolist()))
+    with PngStreamWriter(path, size[0], size[1], channels=4) as png:
+        for top, rows in strips:
+            image, alpha, _ = mosaic.render(scale=scale, bounds=(x, top, w, rows))
+            if image.dtype != np.uint8:
+                image = to_8bit(image, value_range or (0.0, 65535.0))
+            png.write(np.dstack([cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), alpha]))
 
 
 def _write_composite(out_dir: Path, files: dict[str, str], bands: tuple[str, str, str]) -> str:
@@ -186,45 +238,46 @@ def _write_composite(out_dir: Path, files: dict[str, str], bands: tuple[str, str
 
 
 class _BandGeoTiff:
-    """``map_bands.tif``: one uint8 band per camera band on the north-up grid of the main map."""
+    """A north-up GeoTIFF of one or more band maps (``dtype``, one band per name, 0 = no data) on
+    the grid ``map.tif`` gets over the main map's ``bounds`` (:func:`photomap.io.geotiff.resample_blocks`
+    at the map's own resolution)."""
 
     def __init__(self, path: Path, names: Sequence[str], bounds: tuple[int, int, int, int],
-                 map_to_crs: np.ndarray, epsg: int) -> None:
+                 map_to_crs: np.ndarray, epsg: int, dtype: type = np.uint8) -> None:
         import rasterio
         from rasterio.transform import Affine
-        self.path, self.bounds = path, bounds
-        gsd = pose_scale(map_to_crs)
-        west, north, self.width, self.height = north_up_grid(bounds, map_to_crs, gsd)
-        out_to_crs = np.array([[gsd, 0.0, west + 0.5 * gsd], [0.0, -gsd, north - 0.5 * gsd]])
-        self.out_to_src = compose(cv2.invertAffineTransform(np.asarray(map_to_crs, float)), out_to_crs)
+        self.path, self.bounds, self.map_to_crs, self.epsg = path, bounds, np.asarray(map_to_crs, float), epsg
+        self.gsd = pose_scale(self.map_to_crs)
+        west, north, self.width, self.height = north_up_grid(bounds, self.map_to_crs, self.gsd)
         self.block = 512
         fd, self.tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         os.close(fd)
-        self.transform = Affine(gsd, 0.0, west, 0.0, -gsd, north)
-        self.info = {"file": path.name, "crs": f"EPSG:{epsg}", "gsd_m": gsd, "size": [self.width, self.height],
-                     "bands": list(names)}
+        self.transform = Affine(self.gsd, 0.0, west, 0.0, -self.gsd, north)
+        self.dtype = np.dtype(dtype)
+        self.info = {"file": path.name, "crs": f"EPSG:{epsg}", "gsd_m": self.gsd, "size": [self.width, self.height],
+                     "dtype": self.dtype.name, "bands": list(names)}
         self._env = rasterio.Env(GDAL_CACHEMAX=128)
         self._env.__enter__()
         self.dst = rasterio.open(self.tmp, "w", driver="GTiff", width=self.width, height=self.height,
-                                 count=len(names), dtype="uint8", crs=f"EPSG:{epsg}", transform=self.transform,
-                                 tiled=True, blockxsize=self.block, blockysize=self.block, compress="DEFLATE",
-                                 interleave="band", nodata=0, bigtiff="IF_SAFER")
+                                 count=len(names), dtype=self.dtype.name, crs=f"EPSG:{epsg}",
+                                 transform=self.transform, tiled=True, blockxsize=self.block,
+                                 blockysize=self.block, compress="DEFLATE", interleave="band", nodata=0,
+                                 bigtiff="IF_SAFER")
         for i, name in enumerate(names, 1):
             self.dst.set_band_description(i, name)
 
     def write_band(self, i: int, mosaic: TiledMosaic) -> None:
+        """Band ``i`` (from 1; a 3-channel map: bands ``i .. i + 2`` as R, G, B) from ``mosaic``."""
         from rasterio.windows import Window
-        render = mosaic_source(mosaic)
-        for by in range(0, self.height, self.block):
-            for bx in range(0, self.width, self.block):
-                bw, bh = min(self.block, self.width - bx), min(self.block, self.height - by)
-                shift = np.array([[1.0, 0.0, bx], [0.0, 1.0, by]])
-                got = resample_block(render, self.bounds, compose(self.out_to_src, shift), (bw, bh))
-                if got is None:
-                    continue
-                gray, alpha = got[0][..., 0], got[1]
-                data = np.where(alpha >= 128, np.maximum(gray, 1), 0).astype(np.uint8)
-                self.dst.write(data, i, window=Window(bx, by, bw, bh))
+        raster = MapRaster(mosaic_source(mosaic), self.bounds, self.map_to_crs, self.epsg)
+        for window, got in resample_blocks(raster, self.gsd, self.block):
+            if got is None:
+                continue
+            image, alpha = got
+            layers = [image[..., 0]] if mosaic.channels == 1 else [image[..., 2], image[..., 1], image[..., 0]]
+            for k, layer in enumerate(layers):
+                data = np.where(alpha >= 128, np.maximum(layer, 1), 0).astype(self.dtype)
+                self.dst.write(data, i + k, window=Window(*window))
 
     def close(self, ok: bool) -> dict | None:
         self.dst.close()
@@ -239,7 +292,8 @@ class _BandGeoTiff:
 
 def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: tuple[int, int],
                     cfg: MosaicConfig, main: dict, *, composite: str = "", georef: tuple[np.ndarray, int] | None = None,
-                    geotiff: bool = True, view: Callable[[int], np.ndarray | None] = lambda index: None) -> dict:
+                    geotiff: bool = True, view: Callable[[int], np.ndarray | None] = lambda index: None,
+                    prep: FramePrep | None = None) -> dict:
     """Write the band maps of a multi-band flight (module docstring); returns ``run.json`` ``bands``.
 
     Parameters
@@ -250,8 +304,9 @@ def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: 
     main : the main map's ``run.json`` ``mosaics[]`` entry (``bounds``, ``scale``: the band maps use
         ``mosaic.png``'s pixel grid).
     georef : ``(map_to_crs 2x3, epsg)`` of the main map, or None (no GeoTIFF).
-    view : frame index -> 3x3 homography from the input frame to the view the map got (the
-        telemetry's tilt rectification), or None.
+    view : frame index -> 3x3 homography from the (undistorted) input frame to the view the map
+        got (the telemetry's tilt rectification), or None.
+    prep : the run's lens undistortion and frame mask (None: neither).
     """
     captures: list[Capture] = source.captures
     names = list(max((c.bands for c in captures), key=len))
@@ -263,21 +318,25 @@ def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: 
     ranges = _ranges(captures, names, indices, reference, source.band_range)
     bounds = tuple(int(v) for v in main["bounds"])
     scale = float(main["scale"])
+    deep = {n: ranges[n] is not None for n in names}  # 16-bit bands: maps of their raw values
     tif = None
     if georef is not None and geotiff and rasterio_available():
-        tif = _BandGeoTiff(out_dir / "map_bands.tif", names, bounds, *georef)
+        tif = _BandGeoTiff(out_dir / "map_bands.tif", names, bounds, *georef,
+                           dtype=np.uint16 if any(deep.values()) else np.uint8)
     files: dict[str, str] = {}
     ok = True
     try:
         for b, name in enumerate(names):
             store = DiskTileStore() if cfg.max_tiles_in_memory else None  # a temporary folder
             try:
-                mosaic = _paint_band(name, captures, rows, homographies, b, ranges[name], frame_size, cfg, view,
-                                     store)
+                mosaic = _paint_band(
+                    lambda i, n=name: read_band(p) if (p := captures[i].path(n)) is not None else None,
+                    rows, lambda i, b=b: homographies[i][b] if i in homographies else None, frame_size, cfg,
+                    view, store, prep=prep, dtype=np.uint16 if deep[name] else np.uint8)
                 if mosaic.bounds() is None:
                     continue
                 files[name] = band_file_name(name)
-                _write_png(out_dir / files[name], mosaic, bounds, scale)
+                _write_png(out_dir / files[name], mosaic, bounds, scale, ranges[name])
                 if tif is not None:
                     tif.write_band(b + 1, mosaic)
             finally:
@@ -290,7 +349,7 @@ def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: 
         written = tif.close(ok) if tif is not None else None
     out = {"registering": reference, "bands": names, "files": files, "alignment": alignment,
            "ranges": {n: (None if r is None else [round(r[0], 1), round(r[1], 1)]) for n, r in ranges.items()},
-           "stretch": "8-bit: each band's range (16-bit values) -> 0..255, linear",
+           "stretch": "8-bit: each band's range (16-bit values) -> 0..255, linear; map_bands.tif: unstretched",
            "geotiff": written}
     picked = composite_bands(composite, names)
     if picked is not None and all(n in files for n in picked):
@@ -299,3 +358,51 @@ def write_band_maps(out_dir: Path, source, rows: Sequence[RowView], frame_size: 
              f", {out['composite']['file']} ({'/'.join(picked)})" if "composite" in out else "",
              f", {written['file']}" if written else "")
     return out
+
+
+def write_raw_map(out_dir: Path, raw_frame: Callable[[int], np.ndarray | None], rows: Sequence[RowView],
+                  frame_size: tuple[int, int], cfg: MosaicConfig, main: dict, georef: tuple[np.ndarray, int],
+                  view: Callable[[int], np.ndarray | None] = lambda index: None,
+                  prep: FramePrep | None = None) -> dict | None:
+    """``map_raw.tif`` of a single-band flight of 16-bit frames (module docstring); returns its
+    ``run.json`` ``exports.raw`` entry (with ``frames``: how many were painted), or None (nothing
+    written) when the frames are not 16-bit or rasterio is missing.
+
+    ``raw_frame(i)``: frame ``i``'s pixels as stored when they are 16-bit (uint16, gray or BGR),
+    else None (cheaply: it is asked for every row); the frames are painted with ``rows``' poses
+    (the main map's) and ``view``, on the grid of ``map.tif`` (``main``: the main map's
+    ``run.json`` ``mosaics[]`` entry, ``georef``: its ``(map_to_crs 2x3, epsg)``; ``prep``: the
+    run's lens undistortion and frame mask).
+    """
+    first = next((image for r in rows if (image := raw_frame(int(r.frame))) is not None), None)
+    if first is None or first.dtype != np.uint16 or not rasterio_available():
+        return None
+    channels = 1 if first.ndim == 2 else first.shape[2]
+    names = ["raw"] if channels == 1 else ["red", "green", "blue"]
+    bounds = tuple(int(v) for v in main["bounds"])
+    tif = _BandGeoTiff(out_dir / "map_raw.tif", names, bounds, *georef, dtype=np.uint16)
+    store = DiskTileStore() if cfg.max_tiles_in_memory else None
+    ok = False
+    painted = 0
+
+    def read(index: int) -> np.ndarray | None:
+        nonlocal painted
+        image = raw_frame(index)
+        painted += image is not None
+        return image
+
+    try:
+        identity = np.eye(3)
+        mosaic = _paint_band(read, rows, lambda i: identity, frame_size, cfg, view, store, prep=prep,
+                             dtype=np.uint16, channels=channels)
+        if mosaic.bounds() is not None:
+            tif.write_band(1, mosaic)
+            ok = True
+    finally:
+        written = tif.close(ok)
+        if store is not None:
+            store.close()
+    if written is not None:
+        written["frames"] = painted
+        log.info("raw map: the 16-bit values of %d of %d posed frames in map_raw.tif", painted, len(rows))
+    return written

@@ -257,9 +257,11 @@ class MappingPipeline:
         # live: the background threads' Python code waits while the worker maps a frame (a replay
         # has no frame deadline: throughput first)
         self._first = WorkerFirst(enabled=source.live)
+        self._prep = FramePrep.from_config(cfg)  # lens undistortion and frame mask (None: neither)
         self.outputs = RunOutputs(self.out_dir, cfg.output, self._rows, self.segments, telemetry=telemetry,
                                   first=self._first, input_name=input_name,  # what the run writes
                                   band_source=source if getattr(source, "captures", None) else None,  # multi-band
+                                  raw_frame=getattr(source, "raw_frame", None), frame_prep=self._prep,
                                   final_outputs=final_outputs)
         self._next_index = 0
         self._started = 0.0
@@ -269,7 +271,6 @@ class MappingPipeline:
         self._source_gaps = 0  # rows made for frames the source lost (dropped or undecodable)
         self._painter: Painter | None = None  # paints the maps (made with the tracker)
         self._map_scale = cfg.mapping.map_scale  # map px per input px (mapping.map_px may lower it)
-        self._prep = FramePrep.from_config(cfg)  # lens undistortion and frame mask (None: neither)
         self._placer: TelemetryPlacer | None = None  # frames vision left unplaced, with telemetry
         self._placed: dict | None = None  # what the placer did (run.json telemetry.placed)
         self._deep = RunningStretch()  # deep frames a source delivers raw (a Y16 camera) to uint8, one range a flight
@@ -474,7 +475,9 @@ class MappingPipeline:
         self._gaps(frame.index)  # frames before this one that never came: dropped or undecodable
         self._next_index = max(self._next_index, frame.index + 1)
         self.stats.frames_in += 1
+        raw = None  # a deep frame as delivered: map_raw.tif's values
         if frame.image.dtype != np.uint8:
+            raw = frame.image
             frame = dataclasses.replace(frame, image=self._deep(frame.image))
         image = frame.image
         if self.tracker is None:
@@ -496,6 +499,8 @@ class MappingPipeline:
             self._skip(frame, "corrupt", t0)
             return
         messages = self._record(frame, placed)
+        if raw is not None:
+            self.outputs.offer_raw(frame.index, raw, placed.step.pose, placed.step.segment)
         corrected_path = self._close_loops(frame, placed, messages)
         t4 = time.perf_counter()
         step = placed.step

@@ -9,8 +9,8 @@ telemetry, the live ``track.kml`` / ``track.geojson``. At the end it writes ``tr
 segment; other segments as ``mosaic_segment{N}.png``; full-resolution ``tiles/`` when the PNG is
 downscaled), the georeference (world files, GeoTIFF, track files: :mod:`photomap.mapping.outputs`,
 :mod:`photomap.mapping.geo_outputs`) when the telemetry fits the images, every band's map of
-multi-band captures (:mod:`photomap.mapping.band_maps`), ``run.json`` and
-``report.html`` (README, "What a run writes"); all atomically. A write that fails (e.g. disk
+multi-band captures and the raw values of 16-bit stills (:mod:`photomap.mapping.band_maps`),
+``run.json`` and ``report.html`` (README, "What a run writes"); all atomically. A write that fails (e.g. disk
 full) is logged once per output and listed in ``run.json`` ``write_errors``, never raised: when
 the map itself could not be written the checkpoint keeps it (``photomap recover``).
 """
@@ -33,13 +33,15 @@ from photomap.geometry import pose_angle_deg
 from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
 from photomap.io.trajectory_files import tum_skipped_message, write_json, write_trajectory_csv, write_tum
-from photomap.mapping.band_maps import write_band_maps
+from photomap.mapping.band_maps import write_band_maps, write_raw_map
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import GeoreferenceSink
+from photomap.mapping.frameprep import FramePrep
 from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs
 from photomap.mapping.loopclosure import LoopCloser
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
+from photomap.mapping.raw_frames import RawFrameKeeper
 from photomap.mapping.rows import RowView, TrajectoryRows
 from photomap.mapping.segments import SegmentMaps
 from photomap.mapping.telemetry_join import SegmentFit, TelemetryJoin
@@ -74,6 +76,11 @@ class RunOutputs:
         Recorded in the checkpoint manifest.
     band_source : frame source, optional
         Multi-band stills (their ``captures``): every band's map is written at the end.
+    raw_frame : callable, optional
+        Single-band stills: frame index -> its pixels when 16-bit, else None
+        (:meth:`~photomap.drivers.images.ImageFolderSource.raw_frame`): ``map_raw.tif`` at the end.
+    frame_prep : FramePrep, optional
+        The run's lens undistortion and frame mask: the band and raw maps prepare frames as the map's.
     final_outputs : mapping, optional
         ``name -> write(rows, maps)``: more outputs written at the end, once the poses and the
         georeference are final (``rows``: the run's rows; ``maps``: run.json ``mosaics[]``), each
@@ -83,6 +90,8 @@ class RunOutputs:
 
     def __init__(self, out_dir: Path, cfg: OutputConfig, rows: TrajectoryRows, segments: SegmentMaps, *,
                  telemetry: TelemetryJoin | None, first: WorkerFirst, input_name: str, band_source=None,
+                 raw_frame: Callable[[int], np.ndarray | None] | None = None,
+                 frame_prep: FramePrep | None = None,
                  final_outputs: Mapping[str, Callable[[Iterable[RowView], list[dict]], dict]] | None = None) -> None:
         self.out_dir = out_dir
         try:
@@ -120,6 +129,9 @@ class RunOutputs:
         self.band_source = band_source  # multi-band stills (their ``captures``): every band's map at the end
         self._final_outputs = dict(final_outputs or {})
         self._composite = cfg.composite  # ... and their composite.png's bands
+        self._raw_frame = raw_frame  # single-band stills: frame index -> its 16-bit pixels (map_raw.tif)
+        self._frame_prep = frame_prep  # the band and raw maps prepare frames as the map's
+        self._raw_keeper: RawFrameKeeper | None = None  # a live deep source's raw frames (offer_raw)
 
     def start(self, frame_size: tuple[int, int], loops: LoopCloser | None, painter: Painter) -> None:
         """The first frame came: its size (w, h), the loop closer (its keyframe graphs go into
@@ -335,9 +347,37 @@ class RunOutputs:
         try:
             return write_band_maps(self.out_dir, self.band_source, self._rows.glued(seg), self._frame_size,
                                    self.segments.cfg, main, composite=self._composite, georef=georef,
-                                   geotiff=self.cfg.geotiff, view=view)
+                                   geotiff=self.cfg.geotiff, view=view, prep=self._frame_prep)
         except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
             self._write_failed("band maps", exc)
+            return None
+
+    def offer_raw(self, index: int, image: np.ndarray, pose: np.ndarray | None, segment: int) -> None:
+        """A raw deep frame (uint16) of a source that delivers them raw, with its live pose: kept
+        on disk where the flight has moved on (:class:`~photomap.mapping.raw_frames.RawFrameKeeper`)
+        for ``map_raw.tif`` at the end."""
+        if self._raw_keeper is None:
+            self._raw_keeper = RawFrameKeeper(self.out_dir)
+        self._raw_keeper.offer(index, image, pose, segment)
+
+    def _raw_map(self, maps: list[dict]) -> dict | None:
+        """``map_raw.tif`` of a georeferenced flight of 16-bit frames (stills, or a live source's
+        kept raw frames), on the main map's final poses
+        (:func:`photomap.mapping.band_maps.write_raw_map`); a failure is one line."""
+        raw_frame = self._raw_frame
+        if self._raw_keeper is not None:
+            self._raw_keeper.finish()
+            raw_frame = self._raw_keeper.read
+        main = maps[0]
+        georef = georefs_from_maps(maps).get(main["segment"])
+        if georef is None or not self.cfg.geotiff or raw_frame is None:
+            return None
+        view = self.telemetry.homography if self.telemetry is not None else (lambda index: None)
+        try:
+            return write_raw_map(self.out_dir, raw_frame, self._rows.glued(main["segment"]), self._frame_size,
+                                 self.segments.cfg, main, georef, view=view, prep=self._frame_prep)
+        except (OSError, PhotomapError, RuntimeError, ValueError, cv2.error) as exc:
+            self._write_failed("map_raw.tif", exc)
             return None
 
     def finish(self, summary_of: Callable[[], dict], timing: StageTimes, t0: float, *,
@@ -388,12 +428,18 @@ class RunOutputs:
             exports = self._attempt("geo outputs", write_geo_outputs, self.out_dir, maps, self.segments.mosaics, self._rows,
                                     self._frame_size, t0_unix=summary["video_start_unix"],
                                     cog=self.cfg.geotiff, footprints=self.cfg.footprints)
+            if exports and self.band_source is None and maps:
+                raw = self._raw_map(maps)
+                if raw:
+                    exports["raw"] = raw
             if exports:
                 summary["exports"] = exports
         if self.band_source is not None and maps:
             bands = self._band_maps(maps)
             if bands:
                 summary["bands"] = bands
+        if self._raw_keeper is not None:
+            self._raw_keeper.close()
         summary["mosaics"] = maps
         for name, write in self._final_outputs.items():  # e.g. the hazards, from the final poses
             summary[name] = self._attempt(name, write, self._rows, maps)

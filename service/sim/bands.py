@@ -98,7 +98,7 @@ def micasense_xmp(*, capture_id: str, band: int, dji: Mapping[str, str] | None =
 
 
 def write_band_still(path: str | Path, image: np.ndarray, exif, xmp: bytes) -> None:
-    """Write a uint16 band image as an uncompressed 16-bit TIFF with ``exif`` (Pillow
+    """Write a uint16 (or uint8) band image as an uncompressed 16-bit (8-bit) TIFF with ``exif`` (Pillow
     ``Image.Exif``) and the XMP packet (TIFF tag 700)."""
     from PIL import Image
     from PIL.TiffImagePlugin import ImageFileDirectory_v2
@@ -110,6 +110,7 @@ def write_band_still(path: str | Path, image: np.ndarray, exif, xmp: bytes) -> N
     info[700] = xmp  # XMLPacket in IFD0, as the cameras write it
     info.tagtype[700] = 1
     try:
-        Image.fromarray(np.ascontiguousarray(image, dtype=np.uint16)).save(str(path), "TIFF", tiffinfo=info)
+        depth = np.uint8 if np.asarray(image).dtype == np.uint8 else np.uint16
+        Image.fromarray(np.ascontiguousarray(image, dtype=depth)).save(str(path), "TIFF", tiffinfo=info)
     except OSError as exc:
         raise PhotomapError(f"cannot write band still {path}: {exc}") from None
