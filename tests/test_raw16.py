@@ -13,6 +13,7 @@ file, and the file's raw value there is compared with the GeoTIFF's.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import shutil
 from pathlib import Path
@@ -342,3 +343,21 @@ def test_a_16bit_band_png_is_the_stretched_render_written_a_tile_row_at_a_time(s
     image, alpha, _ = mosaic.render(scale=scale, bounds=bounds)  # the whole map at once
     expected = np.dstack([cv2.cvtColor(to_8bit(image, (1000.0, 60000.0)), cv2.COLOR_GRAY2BGR), alpha])
     assert np.array_equal(cv2.imread(str(tmp_path / "band.png"), cv2.IMREAD_UNCHANGED), expected)
+
+
+def test_the_raw_frame_keeper_stops_at_its_disk_budget_and_keeps_what_it_has(tmp_path, caplog):
+    """Kept frames never take more than ``max_bytes``: past it one line says so, no more are kept
+    (not even the last one at the end), and the ones kept are still read back."""
+    from photomap.mapping.raw_frames import RawFrameKeeper
+    frame = np.arange(40 * 60, dtype=np.uint16).reshape(40, 60)
+    keeper = RawFrameKeeper(tmp_path, spacing=0.25, max_bytes=3 * frame.nbytes)
+    caplog.set_level(logging.WARNING)
+    for i in range(30):  # 10 px every 5 frames: due at 0, 5, 10, 15, 20, 25
+        keeper.offer(i, frame + i, np.array([[1.0, 0.0, 2.0 * i], [0.0, 1.0, 0.0]]), segment=0)
+    keeper.finish()
+    assert sorted(keeper.kept) == [0, 5, 10]
+    assert sum(p.stat().st_size for p in keeper.folder.iterdir()) < 3 * frame.nbytes + 3 * 1024  # .npy headers
+    assert np.array_equal(keeper.read(10), frame + 10)
+    lines = [r.getMessage() for r in caplog.records if "raw frames" in r.getMessage()]
+    assert len(lines) == 1 and "no more" in lines[0] and "up to 10" in lines[0], lines
+    keeper.close()

@@ -13,7 +13,8 @@ covered too. Kept frames overlap by ``1 - spacing`` (90 % by default): their uni
 footprint to about 1 % (on a simulated 60-frame flight, 0.2 % of the map either way; the live map
 paints only new ground between its keyframes), at one frame in a few of a video's (a 640 x 512 Y16
 frame is 0.66 MB on disk). The folder is removed by :meth:`close` (one a run that stopped left, by
-the next run's first kept frame).
+the next run's first kept frame). They never take more than ``MAX_BYTES`` of disk (2 GiB: past it, no
+more are kept, one line says so, and ``map_raw.tif`` covers the flight up to there).
 
 Used by the worker thread only. Poses are 2x3, input-frame pixels -> map pixels.
 """
@@ -35,24 +36,30 @@ log = logging.getLogger(__name__)
 SPACING = 0.1
 #: ... or when it turned this many degrees from it.
 TURN_DEG = 15.0
+#: Disk the kept frames may take (bytes): beyond it no more are kept (one line), so that they can
+#: never fill the disk the map's own checkpoints need (a 640 x 512 Y16 frame: 0.66 MB).
+MAX_BYTES = 2 << 30
 
 
 class RawFrameKeeper:
     """Raw uint16 frames kept on disk (module docstring); :meth:`read` is ``write_raw_map``'s
     ``raw_frame``. A write that fails stops the keeping (one line): no ``map_raw.tif`` then."""
 
-    def __init__(self, out_dir: Path, *, spacing: float = SPACING, turn_deg: float = TURN_DEG) -> None:
+    def __init__(self, out_dir: Path, *, spacing: float = SPACING, turn_deg: float = TURN_DEG,
+                 max_bytes: int = MAX_BYTES) -> None:
         self._parent = Path(out_dir)
         self.spacing, self.turn_deg = float(spacing), float(turn_deg)
+        self.max_bytes, self.bytes = int(max_bytes), 0
         self.folder: Path | None = None
         self.kept: set[int] = set()
         self.failed = False
+        self.full = False  # max_bytes reached: no more kept, the kept ones serve
         self._last: tuple[int, np.ndarray] | None = None  # segment, pose of the last kept frame
         self._pending: tuple[int, np.ndarray, int, np.ndarray] | None = None  # newest not kept
 
     def offer(self, index: int, image: np.ndarray, pose: np.ndarray | None, segment: int) -> None:
         """A frame's raw pixels (uint16) and its live pose (None: not posed, not kept)."""
-        if self.failed or pose is None or image.dtype != np.uint16:
+        if self.failed or self.full or pose is None or image.dtype != np.uint16:
             return
         pose = np.asarray(pose, float)[:2]
         if self._due(image.shape[:2], pose, segment):
@@ -72,6 +79,11 @@ class RawFrameKeeper:
         return moved >= self.spacing * min(w, h) or turned >= self.turn_deg
 
     def _write(self, index: int, image: np.ndarray, pose: np.ndarray, segment: int) -> None:
+        if self.bytes + image.nbytes > self.max_bytes:
+            self.full = True  # what is kept stays: map_raw.tif covers the flight up to here
+            log.warning("raw frames: %.0f MB kept on disk, no more (map_raw.tif covers the frames up to %d)",
+                        self.bytes / 1e6, max(self.kept, default=index))
+            return
         try:
             if self.folder is None:
                 for stale in self._parent.glob(".raw_frames.*"):  # left by a run that stopped
@@ -83,6 +95,7 @@ class RawFrameKeeper:
             log.warning("raw frames not kept (no map_raw.tif): %s", exc)
             return
         self.kept.add(index)
+        self.bytes += image.nbytes
         self._last = (segment, pose)
 
     def _path(self, index: int) -> Path:
@@ -90,7 +103,7 @@ class RawFrameKeeper:
 
     def finish(self) -> None:
         """Write the newest frame not kept (the end of the flight)."""
-        if self._pending is not None and not self.failed:
+        if self._pending is not None and not (self.failed or self.full):
             index, image, segment, pose = self._pending
             self._write(index, image, pose, segment)
         self._pending = None
