@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from photomap.core.mosaic import unpremultiply
 from photomap.errors import InputError
 from photomap.geo.georef import compose, png_to_map
 from photomap.geometry import pose_scale
@@ -121,26 +122,7 @@ def resample_planes(render: RenderFn, bounds: tuple[int, int, int, int], out_to_
                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
     if not (warped[..., 3] > 0.5 / 255).any():
         return None
-    return _unpremultiply(warped)
-
-
-def _unpremultiply(warped: np.ndarray) -> list[np.ndarray]:
-    """uint8 planes (colour..., alpha) of premultiplied float32 (h, w, C + 1) pixels: colour
-    ``rint(c / a)`` clipped to 0..255 where ``a > 1e-6``, else 0; alpha ``rint(255 a)`` clipped.
-    Plane by plane and in place (the same float32 operations, a third of the time)."""
-    planes = list(cv2.split(warped))
-    cover = planes[-1]
-    empty = cover <= 1e-6
-    with np.errstate(divide="ignore", invalid="ignore"):  # uncovered pixels: 0 below
-        for p in planes[:-1]:
-            np.divide(p, cover, out=p)
-            np.rint(p, out=p)
-            np.clip(p, 0, 255, out=p)
-            p[empty] = 0
-    cover *= 255
-    np.rint(cover, out=cover)
-    np.clip(cover, 0, 255, out=cover)
-    return [p.astype(np.uint8) for p in planes]
+    return unpremultiply(warped)
 
 
 def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, block: int = 512,

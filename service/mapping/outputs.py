@@ -15,7 +15,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from photomap.core.mosaic import TiledMosaic, _area_weights
+from photomap.core.mosaic import TiledMosaic, _area_weights, unpremultiply
 from photomap.geo.georef import Georeference, aux_xml_text, compose, png_to_map, prj_text, world_file_text
 from photomap.io.parallel_writes import ParallelWrites
 from photomap.io.pngstream import PngStreamWriter
@@ -114,8 +114,8 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
             a = t_alpha[src].astype(np.float32) / 255
             if not a.any():
                 continue
-            pre = np.empty(a.shape + (C + 1,), np.float32)  # premultiplied colour, alpha
-            np.multiply(t_img[src], a[..., None], out=pre[..., :C])
+            pre = cv2.merge([*cv2.split(t_img[src]), t_alpha[src]]).astype(np.float32)  # premultiplied
+            pre *= a[..., None]  # colour * alpha (the alpha plane is replaced next)
             pre[..., C] = a
             if key[0] not in columns:  # a tile column's weights are the same in every row
                 columns[key[0]] = _area_weights(mx0 - x, mx1 - x, step_x, ow)
@@ -133,11 +133,9 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
 
 def _finish(acc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
     """Alpha-weighted sums -> (image, alpha), as ``TiledMosaic.render`` finishes them."""
-    cover = acc[..., C]
-    with np.errstate(divide="ignore", invalid="ignore"):  # uncovered pixels: 0 below
-        colour = np.rint(acc[..., :C] / cover[..., None])
-    image = np.where((cover > 1e-6)[..., None], np.clip(colour, 0, 255), 0).astype(np.uint8)
-    return image, np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
+    planes = unpremultiply(acc)
+    image = planes[0][..., None] if C == 1 else cv2.merge(planes[:C])
+    return image, planes[C]
 
 
 def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
