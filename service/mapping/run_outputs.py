@@ -337,7 +337,9 @@ class RunOutputs:
         once the trajectory is written; also in ``run.json``, with ``timing``'s stages, the
         ``final_outputs`` one from ``t0``, perf_counter s).
 
-        Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
+        The georeference is fitted on the PNGs' placements first; the main map's GeoTIFF is then
+        written on the ``photomap-cog`` thread while this one writes the PNGs and tiles (both only
+        read the map). Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
         ``write_errors``; when the map itself could not be written, the checkpoint keeps it
         (``photomap recover``), else the checkpoint is removed."""
         if self._state is not None:
