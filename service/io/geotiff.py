@@ -91,7 +91,7 @@ def resample_block(render: RenderFn, bounds: tuple[int, int, int, int], out_to_s
 
 def resample_planes(render: RenderFn, bounds: tuple[int, int, int, int], out_to_src: np.ndarray,
                     size: tuple[int, int]) -> list[np.ndarray] | None:
-    """:func:`resample_block` as four uint8 (h, w) planes: blue, green, red, alpha."""
+    """:func:`resample_block` as four (h, w) planes: blue, green, red (the render's dtype), alpha (uint8)."""
     w, h = size
     a = np.asarray(out_to_src, float)
     step = pose_scale(a)
@@ -115,14 +115,13 @@ def resample_planes(render: RenderFn, bounds: tuple[int, int, int, int], out_to_
     patch_to_src = png_to_map((x0, y0), (pw / (x1 - x0), ph / (y1 - y0)))
     out_to_patch = compose(_invert(patch_to_src), a)
     af = alpha.astype(np.float32) * (1.0 / 255.0)
-    pre = cv2.merge([*cv2.split(image), alpha]).astype(np.float32)  # premultiplied colour, alpha
-    pre *= af[..., None]  # colour * alpha (the alpha plane is replaced next)
-    pre[..., 3] = af
+    colour = [np.multiply(p, af, dtype=np.float32) for p in cv2.split(image)]
+    pre = cv2.merge([*colour, af])  # premultiplied colour, alpha
     warped = cv2.warpAffine(pre, out_to_patch, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
     if not (warped[..., 3] > 0.5 / 255).any():
         return None
-    return unpremultiply(warped)
+    return unpremultiply(warped, image.dtype)
 
 
 def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, block: int = 512,

@@ -114,9 +114,7 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
             a = t_alpha[src].astype(np.float32) / 255
             if not a.any():
                 continue
-            pre = cv2.merge([*cv2.split(t_img[src]), t_alpha[src]]).astype(np.float32)  # premultiplied
-            pre *= a[..., None]  # colour * alpha (the alpha plane is replaced next)
-            pre[..., C] = a
+            pre = cv2.merge([*(np.multiply(p, a, dtype=np.float32) for p in cv2.split(t_img[src])), a])  # premultiplied
             if key[0] not in columns:  # a tile column's weights are the same in every row
                 columns[key[0]] = _area_weights(mx0 - x, mx1 - x, step_x, ow)
             u0, wx = columns[key[0]]
