@@ -11,7 +11,8 @@ loop (:func:`resample_blocks`) also writes the raw 16-bit GeoTIFFs of
 :mod:`photomap.mapping.band_maps` on the same grid.
 
 The windows go into a temporary tiled GeoTIFF (sparse: blocks the map does not cover are not
-written; ZSTD level 1, written once and read twice, a third of DEFLATE's time both ways), which GDAL's COG driver then copies into the final layout: RGBA (band 4 is alpha),
+written; uncompressed: written once and read twice, and photo pixels gain a quarter at most from
+ZSTD, which took a fifth of the COG's CPU time), which GDAL's COG driver then copies into the final layout: RGBA (band 4 is alpha),
 512-pixel tiles, DEFLATE (level 1: a third of level 6's time for 6 % more bytes, the same pixels)
 with the horizontal predictor, compressed on every core, overviews down to one tile
 (area-averaged, alpha-aware), the CRS inside. ``gdalinfo`` reports ``LAYOUT=COG``.
@@ -33,6 +34,7 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from photomap.core.mosaic import unpremultiply
 from photomap.errors import InputError
 from photomap.geo.georef import compose, png_to_map
 from photomap.geometry import pose_scale
@@ -86,6 +88,13 @@ def resample_block(render: RenderFn, bounds: tuple[int, int, int, int], out_to_s
     source pixels per output pixel, so it is area-averaged to about the output resolution),
     then warped bilinearly, alpha-premultiplied.
     """
+    planes = resample_planes(render, bounds, out_to_src, size)
+    return None if planes is None else (cv2.merge(planes[:3]), planes[3])
+
+
+def resample_planes(render: RenderFn, bounds: tuple[int, int, int, int], out_to_src: np.ndarray,
+                    size: tuple[int, int]) -> list[np.ndarray] | None:
+    """:func:`resample_block` as four (h, w) planes: blue, green, red (the render's dtype), alpha (uint8)."""
     w, h = size
     a = np.asarray(out_to_src, float)
     step = pose_scale(a)
@@ -109,29 +118,24 @@ def resample_block(render: RenderFn, bounds: tuple[int, int, int, int], out_to_s
     patch_to_src = png_to_map((x0, y0), (pw / (x1 - x0), ph / (y1 - y0)))
     out_to_patch = compose(_invert(patch_to_src), a)
     af = alpha.astype(np.float32) * (1.0 / 255.0)
-    pre = np.empty(af.shape + (4,), np.float32)  # premultiplied colour, alpha
-    np.multiply(image, af[..., None], out=pre[..., :3])
-    pre[..., 3] = af
+    colour = [np.multiply(p, af, dtype=np.float32) for p in cv2.split(image)]
+    pre = cv2.merge([*colour, af])  # premultiplied colour, alpha
     warped = cv2.warpAffine(pre, out_to_patch, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
-    cover = warped[..., 3]
-    if not (cover > 0.5 / 255).any():
+    if not (warped[..., 3] > 0.5 / 255).any():
         return None
-    with np.errstate(divide="ignore", invalid="ignore"):  # uncovered pixels: 0 below
-        colour = np.rint(warped[..., :3] / cover[..., None])
-    top = np.iinfo(image.dtype).max if np.issubdtype(image.dtype, np.integer) else 255
-    out = np.where((cover > 1e-6)[..., None], np.clip(colour, 0, top), 0).astype(image.dtype)
-    return out, np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
+    return unpremultiply(warped, image.dtype)
 
 
 Block = tuple[int, int, int, int]
 
 
 def resample_blocks(raster: MapRaster, gsd: float, block: int
-                    ) -> Iterator[tuple[Block, tuple[np.ndarray, np.ndarray] | None]]:
+                    ) -> Iterator[tuple[Block, list[np.ndarray] | None]]:
     """The north-up grid of ``raster`` at ``gsd`` metres (:func:`north_up_grid`) one ``block`` x
-    ``block`` window at a time, row by row: ``((col, row, w, h), resample_block(...))`` for every
-    window (None where the map covers none of it). Only one window is in memory at a time."""
+    ``block`` window at a time, row by row: ``((col, row, w, h), resample_planes(...))`` for every
+    window (blue, green, red, alpha planes; None where the map covers none of it). Only one
+    window is in memory at a time."""
     west, north, width, height = north_up_grid(raster.bounds, raster.src_to_crs, gsd)
     # output pixel centre (u, v) -> CRS (west + (u + .5) gsd, north - (v + .5) gsd) -> source
     out_to_crs = np.array([[gsd, 0.0, west + 0.5 * gsd], [0.0, -gsd, north - 0.5 * gsd]])
@@ -140,7 +144,7 @@ def resample_blocks(raster: MapRaster, gsd: float, block: int
         for bx in range(0, width, block):
             bw, bh = min(block, width - bx), min(block, height - by)
             shift = np.array([[1.0, 0.0, bx], [0.0, 1.0, by]])
-            yield (bx, by, bw, bh), resample_block(raster.render, raster.bounds, compose(out_to_src, shift), (bw, bh))
+            yield (bx, by, bw, bh), resample_planes(raster.render, raster.bounds, compose(out_to_src, shift), (bw, bh))
 
 
 def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, block: int = 512,
@@ -181,7 +185,7 @@ def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, 
     transform = Affine(gsd, 0.0, west, 0.0, -gsd, north)
     profile = dict(driver="GTiff", width=width, height=height, count=4, dtype="uint8",
                    crs=f"EPSG:{raster.epsg}", transform=transform, tiled=True, blockxsize=block,
-                   blockysize=block, compress="ZSTD", zstd_level=1, photometric="RGB", alpha="YES",
+                   blockysize=block, compress="NONE", photometric="RGB", alpha="YES",
                    sparse_ok=True, bigtiff="IF_SAFER", interleave="pixel")
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp.tif")
     os.close(fd)
@@ -197,11 +201,10 @@ def write_cog(path: str | Path, raster: MapRaster, *, gsd: float | None = None, 
                 threadpool_limits(limits=1, user_api="blas"):
             with rasterio.open(tmp, "w", **profile) as dst:
                 dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-                for i, (window, out) in enumerate(resample_blocks(raster, gsd, block)):
-                    if out is not None:
-                        bgr, alpha = out
-                        data = np.stack([bgr[..., 2], bgr[..., 1], bgr[..., 0], alpha])
-                        dst.write(data, window=Window(*window))
+                for i, (window, planes) in enumerate(resample_blocks(raster, gsd, block)):
+                    if planes is not None:
+                        b, g, r, alpha = planes
+                        dst.write(np.stack([r, g, b, alpha]), window=Window(*window))
                         written += 1
                     if progress is not None:
                         progress(i + 1, blocks)

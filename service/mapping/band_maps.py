@@ -273,8 +273,8 @@ class _BandGeoTiff:
         for window, got in resample_blocks(raster, self.gsd, self.block):
             if got is None:
                 continue
-            image, alpha = got
-            layers = [image[..., 0]] if mosaic.channels == 1 else [image[..., 2], image[..., 1], image[..., 0]]
+            b, g, r, alpha = got
+            layers = [b] if mosaic.channels == 1 else [r, g, b]
             for k, layer in enumerate(layers):
                 data = np.where(alpha >= 128, np.maximum(layer, 1), 0).astype(self.dtype)
                 self.dst.write(data, i + k, window=Window(*window))

@@ -1,9 +1,10 @@
 """The georeferenced outputs of a run, for :mod:`photomap.mapping.run_outputs` (end of run and checkpoints).
 
 - :func:`write_geo_outputs` (end of run, after the georeference, **before** the tile cache is
-  removed): the north-up COG ``map.tif`` of the main map from the live mosaic (when the ``geo``
-  extra is installed; else one INFO line), world files + ``tiles.vrt`` for full-resolution
-  ``tiles/``, and ``track.kml`` / ``track.geojson``.
+  removed): the north-up COG ``map.tif`` of the main map from the live mosaic
+  (:func:`write_main_cog`, when the ``geo`` extra is installed; else one INFO line; or written
+  already, beside the PNGs), world files + ``tiles.vrt`` for full-resolution ``tiles/``, and
+  ``track.kml`` / ``track.geojson``.
 - :func:`refresh_track_files` (each checkpoint): rewrite ``track.kml`` / ``track.geojson``
   atomically, so a ground station reloading them (a KML network link, a GeoJSON layer) sees the
   coverage grow.
@@ -52,9 +53,28 @@ def refresh_track_files(out_dir: str | Path, rows: Sequence[PoseRow], frame_size
     return write_track_files(out_dir, rows, frame_size, georefs, footprints=footprints, t0_unix=t0_unix)
 
 
+def write_main_cog(out_dir: str | Path, main: dict, mosaics: dict[int, TiledMosaic], *,
+                   cog_name: str = "map.tif") -> dict | None:
+    """The north-up COG ``cog_name`` of the main map: ``main`` is its run.json ``mosaics[]`` entry
+    (with its ``georeference``), ``mosaics`` the live mosaics by segment (only read: it may run on
+    a thread beside other readers of the map). Returns what was written, or None: not
+    georeferenced, no rasterio (one INFO line) or a failure (a warning)."""
+    seg = int(main.get("segment", 0))
+    georef = georefs_from_maps([main]).get(seg)
+    if georef is None or seg not in mosaics or mosaics[seg].bounds() is None:
+        return None
+    try:
+        raster = MapRaster(mosaic_source(mosaics[seg]), mosaics[seg].bounds(), *georef)
+        return write_cog_if_available(Path(out_dir) / cog_name, raster)
+    except (PhotomapError, OSError, RuntimeError) as exc:  # rasterio errors are RuntimeErrors
+        log.warning("GeoTIFF not written: %s", exc)
+        return None
+
+
 def write_geo_outputs(out_dir: str | Path, maps: Sequence[dict], mosaics: dict[int, TiledMosaic],
                       rows: Sequence[PoseRow], frame_size: tuple[int, int], *, t0_unix: float | None = None,
-                      cog: bool = True, cog_name: str = "map.tif", footprints: str = "spaced") -> dict:
+                      cog: bool = True, cog_name: str = "map.tif", footprints: str = "spaced",
+                      cog_info: dict | None = None) -> dict:
     """The end-of-run georeferenced outputs; returns what was written (for run.json ``exports``).
 
     Parameters
@@ -63,25 +83,25 @@ def write_geo_outputs(out_dir: str | Path, maps: Sequence[dict], mosaics: dict[i
         ``size``, optional ``tiles``/``tile_size``, ``georeference``); the first is the main map.
     mosaics : the live mosaics by segment (still readable: call before removing the tile cache).
     t0_unix : UNIX time of frame time 0 (footprint time stamps), or None.
-    cog : write the GeoTIFF of the main map (when rasterio is installed).
+    cog : write the GeoTIFF of the main map (when rasterio is installed; :func:`write_main_cog`).
+    cog_info : the GeoTIFF written already (what :func:`write_main_cog` returned): recorded, not
+        written again.
 
     A failure of one output is logged as a warning and does not stop the others.
     """
     out = Path(out_dir)
     georefs = georefs_from_maps(maps)
     done: dict = {}
+    if cog_info is not None:
+        done["cog"] = cog_info
     if not georefs:
         return done
     main = maps[0]
     seg = int(main.get("segment", 0))
-    if cog and seg in georefs and seg in mosaics and mosaics[seg].bounds() is not None:
-        try:
-            raster = MapRaster(mosaic_source(mosaics[seg]), mosaics[seg].bounds(), *georefs[seg])
-            info = write_cog_if_available(out / cog_name, raster)
-            if info is not None:
-                done["cog"] = info
-        except (PhotomapError, OSError, RuntimeError) as exc:  # rasterio errors are RuntimeErrors
-            log.warning("GeoTIFF not written: %s", exc)
+    if cog and cog_info is None:
+        info = write_main_cog(out, main, mosaics, cog_name=cog_name)
+        if info is not None:
+            done["cog"] = info
     for m in maps:
         s = int(m.get("segment", 0))
         if m.get("tiles") and s in georefs:
@@ -97,4 +117,3 @@ def write_geo_outputs(out_dir: str | Path, maps: Sequence[dict], mosaics: dict[i
     except (PhotomapError, OSError) as exc:
         log.warning("track files not written: %s", exc)
     return done
-

@@ -37,7 +37,7 @@ from photomap.mapping.band_maps import write_band_maps, write_raw_map
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import GeoreferenceSink
 from photomap.mapping.frameprep import FramePrep
-from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs
+from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs, write_main_cog
 from photomap.mapping.loopclosure import LoopCloser
 from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
 from photomap.mapping.painter import Painter
@@ -387,7 +387,9 @@ class RunOutputs:
         ``final_outputs`` one from ``t0``, perf_counter s). ``placed``: what telemetry placed of
         what vision did not (``run.json`` ``telemetry.placed``; :mod:`photomap.mapping.telemetry_place`).
 
-        Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
+        The georeference is fitted on the PNGs' placements first; the main map's GeoTIFF is then
+        written on the ``photomap-cog`` thread while this one writes the PNGs and tiles (both only
+        read the map). Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
         ``write_errors``; when the map itself could not be written, the checkpoint keeps it
         (``photomap recover``), else the checkpoint is removed."""
         if self._state is not None:
@@ -400,34 +402,52 @@ class RunOutputs:
         summary = summary_of()
         maps, unwritten = [], []
         max_px = self.cfg.max_mosaic_px
-        for rank, seg in enumerate(self.segments.largest()):
-            name = "mosaic.png" if rank == 0 else f"mosaic_segment{seg}.png"
-            info = self._attempt(name, write_png, self.out_dir / name, self.segments.mosaics[seg], max_px)
-            if info is None:
-                info = png_placement(name, self.segments.mosaics[seg], max_px)
-                if info is not None:
-                    info["segment"] = seg
-                    unwritten.append(info)
-                continue
-            self._attempt(name, remove_sidecars, self.out_dir, name)  # an earlier run's georeference must not stay
-            info["segment"] = seg
-            if info["scale"] < 1.0:
-                tiles = self.out_dir / ("tiles" if rank == 0 else f"tiles_segment{seg}")
-                if not self._attempt(f"{tiles.name}/", lambda t=tiles, m=self.segments.mosaics[seg]: write_tiles(t, m) or True):
-                    unwritten.append(info)
-                info["tiles"] = tiles.name
-                info["tile_size"] = self.segments.mosaics[seg].tile_size
-            maps.append(info)
+        order = self.segments.largest()
+        names = {seg: "mosaic.png" if rank == 0 else f"mosaic_segment{seg}.png" for rank, seg in enumerate(order)}
+        # the placements (and so the georeference) come before the PNGs: the main map's GeoTIFF is
+        # written on a thread while the PNGs and tiles are (all only read the map; 2 cores)
+        placements = {}
+        for seg in order:
+            info = png_placement(names[seg], self.segments.mosaics[seg], max_px)
+            if info is not None:
+                info["segment"] = seg
+                placements[seg] = info
+                self._attempt(info["file"], remove_sidecars, self.out_dir, info["file"])  # an earlier run's
+        if self.telemetry is not None:
+            self._attempt("georeference", self._georeference, summary, list(placements.values()))
+            summary["telemetry"]["placed"] = placed
+        cog = beside = None
+        if self.telemetry is not None and self.cfg.geotiff and order and order[0] in placements:
+            beside = ThreadPoolExecutor(1, "photomap-cog")
+            cog = beside.submit(write_main_cog, self.out_dir, placements[order[0]], self.segments.mosaics)
+        try:
+            for rank, seg in enumerate(order):
+                name = names[seg]
+                info = self._attempt(name, write_png, self.out_dir / name, self.segments.mosaics[seg], max_px)
+                if info is None:
+                    if seg in placements:
+                        unwritten.append(placements[seg])
+                        remove_sidecars(self.out_dir, name)  # no PNG for them
+                    continue
+                info["segment"] = seg
+                if info["scale"] < 1.0:
+                    tiles = self.out_dir / ("tiles" if rank == 0 else f"tiles_segment{seg}")
+                    if not self._attempt(f"{tiles.name}/", lambda t=tiles, m=self.segments.mosaics[seg]: write_tiles(t, m) or True):
+                        unwritten.append(info)
+                    info["tiles"] = tiles.name
+                    info["tile_size"] = self.segments.mosaics[seg].tile_size
+                if "georeference" in placements.get(seg, {}):
+                    info["georeference"] = placements[seg]["georeference"]
+                maps.append(info)
+        finally:
+            if beside is not None:
+                beside.shutdown(wait=True)
+        cog_info = self._attempt("map.tif", cog.result) if cog is not None else None
         (self.out_dir / "preview.png").unlink(missing_ok=True)
         if self.telemetry is not None:
-            self._attempt("georeference", self._georeference, summary, maps + [u for u in unwritten if u not in maps])
-            summary["telemetry"]["placed"] = placed
-            for info in unwritten:
-                if info not in maps:
-                    remove_sidecars(self.out_dir, info["file"])  # no PNG for them
             exports = self._attempt("geo outputs", write_geo_outputs, self.out_dir, maps, self.segments.mosaics, self._rows,
                                     self._frame_size, t0_unix=summary["video_start_unix"],
-                                    cog=self.cfg.geotiff, footprints=self.cfg.footprints)
+                                    cog=False, footprints=self.cfg.footprints, cog_info=cog_info)
             if exports and self.band_source is None and maps:
                 raw = self._raw_map(maps)
                 if raw:
