@@ -47,14 +47,14 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
+from unittest import mock
 
 from photomap.cli.replay import replay
 from photomap.cli.wiring import map_source
 from photomap.config import load_config
 from photomap.geo import webmercator as wm
+from photomap.live.mapserver import MapServer
 from photomap.sim.simulate import simulate_flight
 from tools.bench_pipeline import PacedVideoSource
 from tools.report import replace_section
@@ -80,24 +80,45 @@ def load_average() -> float:
 
 
 class Client(threading.Thread):
-    """Fetches the status and the 3 x 3 tiles around the vehicle ``hz`` times a second."""
+    """Fetches the status and the 3 x 3 tiles around the vehicle ``hz`` times a second.
+
+    One HTTP/1.0 GET per connection over a plain socket (the server's protocol): the client
+    shares the cores with the mapping here, as a ground station on another computer does not,
+    so it spends as little CPU as it can, and its CPU is reported beside the server's. It is
+    stopped before the server closes at the end of the run (:func:`one_pass`): any error once
+    the server has answered, or an answer but 200, is a failure of the server, counted by reason."""
 
     def __init__(self, base: str, hz: float) -> None:
         super().__init__(name="bench-client", daemon=True)
-        self.base, self.period = base, 1.0 / hz
+        host, port = base.split("//", 1)[1].rstrip("/").rsplit(":", 1)
+        self.address, self.period = (host, int(port)), 1.0 / hz
         self.stop = threading.Event()
         self.latencies: list[float] = []
         self.failed = 0
+        self.reasons: dict[str, int] = {}
         self.tiles = 0
         self.last_status: dict | None = None
+
+    def _fail(self, reason: str) -> None:
+        self.failed += 1
+        self.reasons[reason] = self.reasons.get(reason, 0) + 1
 
     def _get(self, path: str) -> bytes | None:
         t0 = time.perf_counter()
         try:
-            with urllib.request.urlopen(self.base + path, timeout=5.0) as r:
-                body = r.read()
-        except (urllib.error.URLError, OSError):
-            self.failed += bool(self.latencies)  # not before the server is up
+            with socket.create_connection(self.address, timeout=5.0) as s:
+                s.sendall(f"GET /{path} HTTP/1.0\r\nHost: {self.address[0]}\r\n\r\n".encode())
+                chunks = []
+                while chunk := s.recv(65536):
+                    chunks.append(chunk)
+        except OSError as exc:
+            if self.latencies:  # not before the server is up
+                self._fail(type(exc).__name__)
+            return None
+        head, _, body = b"".join(chunks).partition(b"\r\n\r\n")
+        code = head.split(b" ", 2)[1].decode(errors="replace") if head.count(b" ") >= 2 else "no answer"
+        if code != "200":
+            self._fail(f"HTTP {code}")
             return None
         self.latencies.append(time.perf_counter() - t0)
         return body
@@ -133,16 +154,19 @@ def client_main(base: str, hz: float) -> int:
     """The client process: fetches until its stdin closes, then prints what it saw (JSON)."""
     client = Client(base, hz)
     print("ready", flush=True)  # imported: the pass starts now (the imports' CPU is not its)
+    cpu0 = _cpu_s()
     client.start()
     sys.stdin.read()
     client.stop.set()
     client.join()
     lat = sorted(client.latencies)
     st = client.last_status or {}
-    print(json.dumps({"requests": len(lat), "failed": client.failed, "tiles": client.tiles,
+    print(json.dumps({"requests": len(lat), "failed": client.failed, "reasons": client.reasons,
+                      "tiles": client.tiles, "client_cpu_s": _cpu_s() - cpu0,
                       "median_ms": 1000 * statistics.median(lat) if lat else float("nan"),
                       "max_ms": 1000 * lat[-1] if lat else float("nan"),
-                      "renders": st.get("tile_renders"), "hits": st.get("tile_hits")}))
+                      "renders": st.get("tile_renders"), "hits": st.get("tile_hits"),
+                      "server_errors": {k: v for k, v in (st.get("server") or {}).items() if k != "requests" and v}}))
     return 0
 
 
@@ -166,22 +190,36 @@ def one_pass(flight: Path, out: Path, condition: str, hz: float, live: bool = Fa
                                    f"http://127.0.0.1:{port}/", "--hz", str(hz)], cwd=REPO,
                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         client.stdout.readline()
+    seen: list[str] = []
+
+    def stop_client() -> None:  # closes its stdin; it prints what it saw
+        if client is not None and not seen:
+            seen.append(client.communicate("", timeout=60)[0])
+
+    real_close = MapServer.close
+
+    def close(self: MapServer) -> None:  # the client stops before the server closes at the run's end
+        stop_client()
+        real_close(self)
+
     cpu0 = _cpu_s()
     try:
-        if live:
-            source = PacedVideoSource(flight / "video.avi", FPS, cfg.capture.queue_size)
-            s = map_source(source, cfg, out, input_name="video.avi", map_server=server)
-        else:
-            s = replay(str(flight / "video.avi"), out, cfg, mavlink=str(flight / "telemetry.tlog"),
-                       map_server=server)
+        with mock.patch.object(MapServer, "close", close):
+            if live:
+                source = PacedVideoSource(flight / "video.avi", FPS, cfg.capture.queue_size)
+                s = map_source(source, cfg, out, input_name="video.avi", map_server=server)
+            else:
+                s = replay(str(flight / "video.avi"), out, cfg, mavlink=str(flight / "telemetry.tlog"),
+                           map_server=server)
     finally:
         cpu = _cpu_s() - cpu0
-        seen = client.communicate("", timeout=60)[0] if client is not None else None  # closes its stdin
+        stop_client()
     row = {"fps": float(s["fps"]), "frames": s["frames_in"], "registered": s["registered"],
            "cpu_ms": 1000 * cpu / max(1, s["frames_in"]), "dropped": int(s.get("dropped") or 0),
            "worker_ms": float(s.get("ms_per_frame") or 0.0)}
-    if seen:
-        row.update(json.loads(seen.strip().splitlines()[-1]))
+    if seen and seen[0]:
+        row.update(json.loads(seen[0].strip().splitlines()[-1]))
+        row["client_cpu_ms"] = 1000 * row["client_cpu_s"] / max(1, s["frames_in"])
     return row
 
 
@@ -208,7 +246,11 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
             req = (f"{statistics.median(r['requests'] for r in rs):.0f} "
                    f"({statistics.median(r['tiles'] for r in rs):.0f})")
             if any(r["failed"] for r in rs):
-                req += f", {sum(r['failed'] for r in rs)} failed"
+                reasons: dict[str, int] = {}
+                for r in rs:
+                    for k, v in r.get("reasons", {}).items():
+                        reasons[k] = reasons.get(k, 0) + v
+                req += f", {sum(r['failed'] for r in rs)} failed ({', '.join(f'{k} {v}' for k, v in reasons.items())})"
             latency = f"{statistics.median(r['median_ms'] for r in rs):.1f} / {max(r['max_ms'] for r in rs):.0f}"
             cache = (f"{statistics.median(r['renders'] or 0 for r in rs):.0f} / "
                      f"{statistics.median(r['hits'] or 0 for r in rs):.0f}")
@@ -229,7 +271,9 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
     lines += ["", f"Mapping fps with a client at {args.hz:g} Hz, pass by pass against the run without a server "
               f"just before it: median ratio {ratios['server + client']:.3f} (a server with no client: "
               f"{ratios['server, no client']:.3f}, the noise of this machine). The server's CPU: "
-              f"{cpu_client - base_cpu:+.2f} ms per frame with the client ({cpu_client:.2f} against {base_cpu:.2f}). "
+              f"{cpu_client - base_cpu:+.2f} ms per frame with the client ({cpu_client:.2f} against {base_cpu:.2f}); "
+              f"the client's own (another process on the same cores, as a ground station is not): "
+              f"{statistics.median(r['client_cpu_ms'] for r in rows['server + client']):.2f} ms per frame. "
               f"Target (no measurable slowdown: the fps ratio within the noise, or 3 %): **{verdict}**. The client (another process) asks for the status and the 3 x 3 tiles "
               f"around the vehicle at `max_zoom` {args.hz:g} times a second (up to {10 * args.hz:g} requests/s); "
               f"latencies are those it saw on loopback while the mapping ran flat out."]
