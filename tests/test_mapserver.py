@@ -461,3 +461,34 @@ def test_hazards_found_during_a_replay_are_served_where_they_were_planted(tmp_pa
         err = min(np.hypot((lat - la) * 111_320.0, (lon - lo) * 111_320.0 * np.cos(np.radians(la)))
                   for la, lo in planted)
         assert err < 2.0, f"a served hazard {err:.1f} m from the nearest planted spot"
+
+
+def test_the_served_track_after_a_correction_is_the_track_of_its_points_appended():
+    """The live map's track (frame centres, thinned to max_path points): after a pose-graph
+    correction it is the corrected path thinned as if it had come point by point, and frames
+    after it go on from there."""
+    from photomap.geometry import frame_centre
+    from photomap.live.livemap import LiveMap, track_geojson
+    from photomap.mapping.events import FrameEvent
+
+    cx, cy = frame_centre(64, 64)
+
+    def event(k: int, tx: float, ty: float, corrected: np.ndarray | None = None) -> FrameEvent:
+        pose = np.array([[1.0, 0, tx], [0, 1.0, ty]])
+        return FrameEvent(k, k / 10.0, False, np.zeros((64, 64, 3), np.uint8), (64, 64), "registered", pose,
+                          0.9, 0, path_after_correction=None if corrected is None else (lambda: corrected))
+
+    live = LiveMap(tile_hz=1e6, max_path=8)
+    for k in range(30):
+        live.on_frame(event(k, 10.0 * k, 20.0 * k))
+    assert live.snapshot().path == [(10.0 * k + cx, 20.0 * k + cy) for k in range(0, 30, 4)]
+    # frame 30 closes a loop: every centre moved by (+1, -1)
+    corrected = np.array([[10.0 * k + cx + 1, 20.0 * k + cy - 1, 0.9] for k in range(31)])
+    live.on_frame(event(30, 300.0 + 1, 600.0 - 1, corrected))
+    for k in range(31, 45):
+        live.on_frame(event(k, 10.0 * k + 1, 20.0 * k - 1))
+    truth = [(10.0 * k + cx + 1, 20.0 * k + cy - 1) for k in range(45)]
+    # 45 centres, at most 8 kept: every 8th, as appends alone keep them
+    assert live.snapshot().path == truth[::8] and live.errors == 0
+    line = track_geojson(live.snapshot())["features"][0]
+    assert line["geometry"]["coordinates"] == [list(p) for p in truth[::8]] and line["properties"]["points"] == 6

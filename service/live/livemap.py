@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Callable
 import cv2
 import numpy as np
 
+from photomap.core.thinned import ThinnedPath
 from photomap.geo import webmercator as wm
 from photomap.geo.georef import Georeference, utm_forward
 from photomap.geometry import frame_centre
@@ -215,9 +216,7 @@ class LiveMap:
         self._dirty: dict[int, set[TileKey]] = {}  # segment -> tiles changed since their copy
         self._readers: dict[int, TileReader] = {}  # segment -> its map (read in the worker only)
         self._last_copy = -math.inf
-        self._paths: dict[int, list[tuple[float, float]]] = {}
-        self._strides: dict[int, int] = {}
-        self._counts: dict[int, int] = {}
+        self._paths: dict[int, ThinnedPath[tuple[float, float]]] = {}  # segment -> its frame centres
         self._frames_in = 0
         self._frame: int | None = None
         self._registered = 0
@@ -257,10 +256,16 @@ class LiveMap:
         if posed:
             cx, cy = frame_centre(*event.frame_size)
             x, y = np.asarray(event.pose, float) @ (cx, cy, 1.0)
+            path = self._paths.get(seg)
+            if path is None:
+                path = ThinnedPath(self._max_path)
+                with self._lock:
+                    self._paths[seg] = path
+            # no lock: the server takes the points list and then its length (see snapshot)
             if event.corrected_path is not None:
-                self._rebuild_path(seg, np.asarray(event.corrected_path, float)[:, :2])
+                path.rebuild(np.asarray(event.corrected_path, float)[:, :2])
             else:
-                self._append_path(seg, float(x), float(y))
+                path.append((float(x), float(y)))
         sample = event.telemetry
         with self._lock:
             self._frames_in += 1
@@ -318,27 +323,6 @@ class LiveMap:
         """Copy every tile changed so far (the worker thread, e.g. at the end of the run)."""
         self._copy_dirty()
 
-    def _append_path(self, seg: int, x: float, y: float) -> None:
-        """Every ``stride``-th point; the points halved (stride doubled) when over the cap."""
-        path = self._paths.setdefault(seg, [])
-        stride, count = self._strides.get(seg, 1), self._counts.get(seg, 0)
-        if count % stride == 0:
-            path = path + [(x, y)]  # a new list: the server may be reading the old one
-            if len(path) > self._max_path:
-                path, stride = path[::2], stride * 2
-        with self._lock:
-            self._paths[seg] = path
-        self._strides[seg], self._counts[seg] = stride, count + 1
-
-    def _rebuild_path(self, seg: int, xy: np.ndarray) -> None:
-        stride = 1
-        while -(-len(xy) // stride) > self._max_path:
-            stride *= 2
-        path = [tuple(p) for p in xy[::stride].tolist()]
-        with self._lock:
-            self._paths[seg] = path
-        self._strides[seg], self._counts[seg] = stride, len(xy)
-
     # ------------------------------------------------------------------ writer / worker thread
     def on_georeference(self, segment: int, geo: Georeference) -> None:
         """The pipeline's live (and final) GPS fit of the main map segment."""
@@ -394,11 +378,15 @@ class LiveMap:
             shown = (served, self._version)
             if self._shown[0] != shown:  # copied once per change (at most tile_hz a second), not per request
                 self._shown = (shown, dict(self._tiles.get(served, {})) if served is not None else {})
-            return Snapshot(self._frames_in, self._frame, self._registered, len(self._segments), self._segment, fps,
-                            self._frame_size, self._pose, self._pose_segment, self._gps, self._gps_sample,
-                            telemetry, georef, self._geo_version, self._tile_size, self._shown[1],
-                            self._paths.get(served, []) if served is not None else [],  # never changed in place
-                            self._version)
+            path = self._paths.get(served) if served is not None else None
+            points = path.points if path is not None else []
+            n = len(points)
+            snap = (self._frames_in, self._frame, self._registered, len(self._segments), self._segment, fps,
+                    self._frame_size, self._pose, self._pose_segment, self._gps, self._gps_sample, telemetry,
+                    georef, self._geo_version, self._tile_size, self._shown[1])
+            version = self._version
+        # the list's first n points stay as they are: ThinnedPath appends in place and thins into a new list
+        return Snapshot(*snap, points[:n], version)
 
 
 # ---------------------------------------------------------------------------------- rendering
