@@ -379,6 +379,42 @@ def test_a_painted_tile_renders_again_at_most_once_per_interval(interval):
     assert cache.renders == (2 if interval == 0.0 else 1) and cache.hits >= 1
 
 
+def test_a_repainted_tile_is_served_fresh_within_the_render_interval():
+    """The staleness bound: a served tile whose map tiles were repainted is the old picture for
+    less than min_render_interval_s after its last render, and the repainted one from then on
+    (the cache's clock, not the machine's, so that the bound is exact)."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.live.livemap import LiveMap, TileCache
+
+    now = [100.0]
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    full = np.full((64, 64), 255, np.uint8)
+    live = LiveMap(tile_hz=1e6)
+    cache = TileCache(16, 2.0, clock=lambda: now[0])
+
+    def paint(index: int, level: int) -> None:
+        mosaic.set_tile((0, 0), np.full((64, 64, 3), level, np.uint8), full)
+        live.on_frame(_tile_event(index, mosaic, {(0, 0)}))
+
+    def served() -> int:
+        return int(_decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))[:64, :64, 1].max())
+
+    paint(0, 50)
+    assert served() == 50 and cache.renders == 1  # rendered at t = 100
+    paint(1, 120)
+    now[0] = 101.99
+    assert served() == 50 and cache.renders == 1  # within the bound: the cached picture
+    now[0] = 102.0
+    assert served() == 120 and cache.renders == 2  # the bound reached: the repainted one
+    paint(2, 200)
+    now[0] = 103.5
+    assert served() == 120
+    now[0] = 104.01
+    assert served() == 200 and cache.renders == 3
+    assert served() == 200 and cache.renders == 3  # unchanged since: no render
+
+
 def test_answers_wait_while_the_worker_maps_a_frame():
     """Live, the server's Python code gives way to the worker's frame (its gate), then answers."""
     from photomap.mapping.threads import WorkerFirst

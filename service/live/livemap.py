@@ -468,12 +468,19 @@ def _xyz_tile(snap: Snapshot, x: int, y: int, z: int) -> tuple[np.ndarray, np.nd
     if lx1 <= lx0 or ly1 <= ly0:
         return None
     comp = _compose(snap, level, lx0, ly0, lx1, ly1)
-    if not comp[..., 3].any():
+    alpha = comp[..., 3]
+    if not alpha.any():
         return None
-    pre = cv2.remap(_premultiplied(comp), (lx - lx0).astype(np.float32), (ly - ly0).astype(np.float32),
-                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
-    image, alpha = _unpremultiplied(pre)
-    return (image, alpha) if alpha.any() else None
+    # premultiplied in 8 bits (OpenCV, no float copies): exact where the map is covered or empty
+    # (the map's alpha is 0 or 255; the halvings' edges are within a level at 1/16 cover and up)
+    a3 = cv2.merge([alpha, alpha, alpha])
+    comp[..., :3] = cv2.multiply(comp[..., :3], a3, scale=1.0 / 255.0)
+    pre = cv2.remap(comp, (lx - lx0).astype(np.float32), (ly - ly0).astype(np.float32), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+    alpha = pre[..., 3].copy()
+    if not alpha.any():
+        return None
+    return cv2.divide(pre[..., :3], cv2.merge([alpha, alpha, alpha]), scale=255.0), alpha  # 0 where alpha is 0
 
 
 def xyz_source_rect(snap: Snapshot, x: int, y: int, z: int) -> tuple[float, float, float, float]:
@@ -516,37 +523,45 @@ class _Entry:
     png: bytes
     deps: dict[TileKey, int]
     made: float
+    rect: tuple  # the map-pixel rectangle under the tile (fixed by its key)
 
 
 class TileCache:
     """Rendered tiles by ``(kind, geo_version, z, x, y)``, least recently used beyond
     ``max_entries``; see the module docstring for when a tile is rendered again."""
 
-    def __init__(self, max_entries: int = 256, min_interval_s: float = 2.0) -> None:
+    def __init__(self, max_entries: int = 256, min_interval_s: float = 2.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self._entries: OrderedDict[tuple, _Entry] = OrderedDict()
         self._lock = threading.Lock()
         self._max = max(1, int(max_entries))
         self._interval = float(min_interval_s)
+        self._clock = clock
         self.renders = 0
         self.hits = 0
 
     def get(self, snap: Snapshot, kind: str, x: int, y: int, z: int,
             pause: Callable[[], None] = lambda: None) -> bytes:
         """The tile's PNG (``pause``: see :func:`render_png`)."""
-        rect = xyz_source_rect(snap, x, y, z) if kind == "xyz" else pixel_source_rect(x, y, z)
-        deps = _keys_in(snap, *rect)
         key = (kind, snap.geo_version if kind == "xyz" else 0, z, x, y)
-        now = time.monotonic()
         with self._lock:
             entry = self._entries.get(key)
-            if entry is not None and (entry.deps == deps or now - entry.made < self._interval):
-                self._entries.move_to_end(key)
+        if entry is not None:
+            rect = entry.rect
+        else:
+            rect = xyz_source_rect(snap, x, y, z) if kind == "xyz" else pixel_source_rect(x, y, z)
+        deps = _keys_in(snap, *rect)
+        now = self._clock()
+        if entry is not None and (entry.deps == deps or now - entry.made < self._interval):
+            with self._lock:
+                if key in self._entries:
+                    self._entries.move_to_end(key)
                 self.hits += 1
-                return entry.png
+            return entry.png
         png = render_png(snap, kind, x, y, z, pause) if deps else EMPTY_PNG
         with self._lock:
             self.renders += 1
-            self._entries[key] = _Entry(png, deps, now)
+            self._entries[key] = _Entry(png, deps, now, rect)
             self._entries.move_to_end(key)
             while len(self._entries) > self._max:
                 self._entries.popitem(last=False)
