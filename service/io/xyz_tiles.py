@@ -85,10 +85,10 @@ def tile_source_pixels(src_to_crs: np.ndarray, epsg: int, x: int, y: int, z: int
     _, lon = wm.pixel_to_latlon(x * n + u, 0.0, z)
     lon_g, lat_g = np.meshgrid(lon, lat)
     e, nn = utm_forward(lat_g, lon_g, epsg)
-    e, nn = _upsample(e), _upsample(nn)
     inv = cv2.invertAffineTransform(np.asarray(src_to_crs, float))
-    sx = inv[0, 0] * e + inv[0, 1] * nn + inv[0, 2]
-    sy = inv[1, 0] * e + inv[1, 1] * nn + inv[1, 2]
+    # the CRS -> source map is affine: interpolating its values on the grid is interpolating the CRS
+    sx = _upsample(inv[0, 0] * e + inv[0, 1] * nn + inv[0, 2])
+    sy = _upsample(inv[1, 0] * e + inv[1, 1] * nn + inv[1, 2])
     return sx, sy, math.hypot(sx[0, -1] - sx[0, 0], sy[0, -1] - sy[0, 0]) / (n - 1)
 
 
