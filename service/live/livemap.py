@@ -35,7 +35,7 @@ import math
 import threading
 import time
 from collections import OrderedDict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable
 
 import cv2
@@ -173,19 +173,26 @@ class Snapshot:
     tiles: dict[TileKey, _Tile]  # of the served segment (georeferenced one, else the current one)
     path: list[tuple[float, float]]  # frame centres of the served segment, map pixels
     version: int  # grows whenever a served tile or the georeference changes
+    # what is worked out from ``tiles`` once, shared by the snapshots holding the same tiles
+    memo: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def served_segment(self) -> int | None:
         return self.georeference[0] if self.georeference is not None else self.segment
 
     def bounds_px(self) -> tuple[int, int, int, int] | None:
-        """``(x, y, w, h)`` map pixels of the served tiles' rectangle, or None when there are none."""
+        """``(x, y, w, h)`` map pixels of the served tiles' rectangle, or None when there are none
+        (a pass over the tiles once per change of them: :attr:`memo`)."""
         if not self.tiles:
             return None
-        ts = self.tile_size
-        xs = [k[0] for k in self.tiles]
-        ys = [k[1] for k in self.tiles]
-        return min(xs) * ts, min(ys) * ts, (max(xs) - min(xs) + 1) * ts, (max(ys) - min(ys) + 1) * ts
+        box = self.memo.get("bounds_px")
+        if box is None:
+            ts = self.tile_size
+            xs = [k[0] for k in self.tiles]
+            ys = [k[1] for k in self.tiles]
+            box = self.memo["bounds_px"] = (min(xs) * ts, min(ys) * ts, (max(xs) - min(xs) + 1) * ts,
+                                            (max(ys) - min(ys) + 1) * ts)
+        return box
 
     def max_zoom(self) -> int:
         """The zoom of the map's resolution (georeferenced), else :data:`PIXEL_ZOOM`."""
@@ -231,7 +238,8 @@ class LiveMap:
         self._had_telemetry = False
         self._georef: tuple[int, Georeference] | None = None
         self._geo_version = 0
-        self._shown: tuple[tuple | None, dict[TileKey, _Tile]] = (None, {})  # the snapshots' tiles, by version
+        # the snapshots' tiles and memo, by (served segment, version)
+        self._shown: tuple[tuple | None, dict[TileKey, _Tile], dict] = (None, {}, {})
         self.errors = 0
 
     # ------------------------------------------------------------------ worker thread
@@ -352,7 +360,7 @@ class LiveMap:
                     done += 1
         if done:
             with self._lock:
-                self._shown = (None, {})  # the next snapshot holds the packed tiles, not the raw ones
+                self._shown = (None, {}, {})  # the next snapshot holds the packed tiles, not the raw ones
         return done
 
     def nbytes(self) -> int:
@@ -377,16 +385,17 @@ class LiveMap:
                 telemetry = "gps" if self._gps is not None else "no_fix"
             shown = (served, self._version)
             if self._shown[0] != shown:  # copied once per change (at most tile_hz a second), not per request
-                self._shown = (shown, dict(self._tiles.get(served, {})) if served is not None else {})
+                self._shown = (shown, dict(self._tiles.get(served, {})) if served is not None else {}, {})
             path = self._paths.get(served) if served is not None else None
             points = path.points if path is not None else []
             n = len(points)
+            _, tiles, memo = self._shown
             snap = (self._frames_in, self._frame, self._registered, len(self._segments), self._segment, fps,
                     self._frame_size, self._pose, self._pose_segment, self._gps, self._gps_sample, telemetry,
-                    georef, self._geo_version, self._tile_size, self._shown[1])
+                    georef, self._geo_version, self._tile_size, tiles)
             version = self._version
         # the list's first n points stay as they are: ThinnedPath appends in place and thins into a new list
-        return Snapshot(*snap, points[:n], version)
+        return Snapshot(*snap, points[:n], version, memo)
 
 
 # ---------------------------------------------------------------------------------- rendering
