@@ -15,8 +15,10 @@ Reported per condition: the pipeline's own fps (``run.json`` ``fps``) of each pa
 median; the median ratio of each pass's fps to that of the run without a server just before it
 (interleaved passes see about the same load); this process's CPU milliseconds per frame (mapping
 and server: the client is another process), robust to a busy machine where wall-clock fps is
-not; for the client, the requests answered, their median and largest latency, and the server's
-renders and cache hits. Target: no measurable slowdown (the client's fps ratio within the noise
+not; the server's own CPU by its threads' clocks (:func:`_server_clocks`: answering, and its copy
+of the map in the worker), which other processes' load hardly moves; for the client, the
+requests answered (and failed, by reason), their median and largest latency, its own CPU, and
+the server's renders and cache hits. Target: no measurable slowdown (the client's fps ratio within the noise
 that a server with no client shows, or 3 %).
 
     python -m tools.bench_mapserver [--frames 300] [--passes 3] [--hz 5] [--no-live] [--out FILE]
