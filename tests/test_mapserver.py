@@ -379,6 +379,42 @@ def test_a_painted_tile_renders_again_at_most_once_per_interval(interval):
     assert cache.renders == (2 if interval == 0.0 else 1) and cache.hits >= 1
 
 
+def test_a_repainted_tile_is_served_fresh_within_the_render_interval():
+    """The staleness bound: a served tile whose map tiles were repainted is the old picture for
+    less than min_render_interval_s after its last render, and the repainted one from then on
+    (the cache's clock, not the machine's, so that the bound is exact)."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.live.livemap import LiveMap, TileCache
+
+    now = [100.0]
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    full = np.full((64, 64), 255, np.uint8)
+    live = LiveMap(tile_hz=1e6)
+    cache = TileCache(16, 2.0, clock=lambda: now[0])
+
+    def paint(index: int, level: int) -> None:
+        mosaic.set_tile((0, 0), np.full((64, 64, 3), level, np.uint8), full)
+        live.on_frame(_tile_event(index, mosaic, {(0, 0)}))
+
+    def served() -> int:
+        return int(_decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))[:64, :64, 1].max())
+
+    paint(0, 50)
+    assert served() == 50 and cache.renders == 1  # rendered at t = 100
+    paint(1, 120)
+    now[0] = 101.99
+    assert served() == 50 and cache.renders == 1  # within the bound: the cached picture
+    now[0] = 102.0
+    assert served() == 120 and cache.renders == 2  # the bound reached: the repainted one
+    paint(2, 200)
+    now[0] = 103.5
+    assert served() == 120
+    now[0] = 104.01
+    assert served() == 200 and cache.renders == 3
+    assert served() == 200 and cache.renders == 3  # unchanged since: no render
+
+
 def test_answers_wait_while_the_worker_maps_a_frame():
     """Live, the server's Python code gives way to the worker's frame (its gate), then answers."""
     from photomap.mapping.threads import WorkerFirst
@@ -461,3 +497,34 @@ def test_hazards_found_during_a_replay_are_served_where_they_were_planted(tmp_pa
         err = min(np.hypot((lat - la) * 111_320.0, (lon - lo) * 111_320.0 * np.cos(np.radians(la)))
                   for la, lo in planted)
         assert err < 2.0, f"a served hazard {err:.1f} m from the nearest planted spot"
+
+
+def test_the_served_track_after_a_correction_is_the_track_of_its_points_appended():
+    """The live map's track (frame centres, thinned to max_path points): after a pose-graph
+    correction it is the corrected path thinned as if it had come point by point, and frames
+    after it go on from there."""
+    from photomap.geometry import frame_centre
+    from photomap.live.livemap import LiveMap, track_geojson
+    from photomap.mapping.events import FrameEvent
+
+    cx, cy = frame_centre(64, 64)
+
+    def event(k: int, tx: float, ty: float, corrected: np.ndarray | None = None) -> FrameEvent:
+        pose = np.array([[1.0, 0, tx], [0, 1.0, ty]])
+        return FrameEvent(k, k / 10.0, False, np.zeros((64, 64, 3), np.uint8), (64, 64), "registered", pose,
+                          0.9, 0, path_after_correction=None if corrected is None else (lambda: corrected))
+
+    live = LiveMap(tile_hz=1e6, max_path=8)
+    for k in range(30):
+        live.on_frame(event(k, 10.0 * k, 20.0 * k))
+    assert live.snapshot().path == [(10.0 * k + cx, 20.0 * k + cy) for k in range(0, 30, 4)]
+    # frame 30 closes a loop: every centre moved by (+1, -1)
+    corrected = np.array([[10.0 * k + cx + 1, 20.0 * k + cy - 1, 0.9] for k in range(31)])
+    live.on_frame(event(30, 300.0 + 1, 600.0 - 1, corrected))
+    for k in range(31, 45):
+        live.on_frame(event(k, 10.0 * k + 1, 20.0 * k - 1))
+    truth = [(10.0 * k + cx + 1, 20.0 * k + cy - 1) for k in range(45)]
+    # 45 centres, at most 8 kept: every 8th, as appends alone keep them
+    assert live.snapshot().path == truth[::8] and live.errors == 0
+    line = track_geojson(live.snapshot())["features"][0]
+    assert line["geometry"]["coordinates"] == [list(p) for p in truth[::8]] and line["properties"]["points"] == 6

@@ -562,8 +562,8 @@ def test_a_corrected_path_is_thinned_as_point_by_point(n):
     for x, y, c in path.tolist():
         one._append_path(x, y, c)
     bulk._rebuild_path(path)
-    assert bulk._path == one._path
-    assert (bulk._path_stride, bulk._path_count, bulk._last_point) == (
-        one._path_stride, one._path_count, one._last_point)
+    assert bulk._path.points == one._path.points
+    assert (bulk._path.stride, bulk._path.count, bulk._last_point) == (
+        one._path.stride, one._path.count, one._last_point)
     one.close()
     bulk.close()

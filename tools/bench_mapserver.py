@@ -15,8 +15,10 @@ Reported per condition: the pipeline's own fps (``run.json`` ``fps``) of each pa
 median; the median ratio of each pass's fps to that of the run without a server just before it
 (interleaved passes see about the same load); this process's CPU milliseconds per frame (mapping
 and server: the client is another process), robust to a busy machine where wall-clock fps is
-not; for the client, the requests answered, their median and largest latency, and the server's
-renders and cache hits. Target: no measurable slowdown (the client's fps ratio within the noise
+not; the server's own CPU by its threads' clocks (:func:`_server_clocks`: answering, and its copy
+of the map in the worker), which other processes' load hardly moves; for the client, the
+requests answered (and failed, by reason), their median and largest latency, its own CPU, and
+the server's renders and cache hits. Target: no measurable slowdown (the client's fps ratio within the noise
 that a server with no client shows, or 3 %).
 
     python -m tools.bench_mapserver [--frames 300] [--passes 3] [--hz 5] [--no-live] [--out FILE]
@@ -33,6 +35,7 @@ reported: run it on a quiet machine.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import logging
@@ -47,14 +50,16 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
+from typing import Iterator
+from unittest import mock
 
 from photomap.cli.replay import replay
 from photomap.cli.wiring import map_source
 from photomap.config import load_config
 from photomap.geo import webmercator as wm
+from photomap.live.livemap import LiveMap
+from photomap.live.mapserver import MapServer, _Server
 from photomap.sim.simulate import simulate_flight
 from tools.bench_pipeline import PacedVideoSource
 from tools.report import replace_section
@@ -80,24 +85,45 @@ def load_average() -> float:
 
 
 class Client(threading.Thread):
-    """Fetches the status and the 3 x 3 tiles around the vehicle ``hz`` times a second."""
+    """Fetches the status and the 3 x 3 tiles around the vehicle ``hz`` times a second.
+
+    One HTTP/1.0 GET per connection over a plain socket (the server's protocol): the client
+    shares the cores with the mapping here, as a ground station on another computer does not,
+    so it spends as little CPU as it can, and its CPU is reported beside the server's. It is
+    stopped before the server closes at the end of the run (:func:`one_pass`): any error once
+    the server has answered, or an answer but 200, is a failure of the server, counted by reason."""
 
     def __init__(self, base: str, hz: float) -> None:
         super().__init__(name="bench-client", daemon=True)
-        self.base, self.period = base, 1.0 / hz
+        host, port = base.split("//", 1)[1].rstrip("/").rsplit(":", 1)
+        self.address, self.period = (host, int(port)), 1.0 / hz
         self.stop = threading.Event()
         self.latencies: list[float] = []
         self.failed = 0
+        self.reasons: dict[str, int] = {}
         self.tiles = 0
         self.last_status: dict | None = None
+
+    def _fail(self, reason: str) -> None:
+        self.failed += 1
+        self.reasons[reason] = self.reasons.get(reason, 0) + 1
 
     def _get(self, path: str) -> bytes | None:
         t0 = time.perf_counter()
         try:
-            with urllib.request.urlopen(self.base + path, timeout=5.0) as r:
-                body = r.read()
-        except (urllib.error.URLError, OSError):
-            self.failed += bool(self.latencies)  # not before the server is up
+            with socket.create_connection(self.address, timeout=5.0) as s:
+                s.sendall(f"GET /{path} HTTP/1.0\r\nHost: {self.address[0]}\r\n\r\n".encode())
+                chunks = []
+                while chunk := s.recv(65536):
+                    chunks.append(chunk)
+        except OSError as exc:
+            if self.latencies:  # not before the server is up
+                self._fail(type(exc).__name__)
+            return None
+        head, _, body = b"".join(chunks).partition(b"\r\n\r\n")
+        code = head.split(b" ", 2)[1].decode(errors="replace") if head.count(b" ") >= 2 else "no answer"
+        if code != "200":
+            self._fail(f"HTTP {code}")
             return None
         self.latencies.append(time.perf_counter() - t0)
         return body
@@ -133,22 +159,51 @@ def client_main(base: str, hz: float) -> int:
     """The client process: fetches until its stdin closes, then prints what it saw (JSON)."""
     client = Client(base, hz)
     print("ready", flush=True)  # imported: the pass starts now (the imports' CPU is not its)
+    cpu0 = _cpu_s()
     client.start()
     sys.stdin.read()
     client.stop.set()
     client.join()
     lat = sorted(client.latencies)
     st = client.last_status or {}
-    print(json.dumps({"requests": len(lat), "failed": client.failed, "tiles": client.tiles,
+    print(json.dumps({"requests": len(lat), "failed": client.failed, "reasons": client.reasons,
+                      "tiles": client.tiles, "client_cpu_s": _cpu_s() - cpu0,
                       "median_ms": 1000 * statistics.median(lat) if lat else float("nan"),
                       "max_ms": 1000 * lat[-1] if lat else float("nan"),
-                      "renders": st.get("tile_renders"), "hits": st.get("tile_hits")}))
+                      "renders": st.get("tile_renders"), "hits": st.get("tile_hits"),
+                      "server_errors": {k: v for k, v in (st.get("server") or {}).items() if k != "requests" and v}}))
     return 0
 
 
 def _cpu_s() -> float:
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
+
+
+@contextlib.contextmanager
+def _server_clocks() -> Iterator[dict[str, float]]:
+    """The server's CPU seconds by its threads' own clocks (``time.thread_time``): ``answers``
+    (accepting and answering requests), ``sink`` (its copy of the map in the mapping worker),
+    ``packing``; work OpenCV hands to its own threads is not counted. On a shared machine these
+    hold where the difference of two runs' process CPU drowns in the others' load."""
+    own = {"answers": 0.0, "sink": 0.0, "packing": 0.0}
+    lock = threading.Lock()
+
+    def clocked(name: str, fn):
+        def run(*args, **kwargs):
+            t0 = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                with lock:
+                    own[name] += time.thread_time() - t0
+        return run
+
+    with mock.patch.object(_Server, "process_request", clocked("answers", _Server.process_request)), \
+            mock.patch.object(_Server, "_work", clocked("answers", _Server._work)), \
+            mock.patch.object(MapServer, "on_frame", clocked("sink", MapServer.on_frame)), \
+            mock.patch.object(LiveMap, "pack", clocked("packing", LiveMap.pack)):
+        yield own
 
 
 def one_pass(flight: Path, out: Path, condition: str, hz: float, live: bool = False) -> dict:
@@ -166,23 +221,52 @@ def one_pass(flight: Path, out: Path, condition: str, hz: float, live: bool = Fa
                                    f"http://127.0.0.1:{port}/", "--hz", str(hz)], cwd=REPO,
                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         client.stdout.readline()
+    seen: list[str] = []
+
+    def stop_client() -> None:  # closes its stdin; it prints what it saw
+        if client is not None and not seen:
+            seen.append(client.communicate("", timeout=60)[0])
+
+    real_close = MapServer.close
+
+    def close(self: MapServer) -> None:  # the client stops before the server closes at the run's end
+        stop_client()
+        real_close(self)
+
     cpu0 = _cpu_s()
     try:
-        if live:
-            source = PacedVideoSource(flight / "video.avi", FPS, cfg.capture.queue_size)
-            s = map_source(source, cfg, out, input_name="video.avi", map_server=server)
-        else:
-            s = replay(str(flight / "video.avi"), out, cfg, mavlink=str(flight / "telemetry.tlog"),
-                       map_server=server)
+        with mock.patch.object(MapServer, "close", close), _server_clocks() as own:
+            if live:
+                source = PacedVideoSource(flight / "video.avi", FPS, cfg.capture.queue_size)
+                s = map_source(source, cfg, out, input_name="video.avi", map_server=server)
+            else:
+                s = replay(str(flight / "video.avi"), out, cfg, mavlink=str(flight / "telemetry.tlog"),
+                           map_server=server)
     finally:
         cpu = _cpu_s() - cpu0
-        seen = client.communicate("", timeout=60)[0] if client is not None else None  # closes its stdin
+        stop_client()
+    per_frame = 1000 / max(1, s["frames_in"])
     row = {"fps": float(s["fps"]), "frames": s["frames_in"], "registered": s["registered"],
-           "cpu_ms": 1000 * cpu / max(1, s["frames_in"]), "dropped": int(s.get("dropped") or 0),
-           "worker_ms": float(s.get("ms_per_frame") or 0.0)}
-    if seen:
-        row.update(json.loads(seen.strip().splitlines()[-1]))
+           "cpu_ms": cpu * per_frame, "dropped": int(s.get("dropped") or 0),
+           "worker_ms": float(s.get("ms_per_frame") or 0.0),
+           "own_ms": {k: v * per_frame for k, v in own.items()}}
+    if seen and seen[0]:
+        row.update(json.loads(seen[0].strip().splitlines()[-1]))
+        row["client_cpu_ms"] = 1000 * row["client_cpu_s"] / max(1, s["frames_in"])
     return row
+
+
+def _own_total(row: dict) -> float:
+    return sum(row["own_ms"].values())
+
+
+def _own(rs: list[dict]) -> str:
+    """The server's own CPU ms per frame of the passes (median): answers + in the worker."""
+    if not any(_own_total(r) for r in rs):
+        return "-"
+    answers = statistics.median(r["own_ms"]["answers"] + r["own_ms"]["packing"] for r in rs)
+    return (f"{statistics.median(_own_total(r) for r in rs):.2f}: {answers:.2f} + "
+            f"{statistics.median(r['own_ms']['sink'] for r in rs):.2f}")
 
 
 def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, float]) -> str:
@@ -193,8 +277,9 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
              f"telemetry) mapped by `photomap replay` as fast as possible, {args.passes} passes per condition, "
              f"interleaved; 1-minute load {loads[0]:.1f} before, {loads[1]:.1f} after; {took / 60:.1f} min.", "",
              "| condition | median fps | fps of the passes | fps / the pass's no-server fps (median) "
-             "| CPU ms per frame (median) | client requests (tiles) | latency median / max ms "
-             "| tile renders / hits |", "|---|---|---|---|---|---|---|---|"]
+             "| CPU ms per frame (median) | the server's own CPU ms per frame: answers + in the worker "
+             "(median) | client requests (tiles) | latency median / max ms "
+             "| tile renders / hits |", "|---|---|---|---|---|---|---|---|---|"]
     base = rows["no server"]
     base_cpu = statistics.median(r["cpu_ms"] for r in base)
     ratios: dict[str, float] = {}
@@ -208,15 +293,19 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
             req = (f"{statistics.median(r['requests'] for r in rs):.0f} "
                    f"({statistics.median(r['tiles'] for r in rs):.0f})")
             if any(r["failed"] for r in rs):
-                req += f", {sum(r['failed'] for r in rs)} failed"
+                reasons: dict[str, int] = {}
+                for r in rs:
+                    for k, v in r.get("reasons", {}).items():
+                        reasons[k] = reasons.get(k, 0) + v
+                req += f", {sum(r['failed'] for r in rs)} failed ({', '.join(f'{k} {v}' for k, v in reasons.items())})"
             latency = f"{statistics.median(r['median_ms'] for r in rs):.1f} / {max(r['max_ms'] for r in rs):.0f}"
             cache = (f"{statistics.median(r['renders'] or 0 for r in rs):.0f} / "
                      f"{statistics.median(r['hits'] or 0 for r in rs):.0f}")
         else:
             req = latency = cache = "-"
         lines.append(f"| {cond} | {statistics.median(fps):.1f} | {', '.join(f'{v:.1f}' for v in fps)} "
-                     f"| {ratio:.3f} | {cpu:.2f} ({100 * (cpu / base_cpu - 1):+.1f} %) | {req} | {latency} "
-                     f"| {cache} |")
+                     f"| {ratio:.3f} | {cpu:.2f} ({100 * (cpu / base_cpu - 1):+.1f} %) | {_own(rs)} | {req} "
+                     f"| {latency} | {cache} |")
     noise = abs(ratios["server, no client"] - 1.0)
     drop = 1.0 - ratios["server + client"]
     if noise > 0.1:
@@ -226,10 +315,15 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
     else:
         verdict = "met" if drop <= max(noise, 0.03) else "NOT met"
     cpu_client = statistics.median(r["cpu_ms"] for r in rows["server + client"])
+    own = statistics.median(_own_total(r) for r in rows["server + client"])
     lines += ["", f"Mapping fps with a client at {args.hz:g} Hz, pass by pass against the run without a server "
               f"just before it: median ratio {ratios['server + client']:.3f} (a server with no client: "
               f"{ratios['server, no client']:.3f}, the noise of this machine). The server's CPU: "
-              f"{cpu_client - base_cpu:+.2f} ms per frame with the client ({cpu_client:.2f} against {base_cpu:.2f}). "
+              f"{cpu_client - base_cpu:+.2f} ms per frame with the client ({cpu_client:.2f} against {base_cpu:.2f}); "
+              f"the client's own (another process on the same cores, as a ground station is not): "
+              f"{statistics.median(r['client_cpu_ms'] for r in rows['server + client']):.2f} ms per frame. "
+              f"By the server's own thread clocks (which the others' load does not move): {own:.2f} ms per "
+              f"frame with the client, {100 * own / base_cpu:.1f} % of the mapping's CPU without a server. "
               f"Target (no measurable slowdown: the fps ratio within the noise, or 3 %): **{verdict}**. The client (another process) asks for the status and the 3 x 3 tiles "
               f"around the vehicle at `max_zoom` {args.hz:g} times a second (up to {10 * args.hz:g} requests/s); "
               f"latencies are those it saw on loopback while the mapping ran flat out."]
@@ -240,8 +334,9 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
                   f"worker maps a frame, `MappingPipeline.worker_first`), no telemetry (pixel-frame tiles), "
                   f"{args.passes} passes each, interleaved:", "",
                   "| live condition | frames mapped (median) | dropped (median) | worker ms per frame (median) "
-                  "| CPU ms per frame (median) | client requests (tiles) | latency median / max ms |",
-                  "|---|---|---|---|---|---|---|"]
+                  "| CPU ms per frame (median) | the server's own CPU ms per frame (median) "
+                  "| client requests (tiles) | latency median / max ms |",
+                  "|---|---|---|---|---|---|---|---|"]
         for cond in ("no server", "server + client"):
             rs = live[cond]
             req = latency = "-"
@@ -253,7 +348,7 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
             lines.append(f"| {cond} | {statistics.median(r['frames'] for r in rs):.0f} "
                          f"| {statistics.median(r['dropped'] for r in rs):.0f} "
                          f"| {statistics.median(r['worker_ms'] for r in rs):.1f} "
-                         f"| {statistics.median(r['cpu_ms'] for r in rs):.2f} | {req} | {latency} |")
+                         f"| {statistics.median(r['cpu_ms'] for r in rs):.2f} | {_own(rs)} | {req} | {latency} |")
         mapped = {c: statistics.median(r["frames"] for r in live[c]) for c in live}
         cpu = {c: statistics.median(r["cpu_ms"] for r in live[c]) for c in live}
         ok = mapped["server + client"] >= 0.98 * mapped["no server"]

@@ -34,18 +34,24 @@ log = logging.getLogger(__name__)
 _GRID = 17
 
 
-def _interp_matrix(n: int, m: int) -> np.ndarray:
-    """(n, m): linear interpolation from m samples at ``linspace(0, n - 1, m)`` to 0..n-1."""
+def _interp_weights(n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation from m samples at ``linspace(0, n - 1, m)`` to 0..n-1: output ``i``
+    is ``(1 - f[i]) * s[k[i]] + f[i] * s[k[i] + 1]``; returns ``(k, f)``."""
     pos = np.arange(n) * (m - 1) / (n - 1)
-    k = np.minimum(np.floor(pos).astype(int), m - 2)
-    f = pos - k
-    w = np.zeros((n, m))
-    w[np.arange(n), k] = 1 - f
-    w[np.arange(n), k + 1] = f
-    return w
+    k = np.minimum(np.floor(pos).astype(np.intp), m - 2)
+    return k, pos - k
 
 
-_INTERP = _interp_matrix(wm.TILE_PX, _GRID)
+_K, _F = _interp_weights(wm.TILE_PX, _GRID)
+
+
+def upsample_grid(grid: np.ndarray) -> np.ndarray:
+    """A (17, 17) grid of :func:`tile_source_grid` interpolated bilinearly to the tile's (256,
+    256) pixels (rows, then columns), in the grid's float type. Indexing, not a matrix product:
+    BLAS threads would spin on cores the mapping uses (the live map server)."""
+    f = _F.astype(grid.dtype)
+    rows = grid[_K] * (1 - f)[:, None] + grid[_K + 1] * f[:, None]
+    return rows[:, _K] * (1 - f) + rows[:, _K + 1] * f
 
 
 def raster_latlon_box(raster: MapRaster) -> tuple[float, float, float, float]:
@@ -68,24 +74,33 @@ def default_zooms(raster: MapRaster) -> tuple[int, int]:
     return min(zmin, zmax), zmax
 
 
-def render_tile(raster: MapRaster, x: int, y: int, z: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """XYZ tile ``(x, y, z)`` of the map as ``(bgr uint8 (256, 256, 3), alpha uint8)``, or None
-    when the map does not cover it."""
+def tile_source_grid(src_to_crs: np.ndarray, epsg: int, x: int, y: int, z: int
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Where XYZ tile ``(x, y, z)``'s pixel centres lie in a map whose source pixel centres map
+    to the CRS by ``src_to_crs`` (2x3): source pixel coordinates ``(gx, gy)`` exact on a
+    (17, 17) grid of the tile's pixel centres (its corners and every 255/16 pixels; bilinear
+    between, :func:`upsample_grid`: < 1 mm off within a tile that meets a map), and the source
+    pixels per tile pixel (the spacing across the tile)."""
     n = wm.TILE_PX
-    # exact on a 17 x 17 grid of pixel centres, bilinear between (< 1 mm off within a tile
-    # that meets a map)
     u = np.linspace(0.5, n - 0.5, _GRID)
     lat, _ = wm.pixel_to_latlon(0.0, y * n + u, z)
     _, lon = wm.pixel_to_latlon(x * n + u, 0.0, z)
     lon_g, lat_g = np.meshgrid(lon, lat)
-    e, nn = utm_forward(lat_g, lon_g, raster.epsg)
-    e, nn = _INTERP @ e @ _INTERP.T, _INTERP @ nn @ _INTERP.T
-    inv = cv2.invertAffineTransform(np.asarray(raster.src_to_crs, float))
-    sx = inv[0, 0] * e + inv[0, 1] * nn + inv[0, 2]
-    sy = inv[1, 0] * e + inv[1, 1] * nn + inv[1, 2]
+    e, nn = utm_forward(lat_g, lon_g, epsg)
+    inv = cv2.invertAffineTransform(np.asarray(src_to_crs, float))
+    # the CRS -> source map is affine: interpolating its values on the grid is interpolating the CRS
+    gx = inv[0, 0] * e + inv[0, 1] * nn + inv[0, 2]
+    gy = inv[1, 0] * e + inv[1, 1] * nn + inv[1, 2]
+    return gx, gy, math.hypot(gx[0, -1] - gx[0, 0], gy[0, -1] - gy[0, 0]) / (n - 1)
+
+
+def render_tile(raster: MapRaster, x: int, y: int, z: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """XYZ tile ``(x, y, z)`` of the map as ``(bgr uint8 (256, 256, 3), alpha uint8)``, or None
+    when the map does not cover it."""
+    n = wm.TILE_PX
+    gx, gy, step = tile_source_grid(raster.src_to_crs, raster.epsg, x, y, z)
+    sx, sy = upsample_grid(gx), upsample_grid(gy)
     bx, by, bw, bh = raster.bounds
-    # source pixels per tile pixel, from the spacing across the tile
-    step = math.hypot(sx[0, -1] - sx[0, 0], sy[0, -1] - sy[0, 0]) / (n - 1)
     scale = min(1.0, 1.0 / step) if step > 0 else 1.0
     margin = 2.0 / scale
     x0 = max(math.floor(sx.min() - margin), bx)

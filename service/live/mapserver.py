@@ -53,8 +53,8 @@ from typing import Callable
 from photomap.config import MapServerConfig
 from photomap.errors import ConfigError, InputError, PhotomapError
 from photomap.geo import webmercator as wm
-from photomap.live.livemap import EMPTY_PNG, PIXEL_ZOOM, LiveMap, TileCache, footprint_geojson, status, \
-    track_geojson
+from photomap.live.livemap import EMPTY_PNG, PIXEL_ZOOM, LiveMap, Snapshot, TileCache, footprint_geojson, \
+    status, track_geojson
 from photomap.live.viewer import parse_serve_address
 from photomap.mapping.events import FrameEvent
 from photomap.mapping.threads import WorkerFirst
@@ -81,6 +81,10 @@ def parse_listen(text: str | None, default_port: int) -> tuple[str, int]:
     except ConfigError:
         raise ConfigError(f"map server needs PORT, ADDR or ADDR:PORT (an IP address, [IPv6] in brackets, "
                           f"port 1-65535), got {text!r}") from None
+
+
+def _encode(obj: dict) -> bytes:
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
 
 
 def _static(name: str) -> bytes:
@@ -178,7 +182,8 @@ class _Handler(BaseHTTPRequestHandler):
             pass
 
     def log_message(self, format: str, *args) -> None:  # noqa: A002 (the stdlib's name)
-        log.debug("map server: %s %s", self.address_string(), format % args)
+        if log.isEnabledFor(logging.DEBUG):  # one per request: not even formatted otherwise
+            log.debug("map server: %s %s", self.address_string(), format % args)
 
     def do_HEAD(self) -> None:  # noqa: N802 (the stdlib's name)
         self._answer(head=True)
@@ -197,7 +202,7 @@ class _Handler(BaseHTTPRequestHandler):
             self.wfile.write(body)
 
     def _json(self, obj: dict, head: bool, ctype: str = "application/json") -> None:
-        self._send(200, json.dumps(obj, separators=(",", ":"), allow_nan=False).encode(), ctype, head)
+        self._send(200, _encode(obj), ctype, head)
 
     def _answer(self, head: bool) -> None:
         owner = self.server.owner
@@ -215,9 +220,9 @@ class _Handler(BaseHTTPRequestHandler):
             elif path == "/status.json":
                 self._json(owner.status(), head)
             elif path == "/track.geojson":
-                self._json(track_geojson(owner.live.snapshot()), head, "application/geo+json")
+                self._send(200, owner.answer("track", track_geojson), "application/geo+json", head)
             elif path == "/footprint.geojson":
-                self._json(footprint_geojson(owner.live.snapshot()), head, "application/geo+json")
+                self._send(200, owner.answer("footprint", footprint_geojson), "application/geo+json", head)
             elif path == "/hazards.geojson":
                 self._json(owner.hazard_spots(), head, "application/geo+json")
             elif path in ("/", "/index.html"):
@@ -255,6 +260,8 @@ class MapServer:
         self.hazards = hazards
         self.timeout_s = float(cfg.timeout_s)
         self.stats = {"requests": 0, "refused": 0, "timeouts": 0, "too_large": 0, "errors": 0}
+        # answers built from the live map, by name: (what they were built from, the answer)
+        self._answers: dict[str, tuple[tuple, object]] = {}
         self._warned: set[str] = set()
         # live: the answers' Python code waits while the worker maps a frame (the pipeline's
         # MappingPipeline.worker_first); None: never waits
@@ -328,9 +335,21 @@ class MapServer:
             return EMPTY_PNG
         return self.cache.get(snap, "pixel", x, y, z, pause=self.pause)
 
+    def answer(self, name: str, build: Callable[[Snapshot], dict], encode: bool = True):
+        """``build(snapshot)`` (JSON-encoded unless ``encode`` is False), built again only when
+        what it shows may have changed (a frame, a copied tile, a georeference), not per request."""
+        snap = self.live.snapshot()
+        key = (snap.frames_in, snap.version, snap.geo_version)
+        got = self._answers.get(name)
+        if got is None or got[0] != key:
+            obj = build(snap)
+            got = self._answers[name] = (key, _encode(obj) if encode else obj)
+        return got[1]
+
     def status(self) -> dict:
-        return status(self.live.snapshot(), {"server": dict(self.stats),
-                                             "tile_renders": self.cache.renders, "tile_hits": self.cache.hits})
+        out = dict(self.answer("status", status, encode=False))
+        out.update({"server": dict(self.stats), "tile_renders": self.cache.renders, "tile_hits": self.cache.hits})
+        return out
 
     def hazard_spots(self) -> dict:
         if self.hazards is None:

@@ -79,6 +79,7 @@ import cv2
 import numpy as np
 
 from photomap.config import ViewerConfig
+from photomap.core.thinned import ThinnedPath
 from photomap.errors import ConfigError, InputError
 from photomap.geo.georef import latlon_from_enu
 from photomap.geometry import frame_centre, pose_angle_deg
@@ -447,11 +448,9 @@ class Viewer:
         self._t0: float | None = None
         self._segment: int | None = None
         self._dirty: set[TileKey] = set()
-        self._path: list[tuple[float, float, float]] = []  # x, y, confidence (thinned)
-        self._path_stride, self._path_count = 1, 0
+        self._path: ThinnedPath[tuple[float, float, float]] = ThinnedPath(self._max_points)  # x, y, confidence
         self._last_point: tuple[float, float, float] | None = None
-        self._geo: list[tuple[float, float]] = []  # GPS track (lat, lon), thinned
-        self._geo_stride, self._geo_count = 1, 0
+        self._geo: ThinnedPath[tuple[float, float]] = ThinnedPath(self._max_points)  # GPS track (lat, lon)
         self._since_strip = 0
         self._strip_due = False
         self._last_tiles = self._last_camera = -math.inf
@@ -642,7 +641,7 @@ class Viewer:
             item.geo_position = (sample.lat, sample.lon)
             if event.keyframe:
                 item.geo_keyframe = item.geo_position
-            self._append_geo(sample.lat, sample.lon)
+            self._geo.append((sample.lat, sample.lon))
             item.geo_footprint = geo_footprint(sample, event.focal_px, *event.frame_size)
         item.altitude = sample.height_above_ground
         if sample.yaw is not None:
@@ -673,7 +672,7 @@ class Viewer:
                 item.clear_segments.append(self._segment)
             self._segment = event.segment
             self._dirty.clear()
-            self._path, self._path_stride, self._path_count = [], 1, 0
+            self._path.clear()
             self._strip_due = True
         item.events.extend(("WARN", text) for text in event.messages if not text.startswith("loop closed"))
         if event.reconnects > self._prev_reconnects:
@@ -718,7 +717,7 @@ class Viewer:
             item.strips = self._strips()
             self._since_strip, self._strip_due = 0, False
             if len(self._geo) >= 2:
-                item.geo_track = np.array(self._geo, dtype=float)
+                item.geo_track = np.array(self._geo.points, dtype=float)
 
         self._last_item = item
         dropped = self._queue.put(item)
@@ -744,37 +743,20 @@ class Viewer:
         """After a pose-graph correction: the path again ((n, 3) x, y, confidence), thinned as
         :meth:`_append_path` would have thinned it point by point."""
         path = np.asarray(path, float).reshape(-1, 3)
-        stride = 1
-        while -(-len(path) // stride) > self._max_points:
-            stride *= 2
-        self._path = [tuple(p) for p in path[::stride].tolist()]
-        self._path_stride, self._path_count = stride, len(path)
+        self._path.rebuild(path)
         if len(path):
             self._last_point = tuple(path[-1].tolist())
         self._strip_due = True
 
-    def _append_geo(self, lat: float, lon: float) -> None:
-        """The GPS track, thinned like the map path (every ``stride``-th fix, halved when over the cap)."""
-        if self._geo_count % self._geo_stride == 0:
-            self._geo.append((lat, lon))
-            if len(self._geo) > self._max_points:
-                self._geo = self._geo[::2]
-                self._geo_stride *= 2
-        self._geo_count += 1
-
     def _append_path(self, x: float, y: float, confidence: float) -> None:
-        """Keep every ``stride``-th point; halve the points (double the stride) when over the cap."""
-        if self._path_count % self._path_stride == 0:
-            self._path.append((x, y, confidence))
-            if len(self._path) > self._max_points:
-                self._path = self._path[::2]
-                self._path_stride *= 2
-        self._path_count += 1
+        """The next point of the path (thinned, :class:`~photomap.core.thinned.ThinnedPath`); the
+        latest is kept apart so that the drawn path ends at the vehicle."""
+        self._path.append((x, y, confidence))
         self._last_point = (x, y, confidence)
 
     def _strips(self) -> list[tuple[np.ndarray, tuple[int, int, int]]]:
         """The current segment's path as strips: one per colour run (confidence) or one (segment)."""
-        pts = list(self._path)
+        pts = list(self._path.points)
         if pts[-1] != self._last_point:
             pts.append(self._last_point)
         arr = np.array(pts, dtype=float)
@@ -935,7 +917,7 @@ class Viewer:
                 if self._path:
                     final.strips = self._strips()
                 if len(self._geo) >= 2:
-                    final.geo_track = np.array(self._geo, dtype=float)
+                    final.geo_track = np.array(self._geo.points, dtype=float)
             except Exception as exc:
                 self._warn_once("close", f"viewer: final map refresh failed: {type(exc).__name__}: {exc}")
             self._queue.put(final, drop=False)
