@@ -484,8 +484,10 @@ def test_hazards_found_during_a_replay_are_served_where_they_were_planted(tmp_pa
         def served():
             if not _status(base):
                 return None
-            features = json.loads(_get(base + "hazards.geojson")[1])["features"]
-            placed = [f for f in features if f["geometry"] is not None]
+            got = json.loads(_get(base + "hazards.geojson")[1])
+            if got["frame"] != "wgs84":  # map pixels before the georeference
+                return None
+            placed = [f for f in got["features"] if f["geometry"] is not None]
             return placed if len(placed) >= len(planted) else None
         features = _wait(served, timeout=60.0)
     finally:
@@ -528,3 +530,38 @@ def test_the_served_track_after_a_correction_is_the_track_of_its_points_appended
     assert live.snapshot().path == truth[::8] and live.errors == 0
     line = track_geojson(live.snapshot())["features"][0]
     assert line["geometry"]["coordinates"] == [list(p) for p in truth[::8]] and line["properties"]["points"] == 6
+
+
+def test_hazards_are_served_on_the_map_the_page_shows_with_or_without_a_georeference():
+    """A spot of the served segment is drawn at its map pixel: in map pixels before a georeference
+    (the page's pixel frame), through the map's georeference after it (on the tiles), whatever
+    the tracker's own telemetry estimate; a spot of another segment only with its own WGS84."""
+    from photomap.geo.georef import Georeference
+    from photomap.live.livemap import LiveMap, hazards_geojson
+    from photomap.mapping.events import FrameEvent
+
+    def spot(hid: int, segment: int, x: float, y: float, lonlat=None) -> dict:
+        geometry = None if lonlat is None else {"type": "Point", "coordinates": list(lonlat)}
+        return {"type": "Feature", "geometry": geometry,
+                "properties": {"id": hid, "segment": segment, "x_px": x, "y_px": y}}
+
+    live = LiveMap(tile_hz=1e6)
+    live.on_frame(FrameEvent(0, 0.0, False, np.zeros((64, 64, 3), np.uint8), (64, 64), "registered",
+                             np.array([[1.0, 0, 5.0], [0, 1.0, 7.0]]), 0.9, 0))
+    spots = {"type": "FeatureCollection",
+             "features": [spot(1, 0, 40.0, 30.0), spot(2, 0, 10.0, 12.0, (-81.0, 41.0)), spot(3, 1, 9.0, 9.0),
+                          spot(4, 1, 8.0, 8.0, (-81.5, 41.5))]}
+    pixels = hazards_geojson(spots, live.snapshot())
+    assert pixels["frame"] == "map_pixels"
+    assert [(f["properties"]["id"], f["geometry"]["coordinates"]) for f in pixels["features"]] == \
+        [(1, [40.0, 30.0]), (2, [10.0, 12.0])]
+    to_enu = np.array([[0.5, 0.0, 0.0], [0.0, -0.5, 0.0]])  # 0.5 m per pixel, north up
+    georef = Georeference(41.1, -81.7, to_enu, 32617, np.array([[0.5, 0.0, 440_000.0], [0.0, -0.5, 4_550_000.0]]),
+                          0.5, 0.0, "gps", 0.5, 10, 10)
+    live.on_georeference(0, georef)
+    geo = hazards_geojson(spots, live.snapshot())
+    assert geo["frame"] == "wgs84"
+    by_id = {f["properties"]["id"]: f["geometry"]["coordinates"] for f in geo["features"]}
+    assert sorted(by_id) == [1, 2, 4] and by_id[4] == [-81.5, 41.5]
+    lat, lon = georef.to_latlon(np.array([[40.0, 30.0]]))
+    assert by_id[1] == pytest.approx([float(lon[0]), float(lat[0])])

@@ -612,6 +612,23 @@ def track_geojson(snap: Snapshot) -> dict:
                                  segment=snap.served_segment, points=len(snap.path))], snap)
 
 
+def hazards_geojson(spots: dict, snap: Snapshot) -> dict:
+    """The hazard spots (a FeatureCollection of :meth:`~photomap.mapping.hazards.HazardTracker.hazards`)
+    where the page draws them over the served map: a spot of the served segment at its map pixel
+    (``x_px``, ``y_px``), through the map's georeference when there is one (on the tiles the operator
+    sees), else in map pixels (``"frame": "map_pixels"``: the ground team's map without GPS); a spot
+    of another segment only with its own WGS84 position, when georeferenced."""
+    features = []
+    for f in spots.get("features", []) if isinstance(spots, dict) else []:
+        p = f.get("properties") or {}
+        x, y = p.get("x_px"), p.get("y_px")
+        if p.get("segment") == snap.served_segment and x is not None and y is not None:
+            features.append(dict(f, geometry={"type": "Point", "coordinates": _coords(snap, np.array([x, y]))[0]}))
+        elif snap.georeference is not None and f.get("geometry") is not None:
+            features.append(f)
+    return _collection(features, snap)
+
+
 def footprint_geojson(snap: Snapshot) -> dict:
     """The latest frame's outline: through its pose when it lies in the served segment, else
     (georeferenced) from the telemetry alone."""

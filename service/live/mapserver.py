@@ -54,7 +54,7 @@ from photomap.config import MapServerConfig
 from photomap.errors import ConfigError, InputError, PhotomapError
 from photomap.geo import webmercator as wm
 from photomap.live.livemap import EMPTY_PNG, PIXEL_ZOOM, LiveMap, Snapshot, TileCache, footprint_geojson, \
-    status, track_geojson
+    hazards_geojson, status, track_geojson
 from photomap.live.viewer import parse_serve_address
 from photomap.mapping.events import FrameEvent
 from photomap.mapping.threads import WorkerFirst
@@ -359,7 +359,7 @@ class MapServer:
         except Exception as exc:
             self.warn_once("hazards", f"map server: hazard spots not served: {type(exc).__name__}: {exc}")
             return {"type": "FeatureCollection", "features": []}
-        return spots if isinstance(spots, dict) else {"type": "FeatureCollection", "features": []}
+        return hazards_geojson(spots, self.live.snapshot())
 
     def _pack(self) -> None:
         """Once a second, pack the tiles beyond ``map_server.max_raw_tiles`` (the oldest copies)."""
