@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import logging
 import struct
 import threading
@@ -338,11 +339,7 @@ def test_camera_drops_the_oldest_frames_for_a_slow_consumer():
     src = CameraSource(0, queue_size=4, width=640, fourcc="MJPG", capture_factory=_factory(fake))
     assert src.live and isinstance(src, FrameSource)
     assert fake.exhausted.wait(10), "capture thread did not read the script"
-    got = []
-    for frame in src:
-        got.append(frame)
-        if len(got) == 4:
-            break
+    got = list(itertools.islice(src, 4))
     assert [f.index for f in got] == [6, 7, 8, 9]  # the newest survive
     assert [int(f.image[0, 0, 0]) for f in got] == [6, 7, 8, 9]
     assert all(a.t <= b.t for a, b in zip(got, got[1:]))
@@ -385,11 +382,7 @@ def test_camera_reconnects_after_it_is_lost():
     factory = _factory(first, still_gone, back)
     src = CameraSource("/dev/video3", queue_size=16, read_failures=3, reconnect_initial=0.001,
                        reconnect_max=0.002, capture_factory=factory)
-    got = []
-    for frame in src:
-        got.append(frame)
-        if len(got) == 6:
-            break
+    got = list(itertools.islice(src, 6))
     src.close()
     assert [int(f.image[0, 0, 0]) for f in got] == [0, 1, 2, 100, 101, 102]
     assert [f.index for f in got] == list(range(6))

@@ -4,6 +4,7 @@ stream options and the counted (never printed) decoder messages."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shutil
@@ -195,11 +196,7 @@ def test_plain_rtp_through_an_sdp_file_as_qgroundcontrol_sends_it(halves, tmp_pa
                               stdout=subprocess.DEVNULL)
     try:
         src = open_source(str(sdp), queue_size=PART)
-        got = []
-        for frame in src:
-            got.append(frame)
-            if len(got) == 60:
-                break
+        got = list(itertools.islice(src, 60))
         src.close()
     finally:
         sender.kill()
@@ -231,11 +228,7 @@ def test_mpegts_over_tcp_and_http_mjpeg(halves, kind):
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.2)
-        got = []
-        for frame in src:
-            got.append(frame)
-            if len(got) == 45:
-                break
+        got = list(itertools.islice(src, 45))
         src.close()
     finally:
         server.kill()
