@@ -415,6 +415,71 @@ def test_a_repainted_tile_is_served_fresh_within_the_render_interval():
     assert served() == 200 and cache.renders == 3  # unchanged since: no render
 
 
+def test_a_tile_repainted_with_the_same_pixels_is_not_encoded_again():
+    """Past the render interval a tile whose map tiles changed version but not pixels is served
+    as it was without a render (the digest of its map pixels); new pixels are rendered."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.live.livemap import LiveMap, TileCache
+
+    now = [100.0]
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    full = np.full((64, 64), 255, np.uint8)
+    live = LiveMap(tile_hz=1e6)
+    cache = TileCache(16, 2.0, clock=lambda: now[0])
+
+    def paint(index: int, level: int) -> None:
+        mosaic.set_tile((1, 0), np.full((64, 64, 3), level, np.uint8), full)
+        live.on_frame(_tile_event(index, mosaic, {(1, 0)}))
+
+    paint(0, 50)
+    first = cache.get(live.snapshot(), "pixel", 0, 0, 8)
+    assert cache.renders == 1 and int(_decode(first)[:64, 64:128, 1].max()) == 50
+    version = live.snapshot().version
+    paint(1, 50)  # copied again: a new version, the same pixels
+    assert live.snapshot().version > version
+    now[0] = 103.0
+    assert cache.get(live.snapshot(), "pixel", 0, 0, 8) == first
+    assert cache.renders == 1 and cache.unchanged == 1
+    paint(2, 120)
+    now[0] = 106.0
+    tile = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))
+    assert cache.renders == 2 and int(tile[:64, 64:128, 1].max()) == 120
+    assert not tile[:64, :64, 3].any()  # map tile (0, 0) was never painted
+
+
+def test_bad_requests_get_one_line_answers():
+    """A request line that is not HTTP gets 400, a method but GET and HEAD 501, HEAD the headers
+    of the GET without its body: each one whole answer, then the connection is closed."""
+    server = MapServer(load_config().map_server, "127.0.0.1", 0)
+
+    def ask(request: bytes) -> tuple[str, dict, bytes]:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=10) as s:
+            s.sendall(request)
+            answer = b""
+            while chunk := s.recv(65536):
+                answer += chunk
+        head, _, body = answer.partition(b"\r\n\r\n")
+        lines = head.decode("latin-1").split("\r\n")
+        return lines[0], dict(line.split(": ", 1) for line in lines[1:]), body
+
+    try:
+        line, _, _ = ask(b"GARBAGE\r\n\r\n")
+        assert line == "HTTP/1.0 400 Bad Request"
+        line, _, _ = ask(b"POST /status.json HTTP/1.0\r\nContent-Length: 0\r\n\r\n")
+        assert line == "HTTP/1.0 501 Not Implemented"
+        line, headers, body = ask(b"GET /status.json?x=1 HTTP/1.1\r\nHost: a\r\n\r\n")
+        assert line == "HTTP/1.0 200 OK" and headers["Content-Type"] == "application/json"
+        assert int(headers["Content-Length"]) == len(body) and json.loads(body)["frames_in"] == 0
+        line, head_headers, body = ask(b"HEAD /status.json HTTP/1.0\r\n\r\n")
+        assert line == "HTTP/1.0 200 OK" and body == b"" and int(head_headers["Content-Length"]) > 0
+        line, _, body = ask(b"GET /nothing/here HTTP/1.0\n\n")  # bare newlines too
+        assert line == "HTTP/1.0 404 Not Found" and body == b"not found\n"
+        assert server.stats["errors"] == 0
+    finally:
+        server.close()
+
+
 def test_answers_wait_while_the_worker_maps_a_frame():
     """Live, the server's Python code gives way to the worker's frame (its gate), then answers."""
     from photomap.mapping.threads import WorkerFirst

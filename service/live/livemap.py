@@ -323,7 +323,7 @@ class LiveMap:
             copies: dict[TileKey, np.ndarray | None] = {}
             for key in keys:
                 try:
-                    image, alpha = reader.tile_image(key)  # copies
+                    image, alpha = reader.tile_image(key, copy=False)  # views: _bgra copies them
                 except KeyError:  # cleared (re-rendered later) or never covered
                     copies[key] = None
                     continue
