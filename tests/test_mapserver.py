@@ -415,37 +415,25 @@ def test_a_repainted_tile_is_served_fresh_within_the_render_interval():
     assert served() == 200 and cache.renders == 3  # unchanged since: no render
 
 
-def test_a_tile_repainted_with_the_same_pixels_is_not_encoded_again():
-    """Past the render interval a tile whose map tiles changed version but not pixels is served
-    as it was without a render (the digest of its map pixels); new pixels are rendered."""
+def test_status_bounds_follow_the_map_as_it_grows():
+    """The status's bounds (worked out once per change of the served tiles) are those of the
+    tiles copied so far, frame after frame."""
     from photomap.config import MosaicConfig
     from photomap.core.mosaic import TiledMosaic
-    from photomap.live.livemap import LiveMap, TileCache
+    from photomap.live.livemap import LiveMap, status
 
-    now = [100.0]
     mosaic = TiledMosaic(MosaicConfig(tile_size=64))
     full = np.full((64, 64), 255, np.uint8)
     live = LiveMap(tile_hz=1e6)
-    cache = TileCache(16, 2.0, clock=lambda: now[0])
-
-    def paint(index: int, level: int) -> None:
-        mosaic.set_tile((1, 0), np.full((64, 64, 3), level, np.uint8), full)
-        live.on_frame(_tile_event(index, mosaic, {(1, 0)}))
-
-    paint(0, 50)
-    first = cache.get(live.snapshot(), "pixel", 0, 0, 8)
-    assert cache.renders == 1 and int(_decode(first)[:64, 64:128, 1].max()) == 50
-    version = live.snapshot().version
-    paint(1, 50)  # copied again: a new version, the same pixels
-    assert live.snapshot().version > version
-    now[0] = 103.0
-    assert cache.get(live.snapshot(), "pixel", 0, 0, 8) == first
-    assert cache.renders == 1 and cache.unchanged == 1
-    paint(2, 120)
-    now[0] = 106.0
-    tile = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))
-    assert cache.renders == 2 and int(tile[:64, 64:128, 1].max()) == 120
-    assert not tile[:64, :64, 3].any()  # map tile (0, 0) was never painted
+    mosaic.set_tile((0, 0), np.full((64, 64, 3), 80, np.uint8), full)
+    live.on_frame(_tile_event(0, mosaic, {(0, 0)}))
+    assert status(live.snapshot())["bounds"] == [0.0, 0.0, 64.0, 64.0]
+    live.on_frame(_tile_event(1, mosaic, set()))  # a frame, no new tile: the same bounds
+    assert status(live.snapshot())["bounds"] == [0.0, 0.0, 64.0, 64.0]
+    mosaic.set_tile((2, 1), np.full((64, 64, 3), 90, np.uint8), full)
+    live.on_frame(_tile_event(2, mosaic, {(2, 1)}))
+    st = status(live.snapshot())
+    assert st["bounds"] == [0.0, 0.0, 192.0, 128.0] and st["frames_in"] == 3
 
 
 def test_bad_requests_get_one_line_answers():

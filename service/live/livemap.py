@@ -25,14 +25,11 @@ Tiles (rendered on request, :class:`TileCache`):
 Both are 256 x 256 RGBA PNGs, transparent where nothing is mapped. A rendered tile is kept with
 the versions of the map tiles it was made from; it is served again while they are unchanged, and
 while younger than ``min_render_interval_s`` even when they changed (a client asking for a busy
-tile many times a second gets one render per interval); then it is sampled and encoded again
-only if the map pixels under it changed (a digest of them: the map tiles may have changed
-elsewhere).
+tile many times a second gets one render per interval).
 """
 
 from __future__ import annotations
 
-import hashlib
 import itertools
 import math
 import threading
@@ -447,61 +444,37 @@ def _level_for(snap: Snapshot, scale: float) -> int:
     return 0 if scale >= 1.0 else min(max_level, int(math.floor(math.log2(1.0 / scale) + 1e-9)))
 
 
-@dataclass(frozen=True)
-class _Source:
-    """The map pixels under a tile, and how the tile samples them (:func:`_source`)."""
+def _render_fn(snap: Snapshot):
+    """A render function (:mod:`photomap.io.mapsource`) over the snapshot's tiles. At ``scale``
+    < 1 it composes the tiles' halvings at the level just finer than ``scale`` and samples that
+    bilinearly (alpha-weighted): work in proportion to the output, whatever the region's size."""
 
-    comp: np.ndarray  # BGRA uint8: the served tiles' halvings at ``region[0]`` over the level-pixel region
-    region: tuple[int, int, int, int, int]  # level, lx0, ly0, lx1, ly1
-    sampling: tuple  # xyz: the (17, 17) grids of the tile's pixel centres in comp pixels; pixel: (x, y, w, h, scale)
+    def render(x: int, y: int, w: int, h: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        scale = min(1.0, float(scale))
+        level = _level_for(snap, scale)
+        f = 1 << level
+        lx0, ly0 = x // f, y // f
+        lx1, ly1 = -(-(x + w) // f), -(-(y + h) // f)
+        comp = _compose(snap, level, lx0, ly0, lx1, ly1)
+        if scale >= 1.0:
+            return comp[..., :3].copy(), comp[..., 3].copy()
+        ow, oh = max(1, round(w * scale)), max(1, round(h * scale))
+        # output pixel u covers source x + [u, u + 1) w / ow; its centre in comp pixel coordinates
+        sx, sy = w / ow / f, h / oh / f
+        m = np.array([[sx, 0.0, x / f + 0.5 * sx - lx0 - 0.5], [0.0, sy, y / f + 0.5 * sy - ly0 - 0.5]])
+        pre = cv2.warpAffine(_premultiplied(comp), m, (ow, oh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+        return _unpremultiplied(pre)
 
-    def digest(self) -> bytes:
-        """What the tile is made of (with its key): equal digests, equal pictures."""
-        h = hashlib.sha256(np.asarray(self.region, np.int64).tobytes())
-        h.update(self.comp.data)
-        return h.digest()
-
-
-def _pixel_source(snap: Snapshot, x: int, y: int, z: int) -> _Source | None:
-    """Pixel-frame tile ``(x, y, z)``: at scale < 1 the tiles' halvings at the level just finer
-    than the scale (work in proportion to the output, whatever the region's size)."""
-    x0, y0, x1, y1 = pixel_source_rect(x, y, z)
-    w, h = x1 - x0, y1 - y0
-    scale = min(1.0, wm.TILE_PX / w)
-    level = _level_for(snap, scale)
-    f = 1 << level
-    lx0, ly0 = x0 // f, y0 // f
-    lx1, ly1 = -(-(x0 + w) // f), -(-(y0 + h) // f)
-    comp = _compose(snap, level, lx0, ly0, lx1, ly1)
-    if not comp[..., 3].any():
-        return None
-    return _Source(comp, (level, lx0, ly0, lx1, ly1), (x0, y0, w, h, scale))
+    return render
 
 
-def _pixel_tile(src: _Source) -> np.ndarray | None:
-    """The BGRA tile of a :func:`_pixel_source`: sampled bilinearly (alpha-weighted) below scale 1."""
-    comp = src.comp
-    level, lx0, ly0 = src.region[:3]
-    x, y, w, h, scale = src.sampling
-    if scale >= 1.0:
-        return comp
-    f = 1 << level
-    ow, oh = max(1, round(w * scale)), max(1, round(h * scale))
-    # output pixel u covers source x + [u, u + 1) w / ow; its centre in comp pixel coordinates
-    sx, sy = w / ow / f, h / oh / f
-    m = np.array([[sx, 0.0, x / f + 0.5 * sx - lx0 - 0.5], [0.0, sy, y / f + 0.5 * sy - ly0 - 0.5]])
-    pre = cv2.warpAffine(_premultiplied(comp), m, (ow, oh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
-    image, alpha = _unpremultiplied(pre)
-    return _bgra(image, alpha) if alpha.any() else None
-
-
-def _xyz_source(snap: Snapshot, x: int, y: int, z: int) -> _Source | None:
-    """XYZ tile ``(x, y, z)`` of the georeferenced segment: each tile pixel centre placed as
-    :func:`photomap.io.xyz_tiles.render_tile` places it, to be sampled (:func:`_xyz_tile`) from
-    the halving just finer than the tile's resolution: one resampling, where render_tile (made
-    for any map raster) renders the region at the tile's scale and resamples that. None where
-    nothing is mapped."""
+def _xyz_tile(snap: Snapshot, x: int, y: int, z: int) -> np.ndarray | None:
+    """XYZ tile ``(x, y, z)`` of the georeferenced segment as BGRA uint8, or None
+    where nothing is mapped: each tile pixel centre placed as
+    :func:`photomap.io.xyz_tiles.render_tile` places it, sampled bilinearly (alpha-premultiplied)
+    from the halving just finer than the tile's resolution: one resampling, where render_tile
+    (made for any map raster) renders the region at the tile's scale and resamples that."""
     if not snap.tiles:
         return None
     geo = snap.georeference[1]
@@ -519,40 +492,19 @@ def _xyz_source(snap: Snapshot, x: int, y: int, z: int) -> _Source | None:
     comp = _compose(snap, level, lx0, ly0, lx1, ly1)
     if not comp[..., 3].any():
         return None
-    return _Source(comp, (level, lx0, ly0, lx1, ly1), (lx - lx0, ly - ly0))
-
-
-def _xyz_tile(src: _Source) -> np.ndarray | None:
-    """The BGRA tile of an :func:`_xyz_source`, sampled bilinearly (alpha-premultiplied), or None
-    where nothing is mapped."""
     # premultiplied in 8 bits (OpenCV, no float copies): exact where the map is covered or empty
     # (the map's alpha is 0 or 255; the halvings' edges are within a level at 1/16 cover and up).
     # All four channels at once, by (a, a, a, 255): the alpha stays as it is (a 3-channel product
     # of strided views took 8 times as long)
-    comp = cv2.multiply(src.comp, _alpha4(src.comp), scale=1.0 / 255.0)
+    comp = cv2.multiply(comp, _alpha4(comp), scale=1.0 / 255.0)
     # the 256 x 256 coordinates in float32, relative to the region (< 1e-3 px off)
-    gx, gy = src.sampling
-    map_x = upsample_grid(gx.astype(np.float32))
-    map_y = upsample_grid(gy.astype(np.float32))
+    map_x = upsample_grid((lx - lx0).astype(np.float32))
+    map_y = upsample_grid((ly - ly0).astype(np.float32))
     pre = cv2.remap(comp, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                     borderValue=(0, 0, 0, 0))
     if not pre[..., 3].any():
         return None
     return cv2.divide(pre, _alpha4(pre), scale=255.0)  # colour 0 where alpha is 0; alpha as it is
-
-
-def _source(snap: Snapshot, kind: str, x: int, y: int, z: int) -> _Source | None:
-    return _xyz_source(snap, x, y, z) if kind == "xyz" else _pixel_source(snap, x, y, z)
-
-
-def _encode(src: _Source | None, kind: str, pause: Callable[[], None]) -> bytes:
-    """The PNG of a tile's :func:`_source`; ``pause`` is called between sampling and encoding."""
-    tile = None if src is None else _xyz_tile(src) if kind == "xyz" else _pixel_tile(src)
-    if tile is None:
-        return EMPTY_PNG
-    pause()
-    ok, buf = cv2.imencode(".png", tile, _PNG_PARAMS)
-    return buf.tobytes() if ok else EMPTY_PNG
 
 
 def xyz_source_rect(snap: Snapshot, x: int, y: int, z: int) -> tuple[float, float, float, float]:
@@ -575,11 +527,19 @@ def pixel_source_rect(x: int, y: int, z: int) -> tuple[int, int, int, int]:
 def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callable[[], None] = lambda: None
                ) -> bytes:
     """The PNG of tile ``(x, y, z)``: ``kind`` ``xyz`` (georeferenced) or ``pixel``; ``pause``
-    is called between the steps (composing, sampling, encoding)."""
+    is called between the steps (rendering, encoding)."""
     pause()
-    src = _source(snap, kind, x, y, z)
+    if kind == "xyz":
+        tile = _xyz_tile(snap, x, y, z)
+    else:
+        x0, y0, x1, y1 = pixel_source_rect(x, y, z)
+        image, alpha = _render_fn(snap)(x0, y0, x1 - x0, y1 - y0, wm.TILE_PX / (x1 - x0))
+        tile = _bgra(image, alpha) if alpha.any() else None
+    if tile is None:
+        return EMPTY_PNG
     pause()
-    return _encode(src, kind, pause)
+    ok, buf = cv2.imencode(".png", tile, _PNG_PARAMS)
+    return buf.tobytes() if ok else EMPTY_PNG
 
 
 @dataclass
@@ -588,15 +548,11 @@ class _Entry:
     deps: dict[TileKey, int]
     made: float
     rect: tuple  # the map-pixel rectangle under the tile (fixed by its key)
-    digest: bytes  # of the map pixels it was made of (_Source.digest; b"" for none)
 
 
 class TileCache:
     """Rendered tiles by ``(kind, geo_version, z, x, y)``, least recently used beyond
-    ``max_entries``; see the module docstring for when a tile is rendered again. A tile whose
-    map tiles changed but not under it (the map pixels it is made of are the same: their
-    digest) is not sampled and encoded again: its picture is served, a hit (also counted in
-    ``unchanged``)."""
+    ``max_entries``; see the module docstring for when a tile is rendered again."""
 
     def __init__(self, max_entries: int = 256, min_interval_s: float = 2.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -607,7 +563,6 @@ class TileCache:
         self._clock = clock
         self.renders = 0
         self.hits = 0
-        self.unchanged = 0
 
     def get(self, snap: Snapshot, kind: str, x: int, y: int, z: int,
             pause: Callable[[], None] = lambda: None) -> bytes:
@@ -627,24 +582,10 @@ class TileCache:
                     self._entries.move_to_end(key)
                 self.hits += 1
             return entry.png
-        src = None
-        if deps:
-            pause()
-            src = _source(snap, kind, x, y, z)
-        digest = src.digest() if src is not None else b""
-        same = entry is not None and entry.digest == digest
-        if not same:
-            pause()
-            png = _encode(src, kind, pause)
-        else:
-            png = entry.png
+        png = render_png(snap, kind, x, y, z, pause) if deps else EMPTY_PNG
         with self._lock:
-            if same:  # the cached picture, checked
-                self.hits += 1
-                self.unchanged += 1
-            else:
-                self.renders += 1
-            self._entries[key] = _Entry(png, deps, now, rect, digest)
+            self.renders += 1
+            self._entries[key] = _Entry(png, deps, now, rect)
             self._entries.move_to_end(key)
             while len(self._entries) > self._max:
                 self._entries.popitem(last=False)
