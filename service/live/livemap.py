@@ -445,8 +445,8 @@ def _level_for(snap: Snapshot, scale: float) -> int:
 
 
 def _render_fn(snap: Snapshot):
-    """A render function (:mod:`photomap.io.mapsource`) over the snapshot's tiles. At ``scale``
-    < 1 it composes the tiles' halvings at the level just finer than ``scale`` and samples that
+    """A render function (:mod:`photomap.io.mapsource`) over the snapshot's tiles (at scale 1,
+    :func:`render_png` composes them without it). At ``scale`` < 1 it composes the tiles' halvings at the level just finer than ``scale`` and samples that
     bilinearly (alpha-weighted): work in proportion to the output, whatever the region's size."""
 
     def render(x: int, y: int, w: int, h: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -456,8 +456,6 @@ def _render_fn(snap: Snapshot):
         lx0, ly0 = x // f, y // f
         lx1, ly1 = -(-(x + w) // f), -(-(y + h) // f)
         comp = _compose(snap, level, lx0, ly0, lx1, ly1)
-        if scale >= 1.0:
-            return comp[..., :3].copy(), comp[..., 3].copy()
         ow, oh = max(1, round(w * scale)), max(1, round(h * scale))
         # output pixel u covers source x + [u, u + 1) w / ow; its centre in comp pixel coordinates
         sx, sy = w / ow / f, h / oh / f
@@ -531,6 +529,9 @@ def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callabl
     pause()
     if kind == "xyz":
         tile = _xyz_tile(snap, x, y, z)
+    elif z == PIXEL_ZOOM:  # a tile pixel per map pixel: the composed tiles themselves
+        tile = _compose(snap, 0, *pixel_source_rect(x, y, z))
+        tile = tile if tile[..., 3].any() else None
     else:
         x0, y0, x1, y1 = pixel_source_rect(x, y, z)
         image, alpha = _render_fn(snap)(x0, y0, x1 - x0, y1 - y0, wm.TILE_PX / (x1 - x0))
