@@ -415,6 +415,59 @@ def test_a_repainted_tile_is_served_fresh_within_the_render_interval():
     assert served() == 200 and cache.renders == 3  # unchanged since: no render
 
 
+def test_status_bounds_follow_the_map_as_it_grows():
+    """The status's bounds (worked out once per change of the served tiles) are those of the
+    tiles copied so far, frame after frame."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.live.livemap import LiveMap, status
+
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    full = np.full((64, 64), 255, np.uint8)
+    live = LiveMap(tile_hz=1e6)
+    mosaic.set_tile((0, 0), np.full((64, 64, 3), 80, np.uint8), full)
+    live.on_frame(_tile_event(0, mosaic, {(0, 0)}))
+    assert status(live.snapshot())["bounds"] == [0.0, 0.0, 64.0, 64.0]
+    live.on_frame(_tile_event(1, mosaic, set()))  # a frame, no new tile: the same bounds
+    assert status(live.snapshot())["bounds"] == [0.0, 0.0, 64.0, 64.0]
+    mosaic.set_tile((2, 1), np.full((64, 64, 3), 90, np.uint8), full)
+    live.on_frame(_tile_event(2, mosaic, {(2, 1)}))
+    st = status(live.snapshot())
+    assert st["bounds"] == [0.0, 0.0, 192.0, 128.0] and st["frames_in"] == 3
+
+
+def test_bad_requests_get_one_line_answers():
+    """A request line that is not HTTP gets 400, a method but GET and HEAD 501, HEAD the headers
+    of the GET without its body: each one whole answer, then the connection is closed."""
+    server = MapServer(load_config().map_server, "127.0.0.1", 0)
+
+    def ask(request: bytes) -> tuple[str, dict, bytes]:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=10) as s:
+            s.sendall(request)
+            answer = b""
+            while chunk := s.recv(65536):
+                answer += chunk
+        head, _, body = answer.partition(b"\r\n\r\n")
+        lines = head.decode("latin-1").split("\r\n")
+        return lines[0], dict(line.split(": ", 1) for line in lines[1:]), body
+
+    try:
+        line, _, _ = ask(b"GARBAGE\r\n\r\n")
+        assert line == "HTTP/1.0 400 Bad Request"
+        line, _, _ = ask(b"POST /status.json HTTP/1.0\r\nContent-Length: 0\r\n\r\n")
+        assert line == "HTTP/1.0 501 Not Implemented"
+        line, headers, body = ask(b"GET /status.json?x=1 HTTP/1.1\r\nHost: a\r\n\r\n")
+        assert line == "HTTP/1.0 200 OK" and headers["Content-Type"] == "application/json"
+        assert int(headers["Content-Length"]) == len(body) and json.loads(body)["frames_in"] == 0
+        line, head_headers, body = ask(b"HEAD /status.json HTTP/1.0\r\n\r\n")
+        assert line == "HTTP/1.0 200 OK" and body == b"" and int(head_headers["Content-Length"]) > 0
+        line, _, body = ask(b"GET /nothing/here HTTP/1.0\n\n")  # bare newlines too
+        assert line == "HTTP/1.0 404 Not Found" and body == b"not found\n"
+        assert server.stats["errors"] == 0
+    finally:
+        server.close()
+
+
 def test_answers_wait_while_the_worker_maps_a_frame():
     """Live, the server's Python code gives way to the worker's frame (its gate), then answers."""
     from photomap.mapping.threads import WorkerFirst

@@ -654,17 +654,18 @@ class TiledMosaic:
         """Map coordinates ``(x, y)`` of the top-left pixel of tile ``key``."""
         return key[0] * self.tile_size, key[1] * self.tile_size
 
-    def tile_image(self, key: TileKey) -> tuple[np.ndarray, np.ndarray]:
+    def tile_image(self, key: TileKey, copy: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """One tile as ``(image (ts, ts, C) or (ts, ts) of the map's dtype, alpha uint8 (ts, ts))``.
 
-        Alpha is 255 where covered, 0 where empty (image 0 there). The arrays are copies.
-        Raises KeyError if no such tile.
+        Alpha is 255 where covered, 0 where empty (image 0 there). The arrays are copies, or
+        with ``copy=False`` maybe views of the map's, to be read before it changes and never
+        written (for a caller that makes its own copy at once). Raises KeyError if no such tile.
         """
         tile = self._peek(key)
         if tile is None:
             raise KeyError(f"no map tile {key}")
         image, alpha = self._tile_image_of(tile)
-        return image.copy(), alpha.copy()
+        return (image.copy(), alpha.copy()) if copy else (image, alpha)
 
     def tile_image_later(self, key: TileKey) -> Callable[[], tuple[np.ndarray, np.ndarray] | None]:
         """:meth:`tile_image` of ``key`` as a function to call later, maybe in another thread.

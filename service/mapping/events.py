@@ -31,8 +31,9 @@ class TileReader(Protocol):
     def tile_origin(self, key: TileKey) -> tuple[int, int]:
         """Map pixel of the tile's top-left pixel."""
 
-    def tile_image(self, key: TileKey) -> tuple[np.ndarray, np.ndarray]:
-        """The tile's colour (BGR or grey) and alpha (uint8); KeyError when there is no such tile."""
+    def tile_image(self, key: TileKey, copy: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """The tile's colour (BGR or grey) and alpha (uint8), copies unless ``copy`` is False
+        (views to read at once, in the worker); KeyError when there is no such tile."""
 
 
 @dataclass(frozen=True)
