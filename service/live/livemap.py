@@ -445,9 +445,10 @@ def _level_for(snap: Snapshot, scale: float) -> int:
 
 
 def _render_fn(snap: Snapshot):
-    """A render function (:mod:`photomap.io.mapsource`) over the snapshot's tiles (at scale 1,
-    :func:`render_png` composes them without it). At ``scale`` < 1 it composes the tiles' halvings at the level just finer than ``scale`` and samples that
-    bilinearly (alpha-weighted): work in proportion to the output, whatever the region's size."""
+    """A render function (:mod:`photomap.io.mapsource`) over the snapshot's tiles, for ``scale``
+    < 1 (at scale 1 :func:`render_png` takes the composed tiles themselves): it composes the
+    tiles' halvings at the level just finer than ``scale`` and samples that bilinearly
+    (alpha-weighted): work in proportion to the output, whatever the region's size."""
 
     def render(x: int, y: int, w: int, h: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
         scale = min(1.0, float(scale))

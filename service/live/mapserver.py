@@ -36,7 +36,6 @@ authentication and is read-only; whoever reaches the port sees the map.
 
 from __future__ import annotations
 
-import io
 import json
 import logging
 import re
