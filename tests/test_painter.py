@@ -288,13 +288,13 @@ def test_tiles_painted_during_a_rerender_keep_their_pixels_until_redone(tmp_path
     rerenderer.wait()
     painter.on_correction(0, {0: pose(0, 3, 2)})
     gate = __import__("threading").Event()
-    original = rerenderer._render
+    original = rerenderer._render_strips
 
     def slow(*args):  # the job runs while the worker paints
         gate.wait(10)
         return original(*args)
 
-    rerenderer._render = slow
+    rerenderer._render_strips = slow
     painter.pump({0: live}, force=True)  # job submitted
     newer = texture(120, 160, 2)
     painter.paint(live, 0, 1, newer, pose(0, 30.5, 20.5), whole=True)  # painted live meanwhile
@@ -302,7 +302,7 @@ def test_tiles_painted_during_a_rerender_keep_their_pixels_until_redone(tmp_path
     rerenderer.wait()
     painter.pump({0: live}, force=True)  # swaps what was not painted meanwhile, re-queues the rest
     assert painter.stats.deferred_tiles > 0
-    rerenderer._render = original
+    rerenderer._render_strips = original
     deferred = painter.stats.deferred_tiles
     painter.on_correction(0, {0: pose(0, 3, 2)})  # nothing moved further: only the deferred tiles
     changed = painter.finish({0: live})
@@ -775,7 +775,7 @@ def test_a_replay_makes_the_same_map_however_slow_the_background_threads(tmp_pat
                                                                           cv2.IMREAD_UNCHANGED)
 
     quick, quick_rows, quick_map = run("quick")
-    solve, render = loopclosure.KeyframeGraph.solve, rerender.Rerenderer._render
+    solve, render = loopclosure.KeyframeGraph.solve, rerender.Rerenderer._render_strips
     measure = loopclosure.KeyframeGraph.measure_loops
 
     def slow_measure(*args, **kwargs):
@@ -791,7 +791,7 @@ def test_a_replay_makes_the_same_map_however_slow_the_background_threads(tmp_pat
         return render(self, *args, **kwargs)
 
     monkeypatch.setattr(loopclosure.KeyframeGraph, "solve", staticmethod(slow_solve))
-    monkeypatch.setattr(rerender.Rerenderer, "_render", slow_render)
+    monkeypatch.setattr(rerender.Rerenderer, "_render_strips", slow_render)
     monkeypatch.setattr(loopclosure.KeyframeGraph, "measure_loops", slow_measure)
     slow, slow_rows, slow_map = run("slow")
     assert quick["loop_closure"]["corrections"] >= 1 and quick["painting"]["rerendered_tiles"] > 0
@@ -837,13 +837,13 @@ def test_a_doubled_factor_shrinks_the_thumbnails_in_the_background(tmp_path):
 def test_a_replay_records_how_long_the_worker_waited_for_the_rerender(tmp_path, monkeypatch):
     """In lockstep (a replay) a job that is due waits for the busy re-render thread, and the
     painter says how long (``max_wait_ms``); live it never waits."""
-    render = Rerenderer._render
+    render = Rerenderer._render_strips
 
     def slow_render(self, *args, **kwargs):
         time.sleep(0.3)
         return render(self, *args, **kwargs)
 
-    monkeypatch.setattr(Rerenderer, "_render", slow_render)
+    monkeypatch.setattr(Rerenderer, "_render_strips", slow_render)
     params = MosaicConfig(tile_size=64)
     poses = {i: pose(4 * i, 60.0 * i, 10.0 * i) for i in range(4)}
     moved = {i: pose(4 * i, 60.0 * i + 3.0 * i, 10.0 * i) for i in range(4)}
