@@ -355,9 +355,9 @@ def test_a_rerender_paints_each_tile_from_the_newest_frame_covering_it_whole_on(
     rerenderer.close()
 
 
-def rerender_all(rerenderer: Rerenderer, frames, tiles) -> TiledMosaic:
+def rerender_all(rerenderer: Rerenderer, frames, tiles, scratch_bytes: int = 0) -> TiledMosaic:
     """Re-render ``tiles`` from ``frames`` through ``rerenderer`` and wait for every strip."""
-    job = rerenderer.submit(0, frames, tiles)
+    job = rerenderer.submit(0, frames, tiles, scratch_bytes=scratch_bytes)
     got = TiledMosaic(rerenderer.params)
     while True:
         rerenderer.wait()
@@ -401,6 +401,48 @@ def test_kept_images_are_decoded_once_for_all_strips_and_anew_when_kept_again(tm
     got = rerender_all(rerenderer, frames, tiles)
     assert reads == [1]
     assert_same_tiles(got, render_from_store(store, frames, params), tiles)
+    rerenderer.close()
+
+
+def test_strips_rendered_together_read_each_kept_image_once_to_the_same_tiles(tmp_path):
+    """The final re-render renders strips together, frame by frame (``scratch_bytes``): each
+    kept image is read back once for them all, where strip after strip read it again and again
+    (a cache of two frames); every tile is the same, pixel for pixel, also with a kept image
+    lost."""
+    params = MosaicConfig(tile_size=32)
+    store = KeyframeStore(tmp_path / "kf")
+    rerenderer = Rerenderer(store, params, strip_tiles=3, cache_bytes=0, release_after=None)
+    rng = np.random.default_rng(7)
+    frames = []
+    for i in range(12):  # two passes over the same ground, the second turned
+        p = pose(rng.uniform(-20, 20) + 90 * (i >= 6), 45.0 * (i % 6) + rng.uniform(-5, 5), rng.uniform(0, 30))
+        mask = None
+        if i == 8:
+            mask = np.ones((120, 160), bool)
+            mask[20:60, 40:100] = False
+        rerenderer.save(i, texture(120, 160, 60 + i), mask)
+        frames.append(KeptFrame(i, p, (160, 120), full=mask is None))
+    rerenderer.wait()
+    tiles = set(render_from_store(store, frames, params).tiles())
+    reads: list[int] = []
+    image = store.image
+    store.image = lambda index: reads.append(index) or image(index)
+    for lost in (None, 10):
+        if lost is not None:
+            store.discard(lost)
+        alone = rerender_all(rerenderer, frames, tiles)
+        alone_reads, reads[:] = len(reads), []
+        together = rerender_all(rerenderer, frames, tiles, scratch_bytes=1 << 30)
+        assert len(tiles) > 12 and alone_reads > 2 * len(frames)
+        # once each (a lost image: the strips it hid are rendered again, uncut, together too)
+        assert max(reads.count(i) for i in reads) == (1 if lost is None else 2), reads
+        reads.clear()
+        for key in tiles:
+            assert (key in alone.tiles()) == (key in together.tiles()), key
+            if key in alone.tiles():
+                for a, b in zip(alone.tile_image(key), together.tile_image(key)):
+                    np.testing.assert_array_equal(a, b, err_msg=str(key))
+    assert rerenderer.lost_frames > 0
     rerenderer.close()
 
 

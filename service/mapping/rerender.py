@@ -413,10 +413,12 @@ class Rerenderer:
                     plan.failed = plan.redo
                     log.debug("frame %d not re-rendered: %s", frame.index, exc)
         render_s = (time.perf_counter() - t) / len(plans)
+        failed = [plan.keys for plan in plans if plan.failed]
+        again = iter(self._render_strips(job, segment, frames, failed, cull=False) if failed else ())
         done = []
         for plan in plans:
             if plan.failed:
-                done.append(self._render(job, segment, frames, plan.keys, cull=False))
+                done.append(next(again))
                 continue
             tiles = plan.scratch.take_tiles()
             done.append(Strip(job, segment, {key: tiles.get(key) for key in plan.keys}, plan.painted, render_s))
