@@ -20,6 +20,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
@@ -357,9 +358,8 @@ class Rerenderer:
                 self._cache.move_to_end(index)
                 return self._cache[index]
         found = (self.store.image(index), self.store.mask(index))
-        if found[0] is None:
-            self.lost_frames += 1
         with self._cache_lock:
+            self.lost_frames += found[0] is None
             self._cache[index] = found
             self._cache_bytes += self._nbytes(found)
             while len(self._cache) > 2 and self._cache_bytes > self.cache_bytes:
@@ -375,7 +375,9 @@ class Rerenderer:
                        cull: bool = True) -> list[Strip]:
         """Render each strip of ``strips`` (tile keys) from ``frames`` (oldest first) into a scratch
         map of its own, the strips together frame by frame (each kept image read once for all of
-        them; every scratch map gets the same paints as when rendered alone); ``cull``: each tile
+        them, the next one read in a second thread while one is painted: after the last frame
+        there is no worker to leave the CPU to; every scratch map gets the same paints as when
+        rendered alone); ``cull``: each tile
         only from the newest frame that covers it whole on (:func:`hidden_before`: the same
         pixels in an overwrite map; a correction late in a flight that went over the same ground
         again and again re-renders each tile from the few frames on top, not from every pass)."""
@@ -383,35 +385,51 @@ class Rerenderer:
         boxes = reach(np.array([f.pose for f in frames], float).reshape(-1, 3, 3),
                       np.array([f.size for f in frames], float).reshape(-1, 2))
         plans = [self._plan(frames, boxes, keys, cull) for keys in strips]
-        order = sorted({i for plan in plans for i in plan.near})
-        for i in order:
-            frame = frames[i]
+        steps = []  # (frame, [(plan, clip)]) in painting order, the frames that paint something
+        for i in sorted({i for plan in plans for i in plan.near}):
             x0, y0, x1, y1 = boxes[i].tolist()
             todo = []
             for plan in plans:
                 pos = plan.near.get(i)
-                if pos is None or plan.failed:
+                if pos is None:
                     continue
                 mine = [key for key, s in zip(plan.keys, plan.start) if s <= pos] if plan.cull else plan.keys
                 clip = [r for r in (plan.rects if len(mine) == len(plan.keys) else tile_rects(mine, self.params.tile_size))
                         if x0 < r[0] + r[2] and r[0] < x1 and y0 < r[1] + r[3] and r[1] < y1]
                 if clip:
                     todo.append((plan, clip))
-            if not todo:
-                continue
-            self.first.wait()
-            image, mask = self._image(frame.index)
-            for plan, clip in todo:
-                if image is None:
-                    plan.failed = plan.redo  # a frame that hides others not painted: render them all
-                    continue
-                try:
-                    extra = {} if frame.gain is None else {"gain": frame.gain}
-                    plan.scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
-                    plan.painted += 1
-                except PhotomapError as exc:
-                    plan.failed = plan.redo
-                    log.debug("frame %d not re-rendered: %s", frame.index, exc)
+            if todo:
+                steps.append((frames[i], todo))
+        # strips together (after the last frame): the next kept image is read while one is painted
+        ahead = ThreadPoolExecutor(1, "photomap-rerender-read", initializer=lower_priority, initargs=(self.nice,)) \
+            if len(plans) > 1 and len(steps) > 1 else None
+        try:
+            reading = ahead.submit(self._image, steps[0][0].index) if ahead is not None else None
+            for k, (frame, todo) in enumerate(steps):
+                if all(plan.failed for plan in plans):
+                    break  # each to be rendered again, uncut
+                self.first.wait()
+                if reading is not None:
+                    image, mask = reading.result()
+                    reading = ahead.submit(self._image, steps[k + 1][0].index) if k + 1 < len(steps) else None
+                else:
+                    image, mask = self._image(frame.index)
+                for plan, clip in todo:
+                    if plan.failed:
+                        continue
+                    if image is None:
+                        plan.failed = plan.redo  # a frame that hides others not painted: render them all
+                        continue
+                    try:
+                        extra = {} if frame.gain is None else {"gain": frame.gain}
+                        plan.scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
+                        plan.painted += 1
+                    except PhotomapError as exc:
+                        plan.failed = plan.redo
+                        log.debug("frame %d not re-rendered: %s", frame.index, exc)
+        finally:
+            if ahead is not None:
+                ahead.shutdown(wait=True, cancel_futures=True)
         render_s = (time.perf_counter() - t) / len(plans)
         failed = [plan.keys for plan in plans if plan.failed]
         again = iter(self._render_strips(job, segment, frames, failed, cull=False) if failed else ())
