@@ -5,7 +5,8 @@ kept for that (the images the painter stored at the map's resolution, in a
 :class:`~photomap.io.keyframestore.KeyframeStore`). :class:`Rerenderer` does it in one background
 thread at low priority (nice +10 on Linux: it gets the CPU the worker and the camera leave), in
 strips of at most ``strip_tiles`` tiles, each rendered into a scratch map of its own: memory stays
-bounded and the live map is never touched by this thread. The worker swaps finished strips in
+bounded and the live map is never touched by this thread (after the last frame, several strips
+together: each kept image read once for them all). The worker swaps finished strips in
 (:meth:`photomap.core.mosaic.TiledMosaic.put_tiles`, no pixel copied) when it polls, so it never
 waits for a re-render. The same thread writes the images kept for re-rendering (JPEG encoding off
 the worker).
@@ -374,13 +375,13 @@ class Rerenderer:
     def _render_strips(self, job: int, segment: int, frames: tuple[KeptFrame, ...], strips: list[list[TileKey]],
                        cull: bool = True) -> list[Strip]:
         """Render each strip of ``strips`` (tile keys) from ``frames`` (oldest first) into a scratch
-        map of its own, the strips together frame by frame (each kept image read once for all of
-        them, the next one read in a second thread while one is painted: after the last frame
-        there is no worker to leave the CPU to; every scratch map gets the same paints as when
-        rendered alone); ``cull``: each tile
-        only from the newest frame that covers it whole on (:func:`hidden_before`: the same
-        pixels in an overwrite map; a correction late in a flight that went over the same ground
-        again and again re-renders each tile from the few frames on top, not from every pass)."""
+        map of its own, the strips together frame by frame: each kept image is read once for all
+        of them (with more than one strip, the next one in a second thread while one is painted:
+        after the last frame no worker needs the CPU), and every scratch map gets the same paints
+        as when rendered alone. ``cull``: each tile only from the newest frame that covers it
+        whole on (:func:`hidden_before`: the same pixels in an overwrite map; a correction late
+        in a flight that went over the same ground again and again re-renders each tile from the
+        few frames on top, not from every pass)."""
         t = time.perf_counter()
         boxes = reach(np.array([f.pose for f in frames], float).reshape(-1, 3, 3),
                       np.array([f.size for f in frames], float).reshape(-1, 2))
