@@ -876,6 +876,40 @@ def test_a_doubled_factor_shrinks_the_thumbnails_in_the_background(tmp_path):
     assert np.abs(preview.astype(int) - want.astype(int))[covered].max() <= 2  # a shrink of a shrink rounds twice
 
 
+def test_a_replay_does_not_wait_for_kept_images_being_written(tmp_path):
+    """A kept image being written (a JPEG encode: 50 ms for a 2400x1800 still) is no re-render
+    job: the thread is not ``busy`` and a replay's worker goes on at a due frame; a correction
+    then re-renders from that image once it is written."""
+    params = MosaicConfig(tile_size=64)
+    store = KeyframeStore(tmp_path / "kf")
+    started, gate = threading.Event(), threading.Event()
+    put = store.put_image
+
+    def held_put(*args, **kwargs):
+        started.set()
+        gate.wait(30)
+        return put(*args, **kwargs)
+
+    store.put_image = held_put
+    painter = Painter((160, 120), 64, rerenderer=Rerenderer(store, params), interval_s=0.0, lockstep_frames=2)
+    live = TiledMosaic(params)
+    image = texture(120, 160, 5)
+    painter.paint(live, 0, 0, image, pose(0, 0, 0), whole=True)
+    assert started.wait(30) and not painter.rerenderer.busy
+    pump = threading.Thread(target=painter.pump, args=({0: live},), kwargs={"frame": 10})
+    pump.start()
+    pump.join(10)
+    done = not pump.is_alive()
+    gate.set()
+    pump.join()
+    assert done and painter.stats.max_wait_ms == 0.0  # it waited for no write
+    painter.on_correction(0, {0: pose(0, 3, 2)})
+    painter.finish({0: live})
+    want = render_from_store(store, [KeptFrame(0, pose(0, 3, 2), (160, 120))], params)
+    assert_same_tiles(live, want, want.tiles())
+    painter.close()
+
+
 def test_a_replay_records_how_long_the_worker_waited_for_the_rerender(tmp_path, monkeypatch):
     """In lockstep (a replay) a job that is due waits for the busy re-render thread, and the
     painter says how long (``max_wait_ms``); live it never waits."""
