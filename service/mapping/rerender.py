@@ -166,7 +166,8 @@ class Rerenderer:
         self.nice = nice
         self._cond = threading.Condition()
         self._writes: deque[Callable[[], None]] = deque()  # kept images, previews: before any strip
-        self._jobs: deque[tuple[int, int, tuple[KeptFrame, ...], list[list[TileKey]], int]] = deque()  # (.., strips together)
+        # (job, segment, frames, strips, strips rendered together)
+        self._jobs: deque[tuple[int, int, tuple[KeptFrame, ...], list[list[TileKey]], int]] = deque()
         self._done: list[Strip] = []
         self._active = 0  # tasks (strips, writes) being run right now (0 or 1)
         self._rendering = 0  # of which strips
@@ -395,8 +396,8 @@ class Rerenderer:
                 if pos is None:
                     continue
                 mine = [key for key, s in zip(plan.keys, plan.start) if s <= pos] if plan.cull else plan.keys
-                clip = [r for r in (plan.rects if len(mine) == len(plan.keys) else tile_rects(mine, self.params.tile_size))
-                        if x0 < r[0] + r[2] and r[0] < x1 and y0 < r[1] + r[3] and r[1] < y1]
+                rects = plan.rects if len(mine) == len(plan.keys) else tile_rects(mine, self.params.tile_size)
+                clip = [r for r in rects if x0 < r[0] + r[2] and r[0] < x1 and y0 < r[1] + r[3] and r[1] < y1]
                 if clip:
                     todo.append((plan, clip))
             if todo:
