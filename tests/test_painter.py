@@ -288,13 +288,13 @@ def test_tiles_painted_during_a_rerender_keep_their_pixels_until_redone(tmp_path
     rerenderer.wait()
     painter.on_correction(0, {0: pose(0, 3, 2)})
     gate = __import__("threading").Event()
-    original = rerenderer._render
+    original = rerenderer._render_strips
 
     def slow(*args):  # the job runs while the worker paints
         gate.wait(10)
         return original(*args)
 
-    rerenderer._render = slow
+    rerenderer._render_strips = slow
     painter.pump({0: live}, force=True)  # job submitted
     newer = texture(120, 160, 2)
     painter.paint(live, 0, 1, newer, pose(0, 30.5, 20.5), whole=True)  # painted live meanwhile
@@ -302,7 +302,7 @@ def test_tiles_painted_during_a_rerender_keep_their_pixels_until_redone(tmp_path
     rerenderer.wait()
     painter.pump({0: live}, force=True)  # swaps what was not painted meanwhile, re-queues the rest
     assert painter.stats.deferred_tiles > 0
-    rerenderer._render = original
+    rerenderer._render_strips = original
     deferred = painter.stats.deferred_tiles
     painter.on_correction(0, {0: pose(0, 3, 2)})  # nothing moved further: only the deferred tiles
     changed = painter.finish({0: live})
@@ -355,9 +355,9 @@ def test_a_rerender_paints_each_tile_from_the_newest_frame_covering_it_whole_on(
     rerenderer.close()
 
 
-def rerender_all(rerenderer: Rerenderer, frames, tiles) -> TiledMosaic:
+def rerender_all(rerenderer: Rerenderer, frames, tiles, scratch_bytes: int = 0) -> TiledMosaic:
     """Re-render ``tiles`` from ``frames`` through ``rerenderer`` and wait for every strip."""
-    job = rerenderer.submit(0, frames, tiles)
+    job = rerenderer.submit(0, frames, tiles, scratch_bytes=scratch_bytes)
     got = TiledMosaic(rerenderer.params)
     while True:
         rerenderer.wait()
@@ -401,6 +401,48 @@ def test_kept_images_are_decoded_once_for_all_strips_and_anew_when_kept_again(tm
     got = rerender_all(rerenderer, frames, tiles)
     assert reads == [1]
     assert_same_tiles(got, render_from_store(store, frames, params), tiles)
+    rerenderer.close()
+
+
+def test_strips_rendered_together_read_each_kept_image_once_to_the_same_tiles(tmp_path):
+    """The final re-render renders strips together, frame by frame (``scratch_bytes``): each
+    kept image is read back once for them all, where strip after strip read it again and again
+    (a cache of two frames); every tile is the same, pixel for pixel, also with a kept image
+    lost."""
+    params = MosaicConfig(tile_size=32)
+    store = KeyframeStore(tmp_path / "kf")
+    rerenderer = Rerenderer(store, params, strip_tiles=3, cache_bytes=0, release_after=None)
+    rng = np.random.default_rng(7)
+    frames = []
+    for i in range(12):  # two passes over the same ground, the second turned
+        p = pose(rng.uniform(-20, 20) + 90 * (i >= 6), 45.0 * (i % 6) + rng.uniform(-5, 5), rng.uniform(0, 30))
+        mask = None
+        if i == 8:
+            mask = np.ones((120, 160), bool)
+            mask[20:60, 40:100] = False
+        rerenderer.save(i, texture(120, 160, 60 + i), mask)
+        frames.append(KeptFrame(i, p, (160, 120), full=mask is None))
+    rerenderer.wait()
+    tiles = set(render_from_store(store, frames, params).tiles())
+    reads: list[int] = []
+    image = store.image
+    store.image = lambda index: reads.append(index) or image(index)
+    for lost in (None, 10):
+        if lost is not None:
+            store.discard(lost)
+        alone = rerender_all(rerenderer, frames, tiles)
+        alone_reads, reads[:] = len(reads), []
+        together = rerender_all(rerenderer, frames, tiles, scratch_bytes=1 << 30)
+        assert len(tiles) > 12 and alone_reads > 2 * len(frames)
+        # once each (a lost image: the strips it hid are rendered again, uncut, together too)
+        assert max(reads.count(i) for i in reads) == (1 if lost is None else 2), reads
+        reads.clear()
+        for key in tiles:
+            assert (key in alone.tiles()) == (key in together.tiles()), key
+            if key in alone.tiles():
+                for a, b in zip(alone.tile_image(key), together.tile_image(key)):
+                    np.testing.assert_array_equal(a, b, err_msg=str(key))
+    assert rerenderer.lost_frames > 0
     rerenderer.close()
 
 
@@ -775,7 +817,7 @@ def test_a_replay_makes_the_same_map_however_slow_the_background_threads(tmp_pat
                                                                           cv2.IMREAD_UNCHANGED)
 
     quick, quick_rows, quick_map = run("quick")
-    solve, render = loopclosure.KeyframeGraph.solve, rerender.Rerenderer._render
+    solve, render = loopclosure.KeyframeGraph.solve, rerender.Rerenderer._render_strips
     measure = loopclosure.KeyframeGraph.measure_loops
 
     def slow_measure(*args, **kwargs):
@@ -791,7 +833,7 @@ def test_a_replay_makes_the_same_map_however_slow_the_background_threads(tmp_pat
         return render(self, *args, **kwargs)
 
     monkeypatch.setattr(loopclosure.KeyframeGraph, "solve", staticmethod(slow_solve))
-    monkeypatch.setattr(rerender.Rerenderer, "_render", slow_render)
+    monkeypatch.setattr(rerender.Rerenderer, "_render_strips", slow_render)
     monkeypatch.setattr(loopclosure.KeyframeGraph, "measure_loops", slow_measure)
     slow, slow_rows, slow_map = run("slow")
     assert quick["loop_closure"]["corrections"] >= 1 and quick["painting"]["rerendered_tiles"] > 0
@@ -834,16 +876,50 @@ def test_a_doubled_factor_shrinks_the_thumbnails_in_the_background(tmp_path):
     assert np.abs(preview.astype(int) - want.astype(int))[covered].max() <= 2  # a shrink of a shrink rounds twice
 
 
+def test_a_replay_does_not_wait_for_kept_images_being_written(tmp_path):
+    """A kept image being written (a JPEG encode: 50 ms for a 2400x1800 still) is no re-render
+    job: the thread is not ``busy`` and a replay's worker goes on at a due frame; a correction
+    then re-renders from that image once it is written."""
+    params = MosaicConfig(tile_size=64)
+    store = KeyframeStore(tmp_path / "kf")
+    started, gate = threading.Event(), threading.Event()
+    put = store.put_image
+
+    def held_put(*args, **kwargs):
+        started.set()
+        gate.wait(30)
+        return put(*args, **kwargs)
+
+    store.put_image = held_put
+    painter = Painter((160, 120), 64, rerenderer=Rerenderer(store, params), interval_s=0.0, lockstep_frames=2)
+    live = TiledMosaic(params)
+    image = texture(120, 160, 5)
+    painter.paint(live, 0, 0, image, pose(0, 0, 0), whole=True)
+    assert started.wait(30) and not painter.rerenderer.busy
+    pump = threading.Thread(target=painter.pump, args=({0: live},), kwargs={"frame": 10})
+    pump.start()
+    pump.join(10)
+    done = not pump.is_alive()
+    gate.set()
+    pump.join()
+    assert done and painter.stats.max_wait_ms == 0.0  # it waited for no write
+    painter.on_correction(0, {0: pose(0, 3, 2)})
+    painter.finish({0: live})
+    want = render_from_store(store, [KeptFrame(0, pose(0, 3, 2), (160, 120))], params)
+    assert_same_tiles(live, want, want.tiles())
+    painter.close()
+
+
 def test_a_replay_records_how_long_the_worker_waited_for_the_rerender(tmp_path, monkeypatch):
     """In lockstep (a replay) a job that is due waits for the busy re-render thread, and the
     painter says how long (``max_wait_ms``); live it never waits."""
-    render = Rerenderer._render
+    render = Rerenderer._render_strips
 
     def slow_render(self, *args, **kwargs):
         time.sleep(0.3)
         return render(self, *args, **kwargs)
 
-    monkeypatch.setattr(Rerenderer, "_render", slow_render)
+    monkeypatch.setattr(Rerenderer, "_render_strips", slow_render)
     params = MosaicConfig(tile_size=64)
     poses = {i: pose(4 * i, 60.0 * i, 10.0 * i) for i in range(4)}
     moved = {i: pose(4 * i, 60.0 * i + 3.0 * i, 10.0 * i) for i in range(4)}

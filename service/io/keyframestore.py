@@ -89,7 +89,8 @@ class KeyframeStore:
 
     def image(self, index: int) -> np.ndarray | None:
         """The image of frame ``index`` kept by :meth:`put_image` (BGR), or None if it cannot be read."""
-        return cv2.imread(self._path(index, "jpg"), cv2.IMREAD_COLOR)
+        path = self._path(index, "jpg")  # (imread warns on stderr about a missing file)
+        return cv2.imread(path, cv2.IMREAD_COLOR) if os.path.isfile(path) else None
 
     def mask(self, index: int) -> np.ndarray | None:
         """Where the image of frame ``index`` is valid (uint8, 255 valid), or None: all of it."""

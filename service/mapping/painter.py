@@ -204,12 +204,18 @@ class Painter:
         most every ``lockstep_frames`` frames, and its tiles are swapped in from
         ``lockstep_frames`` frames after it started (waiting for it if the thread is behind),
         a fixed number per frame; a call without a frame swaps nothing.
+    final_scratch_bytes : int
+        After the last frame (:meth:`finish`, no live painting to swap around), re-render
+        strips together in scratch tiles of this many bytes (``Rerenderer.submit``): each kept
+        image is read once for them all (a 2400x1800 survey's final correction read each ~3
+        times, one strip after the other).
     """
 
     def __init__(self, frame_size: tuple[int, int], tile_size: int, *, whole_frames: bool = False,
                  rerenderer: Rerenderer | None = None, keep: bool = True, block: int = 32, min_move_px: float = 32.0,
                  move_px: float = 0.5, interval_s: float = 1.0, swap_budget_s: float = 0.005,
-                 thumb_budget_s: float = 0.002, band_px: int = 0, lockstep_frames: int | None = None) -> None:
+                 thumb_budget_s: float = 0.002, band_px: int = 0, lockstep_frames: int | None = None,
+                 final_scratch_bytes: int = 64 << 20) -> None:
         self.frame_size = frame_size
         self.tile_size = tile_size
         self.whole_frames = whole_frames
@@ -228,6 +234,8 @@ class Painter:
         self._paints = 0  # paint number
         self._last_job = -float("inf")
         self.lockstep_frames = lockstep_frames
+        self.final_scratch_bytes = final_scratch_bytes
+        self._finishing = False  # in finish(): no live painting any more
         w, h = frame_size
         self._corners = np.array([[0, w - 1, w - 1, 0], [0, 0, h - 1, h - 1], [1.0, 1.0, 1.0, 1.0]])
 
@@ -508,7 +516,8 @@ class Painter:
         for segment, seg in sorted(self._segments.items()):
             if seg.dirty and segment in mosaics:
                 frames = [e.frame() for e in seg.kept]
-                job = self.rerenderer.submit(segment, frames, seg.dirty)
+                job = self.rerenderer.submit(segment, frames, seg.dirty,
+                                             scratch_bytes=self.final_scratch_bytes if self._finishing else 0)
                 seg.job = (job, self._paints)
                 seg.dirty = set()
                 self.stats.rerender_jobs += 1
@@ -555,6 +564,7 @@ class Painter:
         if self.rerenderer is None:
             return changed
         deadline = time.monotonic() + timeout_s
+        self._finishing = True
 
         def pump() -> None:
             for segment, keys in self.pump(mosaics, force=True, budget_s=float("inf")).items():

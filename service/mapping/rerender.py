@@ -5,7 +5,8 @@ kept for that (the images the painter stored at the map's resolution, in a
 :class:`~photomap.io.keyframestore.KeyframeStore`). :class:`Rerenderer` does it in one background
 thread at low priority (nice +10 on Linux: it gets the CPU the worker and the camera leave), in
 strips of at most ``strip_tiles`` tiles, each rendered into a scratch map of its own: memory stays
-bounded and the live map is never touched by this thread. The worker swaps finished strips in
+bounded and the live map is never touched by this thread (after the last frame, several strips
+together: each kept image read once for them all). The worker swaps finished strips in
 (:meth:`photomap.core.mosaic.TiledMosaic.put_tiles`, no pixel copied) when it polls, so it never
 waits for a re-render. The same thread writes the images kept for re-rendering (JPEG encoding off
 the worker).
@@ -20,6 +21,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
@@ -131,8 +133,9 @@ class Rerenderer:
         Kept images waiting for the thread; beyond, :meth:`save` writes in the caller's thread
         (memory stays bounded when the thread gets no CPU).
     max_done : int
-        Finished strips waiting for :meth:`collect`; the thread renders no more until they are
-        taken (memory stays bounded when the worker swaps slowly).
+        Finished strips waiting for :meth:`collect` (strips rendered together count as one);
+        the thread renders no more until they are taken (memory stays bounded when the worker
+        swaps slowly).
     nice : int
         Added to the thread's nice value (0: same priority as the worker).
     cache_bytes : int
@@ -163,9 +166,11 @@ class Rerenderer:
         self.nice = nice
         self._cond = threading.Condition()
         self._writes: deque[Callable[[], None]] = deque()  # kept images, previews: before any strip
-        self._jobs: deque[tuple[int, int, tuple[KeptFrame, ...], list[list[TileKey]]]] = deque()
+        # (job, segment, frames, strips, strips rendered together)
+        self._jobs: deque[tuple[int, int, tuple[KeptFrame, ...], list[list[TileKey]], int]] = deque()
         self._done: list[Strip] = []
-        self._active = 0  # strips being rendered or written right now (0 or 1)
+        self._active = 0  # tasks (strips, writes) being run right now (0 or 1)
+        self._rendering = 0  # of which strips
         self._next_job = 0
         self._closing = False
         self._failure: BaseException | None = None
@@ -203,18 +208,29 @@ class Rerenderer:
         task()
         self.sync_writes += 1
 
-    def submit(self, segment: int, frames: Sequence[KeptFrame], tiles: set[TileKey]) -> int:
+    def submit(self, segment: int, frames: Sequence[KeptFrame], tiles: set[TileKey], *,
+               scratch_bytes: int = 0) -> int:
         """Re-render ``tiles`` of map ``segment`` from ``frames`` (painted in this order, the
-        newest on top); returns the job id that its :class:`Strip` results carry."""
+        newest on top); returns the job id that its :class:`Strip` results carry.
+        ``scratch_bytes``: strips rendered together, as many as fit their scratch tiles in this
+        many bytes (at least one; each kept image is then read once for all of them, not once a
+        strip), and handed over together."""
         keys = sorted(tiles, key=lambda k: (k[1], k[0]))
         strips = [keys[i:i + self.strip_tiles] for i in range(0, len(keys), self.strip_tiles)]
+        together = max(1, int(scratch_bytes) // (self.strip_tiles * self._tile_bytes()))
         with self._cond:
             job = self._next_job
             self._next_job += 1
             if strips:
-                self._jobs.append((job, segment, tuple(frames), strips))
+                self._jobs.append((job, segment, tuple(frames), strips, together))
                 self._cond.notify()
         return job
+
+    def _tile_bytes(self) -> int:
+        """Bytes of one tile of a scratch map (:class:`TiledMosaic`: colour and cover bytes, or
+        float32 sums and weights)."""
+        per_px = self.params.channels + 1
+        return self.params.tile_size ** 2 * (per_px if self.params.blend == "overwrite" else 4 * per_px)
 
     def collect(self) -> list[Strip]:
         """The strips finished since the last call (never blocks)."""
@@ -243,9 +259,10 @@ class Rerenderer:
 
     @property
     def busy(self) -> bool:
-        """Jobs queued or being rendered."""
+        """Jobs queued or being rendered (kept images being written do not count: a job
+        submitted meanwhile renders after them, and a replay's worker does not wait for them)."""
         with self._cond:
-            return bool(self._jobs) or self._active > 0
+            return bool(self._jobs) or self._rendering > 0
 
     def wait(self, timeout: float | None = None) -> None:
         """Block until every queued write and job is done (or ``timeout`` seconds); the strips
@@ -291,11 +308,12 @@ class Rerenderer:
                 if self._writes:  # kept images first: a job may need them, and they hold memory
                     task = ("write", self._writes.popleft())
                 elif self._jobs and len(self._done) < self.max_done:
-                    job, segment, frames, strips = self._jobs[0]
-                    keys = strips.pop(0)
+                    job, segment, frames, strips, together = self._jobs[0]
+                    group = [strips.pop(0) for _ in range(min(together, len(strips)))]
                     if not strips:
                         self._jobs.popleft()
-                    task = ("strip", (job, segment, frames, keys))
+                    task = ("strips", (job, segment, frames, group))
+                    self._rendering += 1
                 else:
                     return  # closing, nothing left to write
                 self._active += 1
@@ -304,9 +322,9 @@ class Rerenderer:
                 if task[0] == "write":
                     task[1]()
                 else:
-                    strip = self._render(*task[1])
+                    done = self._render_strips(*task[1])
                     with self._cond:
-                        self._done.append(strip)
+                        self._done.extend(done)
                         self._last_strip = time.monotonic()
             except BaseException as exc:  # handed to the worker by collect()
                 log.debug("re-render thread failed", exc_info=True)
@@ -315,6 +333,8 @@ class Rerenderer:
             finally:
                 with self._cond:
                     self._active -= 1
+                    if task[0] != "write":
+                        self._rendering -= 1
                     self._cond.notify_all()
 
     @staticmethod
@@ -340,9 +360,8 @@ class Rerenderer:
                 self._cache.move_to_end(index)
                 return self._cache[index]
         found = (self.store.image(index), self.store.mask(index))
-        if found[0] is None:
-            self.lost_frames += 1
         with self._cache_lock:
+            self.lost_frames += found[0] is None
             self._cache[index] = found
             self._cache_bytes += self._nbytes(found)
             while len(self._cache) > 2 and self._cache_bytes > self.cache_bytes:
@@ -351,19 +370,88 @@ class Rerenderer:
 
     def _render(self, job: int, segment: int, frames: tuple[KeptFrame, ...], keys: list[TileKey],
                 cull: bool = True) -> Strip:
-        """Render ``keys`` from ``frames`` (oldest first) into a scratch map; ``cull``: each tile
-        only from the newest frame that covers it whole on (:func:`hidden_before`: the same
-        pixels in an overwrite map; a correction late in a flight that went over the same ground
-        again and again re-renders each tile from the few frames on top, not from every pass)."""
+        """Render the strip ``keys`` alone (:meth:`_render_strips`)."""
+        return self._render_strips(job, segment, frames, [keys], cull)[0]
+
+    def _render_strips(self, job: int, segment: int, frames: tuple[KeptFrame, ...], strips: list[list[TileKey]],
+                       cull: bool = True) -> list[Strip]:
+        """Render each strip of ``strips`` (tile keys) from ``frames`` (oldest first) into a scratch
+        map of its own, the strips together frame by frame: each kept image is read once for all
+        of them (with more than one strip, the next one in a second thread while one is painted:
+        after the last frame no worker needs the CPU), and every scratch map gets the same paints
+        as when rendered alone. ``cull``: each tile only from the newest frame that covers it
+        whole on (:func:`hidden_before`: the same pixels in an overwrite map; a correction late
+        in a flight that went over the same ground again and again re-renders each tile from the
+        few frames on top, not from every pass)."""
         t = time.perf_counter()
+        boxes = reach(np.array([f.pose for f in frames], float).reshape(-1, 3, 3),
+                      np.array([f.size for f in frames], float).reshape(-1, 2))
+        plans = [self._plan(frames, boxes, keys, cull) for keys in strips]
+        steps = []  # (frame, [(plan, clip)]) in painting order, the frames that paint something
+        for i in sorted({i for plan in plans for i in plan.near}):
+            x0, y0, x1, y1 = boxes[i].tolist()
+            todo = []
+            for plan in plans:
+                pos = plan.near.get(i)
+                if pos is None:
+                    continue
+                mine = [key for key, s in zip(plan.keys, plan.start) if s <= pos] if plan.cull else plan.keys
+                rects = plan.rects if len(mine) == len(plan.keys) else tile_rects(mine, self.params.tile_size)
+                clip = [r for r in rects if x0 < r[0] + r[2] and r[0] < x1 and y0 < r[1] + r[3] and r[1] < y1]
+                if clip:
+                    todo.append((plan, clip))
+            if todo:
+                steps.append((frames[i], todo))
+        # strips together (after the last frame): the next kept image is read while one is painted
+        ahead = ThreadPoolExecutor(1, "photomap-rerender-read", initializer=lower_priority, initargs=(self.nice,)) \
+            if len(plans) > 1 and len(steps) > 1 else None
+        try:
+            reading = ahead.submit(self._image, steps[0][0].index) if ahead is not None else None
+            for k, (frame, todo) in enumerate(steps):
+                if all(plan.failed for plan in plans):
+                    break  # each to be rendered again, uncut
+                self.first.wait()
+                if reading is not None:
+                    image, mask = reading.result()
+                    reading = ahead.submit(self._image, steps[k + 1][0].index) if k + 1 < len(steps) else None
+                else:
+                    image, mask = self._image(frame.index)
+                for plan, clip in todo:
+                    if plan.failed:
+                        continue
+                    if image is None:
+                        plan.failed = plan.redo  # a frame that hides others not painted: render them all
+                        continue
+                    try:
+                        extra = {} if frame.gain is None else {"gain": frame.gain}
+                        plan.scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
+                        plan.painted += 1
+                    except PhotomapError as exc:
+                        plan.failed = plan.redo
+                        log.debug("frame %d not re-rendered: %s", frame.index, exc)
+        finally:
+            if ahead is not None:
+                ahead.shutdown(wait=True, cancel_futures=True)
+        render_s = (time.perf_counter() - t) / len(plans)
+        failed = [plan.keys for plan in plans if plan.failed]
+        again = iter(self._render_strips(job, segment, frames, failed, cull=False) if failed else ())
+        done = []
+        for plan in plans:
+            if plan.failed:
+                done.append(next(again))
+                continue
+            tiles = plan.scratch.take_tiles()
+            done.append(Strip(job, segment, {key: tiles.get(key) for key in plan.keys}, plan.painted, render_s))
+        return done
+
+    def _plan(self, frames: tuple[KeptFrame, ...], boxes: np.ndarray, keys: list[TileKey], cull: bool) -> _Plan:
+        """What rendering the strip ``keys`` paints: the frames that reach it and, with ``cull``,
+        the first of them each tile takes (``boxes``: :func:`reach` of ``frames``)."""
         ts = self.params.tile_size
-        rects = tile_rects(keys, ts)
         sx0 = min(k[0] for k in keys) * ts
         sy0 = min(k[1] for k in keys) * ts
         sx1 = (max(k[0] for k in keys) + 1) * ts
         sy1 = (max(k[1] for k in keys) + 1) * ts
-        boxes = reach(np.array([f.pose for f in frames], float).reshape(-1, 3, 3),
-                      np.array([f.size for f in frames], float).reshape(-1, 2))
         near = np.flatnonzero((boxes[:, 2] > sx0) & (boxes[:, 0] < sx1) & (boxes[:, 3] > sy0) & (boxes[:, 1] < sy1))
         # a tile takes the frames from the newest one that covers it whole (overwrite maps)
         # (a frame with no gain under mosaic.exposure would fit one against what is under it)
@@ -371,30 +459,20 @@ class Rerenderer:
             self.params.exposure == "none" or all(frames[i].gain is not None for i in near.tolist()))
         start = (hidden_before([frames[i] for i in near], keys, ts, self.params.border) if cull
                  else np.zeros(len(keys), int))
-        redo = cull and bool(start.any())  # a frame that hides others not painted: render them all
-        scratch = TiledMosaic(self.params)
-        painted = 0
-        for pos, i in enumerate(near.tolist()):
-            frame = frames[i]
-            x0, y0, x1, y1 = boxes[i].tolist()
-            mine = [key for key, s in zip(keys, start.tolist()) if s <= pos] if cull else keys
-            clip = [r for r in (rects if len(mine) == len(keys) else tile_rects(mine, ts))
-                    if x0 < r[0] + r[2] and r[0] < x1 and y0 < r[1] + r[3] and r[1] < y1]
-            if not clip:
-                continue
-            self.first.wait()
-            image, mask = self._image(frame.index)
-            if image is None:
-                if redo:
-                    return self._render(job, segment, frames, keys, cull=False)
-                continue
-            try:
-                extra = {} if frame.gain is None else {"gain": frame.gain}
-                scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
-                painted += 1
-            except PhotomapError as exc:
-                if redo:
-                    return self._render(job, segment, frames, keys, cull=False)
-                log.debug("frame %d not re-rendered: %s", frame.index, exc)
-        tiles = scratch.take_tiles()
-        return Strip(job, segment, {key: tiles.get(key) for key in keys}, painted, time.perf_counter() - t)
+        return _Plan(keys, tile_rects(keys, ts), {i: pos for pos, i in enumerate(near.tolist())}, cull,
+                     start.tolist(), cull and bool(start.any()), TiledMosaic(self.params))
+
+
+@dataclass
+class _Plan:
+    """One strip of :meth:`Rerenderer._render_strips`."""
+
+    keys: list[TileKey]
+    rects: list[tuple[int, int, int, int]]  # the strip's tiles as map rectangles (tile_rects)
+    near: dict[int, int]  # position in the frames -> position among those that reach the strip
+    cull: bool
+    start: list[int]  # per tile, the position (in near) of the first frame it takes
+    redo: bool  # culled: a frame that cannot be painted means rendering the strip again, uncut
+    scratch: TiledMosaic
+    painted: int = 0
+    failed: bool = False
