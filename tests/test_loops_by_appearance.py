@@ -105,6 +105,9 @@ def test_the_index_finds_the_same_view_among_many_and_keeps_segments_apart():
     keys = list(range(0, 150, 5))
     for k in keys:
         index.add(k, place_signature(gray[k]), group=0 if k < 100 else 1)
+    for k in (0, 45, 145):  # each key's own signature back (the loop closer keeps no other copy)
+        assert k in index
+        np.testing.assert_array_equal(index.signature(k), place_signature(gray[k]))
     found = index.search(place_signature(gray[-1]), group=0, k=3)
     assert found[0][0] == 0 and found[0][1] > 0.95  # the last frame is the first
     assert all(score < 0.6 for _, score in found[1:])  # other ground scores far lower
@@ -113,5 +116,6 @@ def test_the_index_finds_the_same_view_among_many_and_keeps_segments_apart():
     index.regroup(1, 0)
     assert len(index.search(place_signature(gray[-1]), group=0, k=100)) == len(keys)
     index.remove(0)
+    assert 0 not in index
     assert 0 not in [k for k, _ in index.search(place_signature(gray[-1]), group=0, k=100)]
     assert len(index) == len(keys) - 1

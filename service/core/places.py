@@ -94,6 +94,13 @@ class PlaceIndex:
     def __len__(self) -> int:
         return len(self._row_of)
 
+    def __contains__(self, key: object) -> bool:
+        return key in self._row_of
+
+    def signature(self, key: int) -> np.ndarray:
+        """The signature indexed under ``key`` (a copy, shape ``shape``); KeyError if none."""
+        return self._rows[self._row_of[key]].reshape(self.shape).copy()
+
     def add(self, key: int, signature: np.ndarray, group: int) -> None:
         """Index ``signature`` (shape ``shape``) under ``key`` in ``group`` (a key added again
         replaces its row)."""

@@ -234,8 +234,7 @@ class LoopCloser:
         self.joins: list[Join] = []
         self._merged_into: dict[int, int] = {}  # joined segment -> the segment it joined
         self._segment_of: dict[int, int] = {}  # keyframe -> its segment (after joins)
-        self._signature: dict[int, np.ndarray] = {}  # keyframe -> place signature
-        self._places = PlaceIndex()  # the same signatures, by segment: loops by appearance
+        self._places = PlaceIndex()  # keyframe -> place signature, by segment: loops by appearance, joins
         self._position: dict[int, tuple[float, float]] = {}  # keyframe -> (east, north) m, with GPS
         # ground metres per input pixel, one value per keyframe with GPS (see _ground_scale)
         self._ground_m_per_px: deque[float] = deque(maxlen=_GROUND_PAIRS)
@@ -300,8 +299,7 @@ class LoopCloser:
               priors: KeyframePriors | None) -> None:
         self.store.put(index, small)  # the image that re-renders the map: the painter keeps it
         self._segment_of[index] = segment
-        self._signature[index] = place_signature(small)
-        self._places.add(index, self._signature[index], segment)
+        self._places.add(index, place_signature(small), segment)
         if priors is not None and priors.east_north is not None:
             self._position[index] = priors.east_north
 
@@ -360,9 +358,9 @@ class LoopCloser:
         ``loop_appearance_candidates`` scoring at least ``loop_appearance_min_score``. One that is
         also a nearby candidate is tried again without a prior: that prior comes from the drifted
         estimate and may exclude the true placement."""
-        if not self.params.loop_appearance or index not in self._signature:
+        if not self.params.loop_appearance or index not in self._places:
             return []
-        found = self._places.search(self._signature[index], segment, self.params.loop_appearance_candidates,
+        found = self._places.search(self._places.signature(index), segment, self.params.loop_appearance_candidates,
                                     set(graph.recent()))
         return graph.appearance_candidates([k for k, score in found
                                             if score >= self.params.loop_appearance_min_score])
@@ -480,7 +478,8 @@ class LoopCloser:
             reach = self._join_reach_m()
             near = sorted(others, key=key.get)[:self.join_candidates]
             return [k for k in near if reach is None or key[k] <= reach]
-        similar = place_similarities(self._signature[index], np.stack([self._signature[k] for k in others]))
+        similar = place_similarities(self._places.signature(index),
+                                     np.stack([self._places.signature(k) for k in others]))
         return [others[i] for i in np.argsort(-similar, kind="stable")[:self.join_candidates]]
 
     def _try_join(self, index: int, segment: int, small: np.ndarray, image: np.ndarray) -> Join | None:
@@ -652,7 +651,6 @@ class LoopCloser:
         self._wanted.discard(segment)
         for k in [k for k, s in self._segment_of.items() if s == segment]:
             del self._segment_of[k]
-            self._signature.pop(k, None)
             self._places.remove(k)
             self._position.pop(k, None)
             for key in [key for key in list(self._join_views) if key[0] == k]:
