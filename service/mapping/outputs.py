@@ -7,7 +7,6 @@ recorded in ``run.json`` (``origin_xy``: map pixel of the PNG's top-left pixel c
 
 from __future__ import annotations
 
-import math
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterator
@@ -15,7 +14,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from photomap.core.mosaic import TiledMosaic, _area_weights, unpremultiply
+from photomap.core.mosaic import TiledMosaic, unpremultiply
 from photomap.geo.georef import Georeference, aux_xml_text, compose, png_to_map, prj_text, world_file_text
 from photomap.io.parallel_writes import ParallelWrites
 from photomap.io.pngstream import PngStreamWriter
@@ -48,7 +47,7 @@ def render_bands(mosaic: TiledMosaic, scale: float
 
     Returns ``(bounds, (W, H), bands)``: the map rectangle, the output size, and an iterator of
     ``(image uint8 (n, W, C), alpha uint8 (n, W))`` bands whose rows, stacked, equal
-    ``mosaic.render(scale)`` exactly (the same area weights, summed in the same tile order). Each
+    ``mosaic.render(scale)`` exactly (both are :meth:`TiledMosaic.area_sums` when downscaled). Each
     tile is read once; memory is one band (about a tile row) instead of the whole map, so a
     survey-size map is never one array.
     """
@@ -66,6 +65,10 @@ def render_bands(mosaic: TiledMosaic, scale: float
 def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int, full: bool
            ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     ts, C = mosaic.tile_size, mosaic.channels
+    if not full:
+        for sums in mosaic.area_sums((x, y, w, h), (ow, oh)):
+            yield _finish(sums, C)
+        return
     rows: dict[int, list[tuple[int, int]]] = {}
     for key in mosaic.tiles():  # sorted by row, then column (the order render() sums in)
         if x // ts <= key[0] <= (x + w - 1) // ts and y // ts <= key[1] <= (y + h - 1) // ts:
@@ -75,58 +78,17 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
         image, alpha = mosaic.tile_image(key)
         return (image[..., None] if image.ndim == 2 else image), alpha
 
-    if full:
-        for ty in range(y // ts, (y + h - 1) // ts + 1):
-            my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
-            image = np.zeros((my1 - my0, w, C), np.uint8)
-            alpha = np.zeros((my1 - my0, w), np.uint8)
-            for key in rows.get(ty, ()):
-                ox = key[0] * ts
-                mx0, mx1 = max(ox, x), min(ox + ts, x + w)
-                t_img, t_alpha = pixels(key)
-                image[:, mx0 - x:mx1 - x] = t_img[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
-                alpha[:, mx0 - x:mx1 - x] = t_alpha[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
-            yield image, alpha
-        return
-    step_y, step_x = h / oh, w / ow
-    start = 0  # first output row not yet emitted; acc holds rows start .. start + len(acc)
-    acc = np.zeros((0, ow, C + 1), np.float32)
-    columns: dict[int, tuple[int, np.ndarray]] = {}
     for ty in range(y // ts, (y + h - 1) // ts + 1):
         my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
-        j0 = int(math.floor((my0 - y) / step_y))
-        j1 = min(oh, int(math.ceil((my1 - y) / step_y)))
-        if j0 > start:  # rows above this tile row are complete
-            done = min(j0 - start, acc.shape[0])
-            yield _finish(acc[:done], C)
-            if j0 - start > done:
-                yield _finish(np.zeros((j0 - start - done, ow, C + 1), np.float32), C)
-            acc = acc[done:]
-            start = j0
-        if j1 - start > acc.shape[0]:
-            acc = np.concatenate([acc, np.zeros((j1 - start - acc.shape[0], ow, C + 1), np.float32)])
-        wy = None
+        image = np.zeros((my1 - my0, w, C), np.uint8)
+        alpha = np.zeros((my1 - my0, w), np.uint8)
         for key in rows.get(ty, ()):
-            ox, oy = key[0] * ts, ty * ts
+            ox = key[0] * ts
             mx0, mx1 = max(ox, x), min(ox + ts, x + w)
             t_img, t_alpha = pixels(key)
-            src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
-            a = t_alpha[src].astype(np.float32) / 255
-            if not a.any():
-                continue
-            pre = cv2.merge([*(np.multiply(p, a, dtype=np.float32) for p in cv2.split(t_img[src])), a])  # premultiplied
-            if key[0] not in columns:  # a tile column's weights are the same in every row
-                columns[key[0]] = _area_weights(mx0 - x, mx1 - x, step_x, ow)
-            u0, wx = columns[key[0]]
-            if wy is None:
-                v0, wy = _area_weights(my0 - y, my1 - y, step_y, oh)
-            block = np.tensordot(wy, pre, axes=(1, 0))
-            block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)
-            acc[v0 - start:v0 - start + wy.shape[0], u0:u0 + wx.shape[0]] += block
-    if acc.shape[0]:
-        yield _finish(acc, C)
-    if start + acc.shape[0] < oh:
-        yield _finish(np.zeros((oh - start - acc.shape[0], ow, C + 1), np.float32), C)
+            image[:, mx0 - x:mx1 - x] = t_img[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
+            alpha[:, mx0 - x:mx1 - x] = t_alpha[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
+        yield image, alpha
 
 
 def _finish(acc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
