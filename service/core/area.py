@@ -85,7 +85,7 @@ def area_columns(band: np.ndarray, n_out: int, misses: np.ndarray | None = None)
     if n_out == w:
         return band.copy()
     out = cv2.resize(band, (n_out, rows), interpolation=cv2.INTER_AREA)
-    if out.ndim < band.ndim:
+    if out.ndim < band.ndim:  # OpenCV drops a last axis of 1
         out = out[..., None]
     misses = _opencv_misses(w, n_out) if misses is None else misses
     if misses.size:
@@ -104,8 +104,8 @@ def area_rows(data: np.ndarray, a: int, b: int, step: float, n_out: int) -> tupl
 class AreaRows:
     """Area-average a ``h`` x ``w`` image given as bands of rows to ``oh`` x ``ow``.
 
-    ``add(y0, band)`` takes the float32 (rows, w, C) band of source rows ``y0 ..`` (bands in
-    order, not overlapping; rows never given are 0) and returns the output rows it finished,
+    ``add(y0, band)`` takes the band of source rows ``y0 ..`` as float32 (rows, w, C), or as a
+    list of its ``C`` (rows, w) planes (bands in order, not overlapping; rows never given are 0) and returns the output rows it finished,
     as a list of float32 (n, ow, C) blocks; :meth:`close` returns the rest. Stacked, the blocks
     are the whole ``oh`` x ``ow`` output. The caller premultiplies colour by alpha (and
     unpremultiplies the output) so that empty pixels do not darken the map's edge."""
@@ -130,15 +130,18 @@ class AreaRows:
             self._start = j
         return out
 
-    def add(self, y0: int, band: np.ndarray) -> list[np.ndarray]:
-        n = band.shape[0]
+    def add(self, y0: int, band: np.ndarray | list[np.ndarray]) -> list[np.ndarray]:
+        n = band[0].shape[0] if isinstance(band, list) else band.shape[0]
         j0 = int(math.floor(y0 / self._step))
         j1 = min(self.oh, int(math.ceil((y0 + n) / self._step)))
         out = self._emit_to(j0)
         if j1 - self._start > self._acc.shape[0]:
             grow = np.zeros((j1 - self._start - self._acc.shape[0], self.ow, self.channels), np.float32)
             self._acc = np.concatenate([self._acc, grow])
-        cols = area_columns(band, self.ow, self._misses)
+        if isinstance(band, list):
+            cols = cv2.merge([area_columns(p, self.ow, self._misses) for p in band])
+        else:
+            cols = area_columns(band, self.ow, self._misses)
         v0, sums = area_rows(cols, y0, y0 + n, self._step, self.oh)
         self._acc[v0 - self._start:v0 - self._start + sums.shape[0]] += sums
         return out

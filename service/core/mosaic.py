@@ -919,21 +919,18 @@ class TiledMosaic:
         stream = AreaRows(h, w, oh, ow, C + 1)
         for ty in sorted(rows):
             my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
-            band = None
+            image = np.zeros((my1 - my0, w, C), self.dtype)  # the tile row, full width
+            cover = np.zeros((my1 - my0, w), np.uint8)
             for tile, (mx0, _, mx1, _), (ox, oy) in rows[ty]:
                 t_img, t_alpha = self._tile_pixels(tile)
                 src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
-                a = t_alpha[src].astype(np.float32) / 255
-                if not a.any():
-                    continue
-                if band is None:
-                    band = np.zeros((my1 - my0, w, C + 1), np.float32)
-                dst = band[:, mx0 - x:mx1 - x]
-                for c in range(C):
-                    np.multiply(t_img[src][..., c], a, out=dst[..., c], dtype=np.float32)
-                dst[..., C] = a
-            if band is not None:
-                yield from stream.add(my0 - y, band)
+                image[:, mx0 - x:mx1 - x] = t_img[src]
+                cover[:, mx0 - x:mx1 - x] = t_alpha[src]
+            if not cover.any():
+                continue
+            a = cover.astype(np.float32) / 255
+            planes = [np.multiply(p, a, dtype=np.float32) for p in cv2.split(image)] + [a]  # premultiplied
+            yield from stream.add(my0 - y, planes)
         yield from stream.close()
 
 

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
 
+from photomap.core.area import AreaRows
 from photomap.core.mosaic import TiledMosaic, unpremultiply
 from photomap.geo.georef import Georeference, aux_xml_text, compose, png_to_map, prj_text, world_file_text
 from photomap.io.parallel_writes import ParallelWrites
@@ -41,7 +42,7 @@ def png_placement(name: str, mosaic: TiledMosaic, max_px: int) -> dict | None:
             "bounds": [int(v) for v in bounds], "size": [int(ow), int(oh)]}
 
 
-def render_bands(mosaic: TiledMosaic, scale: float
+def render_bands(mosaic: TiledMosaic, scale: float, on_sums: Callable[[np.ndarray], None] | None = None
                  ) -> tuple[tuple[int, int, int, int], tuple[int, int], Iterator[tuple[np.ndarray, np.ndarray]]]:
     """The map of ``mosaic`` at ``scale``, band by band from the top, one tile row at a time.
 
@@ -49,7 +50,8 @@ def render_bands(mosaic: TiledMosaic, scale: float
     ``(image uint8 (n, W, C), alpha uint8 (n, W))`` bands whose rows, stacked, equal
     ``mosaic.render(scale)`` exactly (both are :meth:`TiledMosaic.area_sums` when downscaled). Each
     tile is read once; memory is one band (about a tile row) instead of the whole map, so a
-    survey-size map is never one array.
+    survey-size map is never one array. ``on_sums``, downscaled: given each band's alpha-weighted
+    sums first (:meth:`TiledMosaic.area_sums`; not to be changed).
     """
     bounds = mosaic.bounds()
     if bounds is None:
@@ -59,14 +61,16 @@ def render_bands(mosaic: TiledMosaic, scale: float
     x, y, w, h = bounds
     full = scale == 1
     ow, oh = (w, h) if full else (max(1, round(w * scale)), max(1, round(h * scale)))
-    return bounds, (ow, oh), _bands(mosaic, x, y, w, h, ow, oh, full)
+    return bounds, (ow, oh), _bands(mosaic, x, y, w, h, ow, oh, full, on_sums)
 
 
-def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int, full: bool
-           ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int, full: bool,
+           on_sums: Callable[[np.ndarray], None] | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     ts, C = mosaic.tile_size, mosaic.channels
     if not full:
         for sums in mosaic.area_sums((x, y, w, h), (ow, oh)):
+            if on_sums is not None:
+                on_sums(sums)
             yield _finish(sums, C)
         return
     rows: dict[int, list[tuple[int, int]]] = {}
@@ -98,12 +102,53 @@ def _finish(acc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
     return image, planes[C]
 
 
-def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
+class PngThumbnail:
+    """The PNG written by :func:`write_png` area-averaged to at most ``max_px`` on its longer
+    side, from its bands as they are written (alpha-weighted, as :meth:`TiledMosaic.render`; a
+    downscaled PNG's bands before they are rounded): the report's map without reading the map
+    again. :meth:`image` is None until the whole PNG went through."""
+
+    def __init__(self, max_px: int) -> None:
+        self.max_px = int(max_px)
+        self._rows: AreaRows | None = None
+        self._y = 0
+        self._blocks: list[np.ndarray] = []
+
+    def start(self, width: int, height: int) -> None:
+        """A PNG of ``width`` x ``height`` begins."""
+        f = min(1.0, self.max_px / max(width, height))
+        self._size = (width, height)
+        self._rows = AreaRows(height, width, max(1, round(height * f)), max(1, round(width * f)), 4)
+        self._y, self._blocks = 0, []
+
+    def add(self, bgra: np.ndarray) -> None:
+        """The PNG's next band (uint8 BGRA rows)."""
+        a = bgra[..., 3].astype(np.float32) / 255
+        self.add_sums(cv2.merge([np.multiply(p, a, dtype=np.float32) for p in cv2.split(bgra[..., :3])] + [a]))
+
+    def add_sums(self, sums: np.ndarray) -> None:
+        """The PNG's next band as alpha-weighted sums (float32 (n, w, 4): colour times
+        coverage, coverage in [0, 1]; of a colour map)."""
+        self._blocks += self._rows.add(self._y, sums)
+        self._y += sums.shape[0]
+
+    def image(self) -> np.ndarray | None:
+        """The thumbnail, BGRA uint8, or None."""
+        if self._rows is None or self._y != self._size[1]:
+            return None
+        image, alpha = _finish(np.concatenate(self._blocks + self._rows.close()), 3)
+        self._rows = None
+        return _bgra(image, alpha)
+
+
+def write_png(path: Path, mosaic: TiledMosaic, max_px: int, *, thumbnail: PngThumbnail | None = None
+              ) -> dict | None:
     """The map of ``mosaic``, downscaled to at most ``max_px`` on its longer side; its placement.
 
     Written band by band (:func:`render_bands`, :class:`~photomap.io.pngstream.PngStreamWriter`),
     each band encoded on a thread while the next renders: memory stays about two tile rows of the
     PNG whatever the map's size.
+    ``thumbnail`` (optional) is given every band too.
     Returns None for an empty map, else ``file``, ``origin_xy``, ``scale``, ``pixel_scale``,
     ``bounds`` (map rectangle x, y, w, h) and ``size`` (PNG w, h).
     """
@@ -111,11 +156,16 @@ def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
         return None
     _, _, w, h = mosaic.bounds()
     scale = min(1.0, max_px / max(w, h))
-    bounds, (ow, oh), bands = render_bands(mosaic, scale)
+    sums_to = thumbnail.add_sums if thumbnail is not None and scale < 1 and mosaic.channels == 3 else None
+    bounds, (ow, oh), bands = render_bands(mosaic, scale, sums_to)
+    if thumbnail is not None:
+        thumbnail.start(ow, oh)
     with PngStreamWriter(path, ow, oh, channels=4) as png, ThreadPoolExecutor(1, "photomap-png") as encoder:
         encoded = None  # a band is filtered and compressed while the next one renders (two bands in memory)
         for image, alpha in bands:
             band = _bgra(image, alpha)
+            if thumbnail is not None and sums_to is None:
+                thumbnail.add(band)
             if encoded is not None:
                 encoded.result()
             encoded = encoder.submit(png.write, band)

@@ -39,7 +39,8 @@ from photomap.mapping.events import GeoreferenceSink
 from photomap.mapping.frameprep import FramePrep
 from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs, write_main_cog
 from photomap.mapping.loopclosure import LoopCloser
-from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
+from photomap.mapping.outputs import (PngThumbnail, png_placement, remove_sidecars, render_small, write_png,
+                                     write_sidecars, write_tiles)
 from photomap.mapping.painter import Painter
 from photomap.mapping.raw_frames import RawFrameKeeper
 from photomap.mapping.rows import RowView, TrajectoryRows
@@ -420,10 +421,12 @@ class RunOutputs:
         if self.telemetry is not None and self.cfg.geotiff and order and order[0] in placements:
             beside = ThreadPoolExecutor(1, "photomap-cog")
             cog = beside.submit(write_main_cog, self.out_dir, placements[order[0]], self.segments.mosaics)
+        thumbnail = PngThumbnail(THUMB_PX)  # the report's map, from the main PNG's bands
         try:
             for rank, seg in enumerate(order):
                 name = names[seg]
-                info = self._attempt(name, write_png, self.out_dir / name, self.segments.mosaics[seg], max_px)
+                info = self._attempt(name, write_png, self.out_dir / name, self.segments.mosaics[seg], max_px,
+                                     thumbnail=thumbnail if rank == 0 else None)
                 if info is None:
                     if seg in placements:
                         unwritten.append(placements[seg])
@@ -493,9 +496,11 @@ class RunOutputs:
         timing.add("final_outputs", time.perf_counter() - t0)
         summary["timing_ms"] = timing.summary()
         self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
-        try:  # report.html: the flight at a glance, offline (its map from the tiles, not the PNG)
+        try:  # report.html: the flight at a glance, offline (its map from the PNG's bands, else the tiles)
             main = self.segments.mosaics.get(maps[0]["segment"]) if maps else None
-            small = render_small(main, min(THUMB_PX, max(maps[0]["size"]))) if main is not None else None
+            small = thumbnail.image() if maps and maps[0]["segment"] == order[0] else None
+            if small is None and main is not None:
+                small = render_small(main, min(THUMB_PX, max(maps[0]["size"])))
             write_report(self.out_dir, map_image=small)
         except (OSError, ValueError, PhotomapError) as exc:
             log.warning("report.html not written: %s", exc)
