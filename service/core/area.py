@@ -130,18 +130,24 @@ class AreaRows:
             self._start = j
         return out
 
+    def columns(self, band: np.ndarray | list[np.ndarray]) -> np.ndarray:
+        """The band's columns reduced to ``ow`` (:func:`area_columns`): float32 (rows, ow, C)."""
+        if isinstance(band, list):
+            return cv2.merge([area_columns(p, self.ow, self._misses) for p in band])
+        return area_columns(band, self.ow, self._misses)
+
     def add(self, y0: int, band: np.ndarray | list[np.ndarray]) -> list[np.ndarray]:
-        n = band[0].shape[0] if isinstance(band, list) else band.shape[0]
+        return self.add_columns(y0, self.columns(band))
+
+    def add_columns(self, y0: int, cols: np.ndarray) -> list[np.ndarray]:
+        """:meth:`add` of a band whose columns are reduced already (:meth:`columns`)."""
+        n = cols.shape[0]
         j0 = int(math.floor(y0 / self._step))
         j1 = min(self.oh, int(math.ceil((y0 + n) / self._step)))
         out = self._emit_to(j0)
         if j1 - self._start > self._acc.shape[0]:
             grow = np.zeros((j1 - self._start - self._acc.shape[0], self.ow, self.channels), np.float32)
             self._acc = np.concatenate([self._acc, grow])
-        if isinstance(band, list):
-            cols = cv2.merge([area_columns(p, self.ow, self._misses) for p in band])
-        else:
-            cols = area_columns(band, self.ow, self._misses)
         v0, sums = area_rows(cols, y0, y0 + n, self._step, self.oh)
         self._acc[v0 - self._start:v0 - self._start + sums.shape[0]] += sums
         return out

@@ -64,6 +64,7 @@ GAIN_PULL = 0.1
 
 TileKey = tuple[int, int]
 Rect = tuple[int, int, int, int]
+_AREA_ROWS = 32  # area_sums premultiplies and reduces a tile row's columns this many rows at a time
 
 _COVER_STEP = 4  # px: a spilled tile's coverage is kept at this step (uncovered()'s default)
 # frame sizes around a frame whose spilled tiles are read ahead: what the next frames paint at
@@ -928,9 +929,12 @@ class TiledMosaic:
                 cover[:, mx0 - x:mx1 - x] = t_alpha[src]
             if not cover.any():
                 continue
-            a = cover.astype(np.float32) / 255
-            planes = [np.multiply(p, a, dtype=np.float32) for p in cv2.split(image)] + [a]  # premultiplied
-            yield from stream.add(my0 - y, planes)
+            cols = np.empty((my1 - my0, ow, C + 1), np.float32)
+            for r0 in range(0, my1 - my0, _AREA_ROWS):  # premultiplied, a few rows at a time (memory)
+                a = cover[r0:r0 + _AREA_ROWS].astype(np.float32) / 255
+                planes = [np.multiply(p, a, dtype=np.float32) for p in cv2.split(image[r0:r0 + _AREA_ROWS])]
+                cols[r0:r0 + _AREA_ROWS] = stream.columns(planes + [a])
+            yield from stream.add_columns(my0 - y, cols)
         yield from stream.close()
 
 
