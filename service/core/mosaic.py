@@ -64,7 +64,7 @@ GAIN_PULL = 0.1
 
 TileKey = tuple[int, int]
 Rect = tuple[int, int, int, int]
-_AREA_ROWS = 32  # area_sums premultiplies and reduces a tile row's columns this many rows at a time
+_AREA_ROWS = 32  # area_sums premultiplies and reduces a tile row this many rows at a time
 
 _COVER_STEP = 4  # px: a spilled tile's coverage is kept at this step (uncovered()'s default)
 # frame sizes around a frame whose spilled tiles are read ahead: what the next frames paint at
@@ -908,9 +908,10 @@ class TiledMosaic:
     def area_sums(self, bounds: Rect, size: tuple[int, int]) -> Iterator[np.ndarray]:
         """The map rectangle ``bounds`` (x, y, w, h) area-averaged to ``size`` (W, H), as float32
         (n, W, C + 1) blocks of output rows from the top: colour times coverage, coverage (in
-        [0, 1]); stacked they are all H rows. One tile row is read at a time (full width,
-        premultiplied) and reduced by :class:`~photomap.core.area.AreaRows`: memory is one
-        tile row of the region and the output rows under way, never the whole map."""
+        [0, 1]); stacked they are all H rows. One tile row is read at a time (full width), then
+        premultiplied and reduced by :class:`~photomap.core.area.AreaRows` a few rows at a time:
+        memory is one tile row of the region's pixels and the output rows under way, never the
+        whole map."""
         x, y, w, h = bounds
         ow, oh = size
         ts, C = self.tile_size, self.channels
@@ -929,12 +930,10 @@ class TiledMosaic:
                 cover[:, mx0 - x:mx1 - x] = t_alpha[src]
             if not cover.any():
                 continue
-            cols = np.empty((my1 - my0, ow, C + 1), np.float32)
             for r0 in range(0, my1 - my0, _AREA_ROWS):  # premultiplied, a few rows at a time (memory)
                 a = cover[r0:r0 + _AREA_ROWS].astype(np.float32) / 255
                 planes = [np.multiply(p, a, dtype=np.float32) for p in cv2.split(image[r0:r0 + _AREA_ROWS])]
-                cols[r0:r0 + _AREA_ROWS] = stream.columns(planes + [a])
-            yield from stream.add_columns(my0 - y, cols)
+                yield from stream.add(my0 - y + r0, planes + [a])
         yield from stream.close()
 
 
@@ -945,20 +944,6 @@ def _tent(n: int, border: int) -> np.ndarray:
     d = np.clip(np.minimum(i - border + 1, n - border - i), 0, None).astype(np.float32)
     top = d.max()
     return d / top if top > 0 else d
-
-
-def _area_weights(a: int, b: int, step: float, n_out: int) -> tuple[int, np.ndarray]:
-    """INTER_AREA weights of source pixels ``[a, b)`` for the output pixels that overlap them.
-
-    Output pixel ``j`` averages source interval ``[j*step, (j+1)*step)``. Returns the first such
-    output index ``j0`` and a float32 matrix (outputs, b - a) of overlap / step.
-    """
-    j0 = int(math.floor(a / step))
-    j1 = min(n_out, int(math.ceil(b / step)))
-    j = np.arange(j0, j1, dtype=np.float64)[:, None]
-    i = np.arange(a, b, dtype=np.float64)[None, :]
-    overlap = np.minimum(i + 1, (j + 1) * step) - np.maximum(i, j * step)
-    return j0, (np.clip(overlap, 0, None) / step).astype(np.float32)
 
 
 def unpremultiply(warped: np.ndarray, dtype: type = np.uint8) -> list[np.ndarray]:
