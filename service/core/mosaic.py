@@ -45,12 +45,13 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from typing import Callable, Iterable, Mapping, Protocol
+from typing import Callable, Iterable, Iterator, Mapping, Protocol
 
 import cv2
 import numpy as np
 
 from photomap.config import MosaicConfig
+from photomap.core.area import AreaRows
 from photomap.core.exposure import SequentialGain
 from photomap.errors import InputError, PhotomapError
 from photomap.geometry import pose_scale
@@ -63,6 +64,7 @@ GAIN_PULL = 0.1
 
 TileKey = tuple[int, int]
 Rect = tuple[int, int, int, int]
+_AREA_ROWS = 32  # area_sums premultiplies and reduces a tile row this many rows at a time
 
 _COVER_STEP = 4  # px: a spilled tile's coverage is kept at this step (uncovered()'s default)
 # frame sizes around a frame whose spilled tiles are read ahead: what the next frames paint at
@@ -894,27 +896,46 @@ class TiledMosaic:
 
     def _render_area(self, x: int, y: int, w: int, h: int, ow: int, oh: int
                      ) -> tuple[np.ndarray, np.ndarray]:
-        """Area-averaged (``INTER_AREA``) render to (oh, ow), one tile at a time, alpha-weighted."""
+        """Area-averaged (``INTER_AREA``) render to (oh, ow), alpha-weighted (:meth:`area_sums`)."""
         C = self.channels
-        acc = np.zeros((oh, ow, C + 1), np.float32)  # sum of alpha*colour, sum of alpha
-        for _, tile, (mx0, my0, mx1, my1), (ox, oy) in self._region_tiles(x, y, w, h):
-            t_img, t_alpha = self._tile_pixels(tile)
-            src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
-            a = t_alpha[src].astype(np.float32) / 255
-            if not a.any():
-                continue
-            pre = np.dstack([t_img[src] * a[..., None], a])
-            u0, wx = _area_weights(mx0 - x, mx1 - x, w / ow, ow)
-            v0, wy = _area_weights(my0 - y, my1 - y, h / oh, oh)
-            block = np.tensordot(wy, pre, axes=(1, 0))  # (oh', cols, C+1)
-            block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)  # (oh', ow', C+1)
-            acc[v0:v0 + wy.shape[0], u0:u0 + wx.shape[0]] += block
+        acc = np.concatenate(list(self.area_sums((x, y, w, h), (ow, oh))))
         cover = acc[..., C]
         image = np.zeros((oh, ow, C), self.dtype)
         covered = cover > 1e-6
         image[covered] = np.clip(np.rint(acc[..., :C][covered] / cover[covered][:, None]), 0, self._max)
         alpha = np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
         return image, alpha
+
+    def area_sums(self, bounds: Rect, size: tuple[int, int]) -> Iterator[np.ndarray]:
+        """The map rectangle ``bounds`` (x, y, w, h) area-averaged to ``size`` (W, H), as float32
+        (n, W, C + 1) blocks of output rows from the top: colour times coverage, coverage (in
+        [0, 1]); stacked they are all H rows. One tile row is read at a time (full width), then
+        premultiplied and reduced by :class:`~photomap.core.area.AreaRows` a few rows at a time:
+        memory is one tile row of the region's pixels and the output rows under way, never the
+        whole map."""
+        x, y, w, h = bounds
+        ow, oh = size
+        ts, C = self.tile_size, self.channels
+        rows: dict[int, list] = {}
+        for key, tile, box, origin in self._region_tiles(x, y, w, h):  # by row, then column
+            rows.setdefault(key[1], []).append((tile, box, origin))
+        stream = AreaRows(h, w, oh, ow, C + 1)
+        for ty in sorted(rows):
+            my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
+            image = np.zeros((my1 - my0, w, C), self.dtype)  # the tile row, full width
+            cover = np.zeros((my1 - my0, w), np.uint8)
+            for tile, (mx0, _, mx1, _), (ox, oy) in rows[ty]:
+                t_img, t_alpha = self._tile_pixels(tile)
+                src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
+                image[:, mx0 - x:mx1 - x] = t_img[src]
+                cover[:, mx0 - x:mx1 - x] = t_alpha[src]
+            if not cover.any():
+                continue
+            for r0 in range(0, my1 - my0, _AREA_ROWS):  # premultiplied, a few rows at a time (memory)
+                a = cover[r0:r0 + _AREA_ROWS].astype(np.float32) / 255
+                planes = [np.multiply(p, a, dtype=np.float32) for p in cv2.split(image[r0:r0 + _AREA_ROWS])]
+                yield from stream.add(my0 - y + r0, planes + [a])
+        yield from stream.close()
 
 
 def _tent(n: int, border: int) -> np.ndarray:
@@ -924,20 +945,6 @@ def _tent(n: int, border: int) -> np.ndarray:
     d = np.clip(np.minimum(i - border + 1, n - border - i), 0, None).astype(np.float32)
     top = d.max()
     return d / top if top > 0 else d
-
-
-def _area_weights(a: int, b: int, step: float, n_out: int) -> tuple[int, np.ndarray]:
-    """INTER_AREA weights of source pixels ``[a, b)`` for the output pixels that overlap them.
-
-    Output pixel ``j`` averages source interval ``[j*step, (j+1)*step)``. Returns the first such
-    output index ``j0`` and a float32 matrix (outputs, b - a) of overlap / step.
-    """
-    j0 = int(math.floor(a / step))
-    j1 = min(n_out, int(math.ceil(b / step)))
-    j = np.arange(j0, j1, dtype=np.float64)[:, None]
-    i = np.arange(a, b, dtype=np.float64)[None, :]
-    overlap = np.minimum(i + 1, (j + 1) * step) - np.maximum(i, j * step)
-    return j0, (np.clip(overlap, 0, None) / step).astype(np.float32)
 
 
 def unpremultiply(warped: np.ndarray, dtype: type = np.uint8) -> list[np.ndarray]:

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from photomap.errors import InputError
-from photomap.core.mosaic import _area_weights
+from photomap.core.area import AreaRows
 from photomap.core.records import PoseRow
 from photomap.geo.georef import png_to_map
 from photomap.io.runfiles import RunFiles
@@ -96,20 +96,17 @@ def _encode_thumbnail(image: np.ndarray, png_width: int, max_px: int = THUMB_PX
 
 def _area_premultiplied(bgra: np.ndarray, size: tuple[int, int], band: int = 256) -> np.ndarray:
     """float32 (h', w', 4): the ``INTER_AREA`` downscale to ``size`` = (w', h') of (colour * alpha,
-    alpha), alpha in [0, 1], computed a band of rows at a time with separable area weights: an
-    8192 px map needs tens of MB here, not the 2 GB of float copies of the whole map."""
+    alpha), alpha in [0, 1], computed a band of rows at a time (:class:`~photomap.core.area.AreaRows`):
+    an 8192 px map needs tens of MB here, not the 2 GB of float copies of the whole map."""
     h, w = bgra.shape[:2]
     ow, oh = size
-    _, wx = _area_weights(0, w, w / ow, ow)  # (ow, w)
-    acc = np.zeros((oh, ow, 4), np.float32)
+    rows = AreaRows(h, w, oh, ow, 4)
+    blocks = []
     for y0 in range(0, h, band):
         part = bgra[y0:y0 + band]
-        a = part[..., 3:].astype(np.float32) / 255
-        pre = np.concatenate([part[..., :3] * a, a], axis=2)  # (rows, w, 4)
-        v0, wy = _area_weights(y0, y0 + part.shape[0], h / oh, oh)  # (outputs, rows)
-        block = np.tensordot(wy, pre, axes=(1, 0))  # (outputs, w, 4)
-        acc[v0:v0 + wy.shape[0]] += np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)
-    return acc
+        a = part[..., 3].astype(np.float32) / 255
+        blocks += rows.add(y0, [np.multiply(p, a, dtype=np.float32) for p in cv2.split(part[..., :3])] + [a])
+    return np.concatenate(blocks + rows.close())
 
 
 def _nice(v: float) -> float:

@@ -3,7 +3,8 @@
 - :func:`write_geo_outputs` (end of run, after the georeference, **before** the tile cache is
   removed): the north-up COG ``map.tif`` of the main map from the live mosaic
   (:func:`write_main_cog`, when the ``geo`` extra is installed; else one INFO line; or written
-  already, beside the PNGs), world files + ``tiles.vrt`` for full-resolution ``tiles/``, and
+  already, beside the PNGs), world files + ``tiles.vrt`` for full-resolution ``tiles/``
+  (:func:`write_tile_georeferences`; or written already, while the GeoTIFF was), and
   ``track.kml`` / ``track.geojson``.
 - :func:`refresh_track_files` (each checkpoint): rewrite ``track.kml`` / ``track.geojson``
   atomically, so a ground station reloading them (a KML network link, a GeoJSON layer) sees the
@@ -71,10 +72,27 @@ def write_main_cog(out_dir: str | Path, main: dict, mosaics: dict[int, TiledMosa
         return None
 
 
+def write_tile_georeferences(out_dir: str | Path, maps: Sequence[dict]) -> list[dict]:
+    """World files and ``tiles.vrt`` of every georeferenced map of ``maps`` (run.json
+    ``mosaics[]`` entries) with full-resolution ``tiles``; returns what was written (a failure
+    is a warning)."""
+    georefs = georefs_from_maps(maps)
+    done = []
+    for m in maps:
+        s = int(m.get("segment", 0))
+        if m.get("tiles") and s in georefs:
+            try:
+                done.append(write_tile_georeference(Path(out_dir) / m["tiles"], int(m.get("tile_size") or 256),
+                                                    *georefs[s]))
+            except (PhotomapError, OSError) as exc:
+                log.warning("tile world files not written: %s", exc)
+    return done
+
+
 def write_geo_outputs(out_dir: str | Path, maps: Sequence[dict], mosaics: dict[int, TiledMosaic],
                       rows: Sequence[PoseRow], frame_size: tuple[int, int], *, t0_unix: float | None = None,
                       cog: bool = True, cog_name: str = "map.tif", footprints: str = "spaced",
-                      cog_info: dict | None = None) -> dict:
+                      cog_info: dict | None = None, tile_georeference: list[dict] | None = None) -> dict:
     """The end-of-run georeferenced outputs; returns what was written (for run.json ``exports``).
 
     Parameters
@@ -86,6 +104,8 @@ def write_geo_outputs(out_dir: str | Path, maps: Sequence[dict], mosaics: dict[i
     cog : write the GeoTIFF of the main map (when rasterio is installed; :func:`write_main_cog`).
     cog_info : the GeoTIFF written already (what :func:`write_main_cog` returned): recorded, not
         written again.
+    tile_georeference : the tiles' georeference written already (what
+        :func:`write_tile_georeferences` returned): recorded, not written again.
 
     A failure of one output is logged as a warning and does not stop the others.
     """
@@ -102,14 +122,9 @@ def write_geo_outputs(out_dir: str | Path, maps: Sequence[dict], mosaics: dict[i
         info = write_main_cog(out, main, mosaics, cog_name=cog_name)
         if info is not None:
             done["cog"] = info
-    for m in maps:
-        s = int(m.get("segment", 0))
-        if m.get("tiles") and s in georefs:
-            try:
-                info = write_tile_georeference(out / m["tiles"], int(m.get("tile_size") or 256), *georefs[s])
-                done.setdefault("tile_georeference", []).append(info)
-            except (PhotomapError, OSError) as exc:
-                log.warning("tile world files not written: %s", exc)
+    tiles = write_tile_georeferences(out, maps) if tile_georeference is None else tile_georeference
+    if tiles:
+        done["tile_georeference"] = tiles
     try:
         overlay = mosaic_overlay(main, *georefs[seg]) if seg in georefs else None
         done["track"] = write_track_files(out, rows, frame_size, georefs, footprints=footprints,

@@ -7,15 +7,15 @@ recorded in ``run.json`` (``origin_xy``: map pixel of the PNG's top-left pixel c
 
 from __future__ import annotations
 
-import math
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
 
-from photomap.core.mosaic import TiledMosaic, _area_weights, unpremultiply
+from photomap.core.area import AreaRows
+from photomap.core.mosaic import TiledMosaic, unpremultiply
 from photomap.geo.georef import Georeference, aux_xml_text, compose, png_to_map, prj_text, world_file_text
 from photomap.io.parallel_writes import ParallelWrites
 from photomap.io.pngstream import PngStreamWriter
@@ -42,15 +42,16 @@ def png_placement(name: str, mosaic: TiledMosaic, max_px: int) -> dict | None:
             "bounds": [int(v) for v in bounds], "size": [int(ow), int(oh)]}
 
 
-def render_bands(mosaic: TiledMosaic, scale: float
+def render_bands(mosaic: TiledMosaic, scale: float, on_sums: Callable[[np.ndarray], None] | None = None
                  ) -> tuple[tuple[int, int, int, int], tuple[int, int], Iterator[tuple[np.ndarray, np.ndarray]]]:
     """The map of ``mosaic`` at ``scale``, band by band from the top, one tile row at a time.
 
     Returns ``(bounds, (W, H), bands)``: the map rectangle, the output size, and an iterator of
     ``(image uint8 (n, W, C), alpha uint8 (n, W))`` bands whose rows, stacked, equal
-    ``mosaic.render(scale)`` exactly (the same area weights, summed in the same tile order). Each
+    ``mosaic.render(scale)`` exactly (both are :meth:`TiledMosaic.area_sums` when downscaled). Each
     tile is read once; memory is one band (about a tile row) instead of the whole map, so a
-    survey-size map is never one array.
+    survey-size map is never one array. ``on_sums``, downscaled: given each band's alpha-weighted
+    sums first (:meth:`TiledMosaic.area_sums`; not to be changed).
     """
     bounds = mosaic.bounds()
     if bounds is None:
@@ -60,12 +61,18 @@ def render_bands(mosaic: TiledMosaic, scale: float
     x, y, w, h = bounds
     full = scale == 1
     ow, oh = (w, h) if full else (max(1, round(w * scale)), max(1, round(h * scale)))
-    return bounds, (ow, oh), _bands(mosaic, x, y, w, h, ow, oh, full)
+    return bounds, (ow, oh), _bands(mosaic, x, y, w, h, ow, oh, full, on_sums)
 
 
-def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int, full: bool
-           ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int, full: bool,
+           on_sums: Callable[[np.ndarray], None] | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     ts, C = mosaic.tile_size, mosaic.channels
+    if not full:
+        for sums in mosaic.area_sums((x, y, w, h), (ow, oh)):
+            if on_sums is not None:
+                on_sums(sums)
+            yield _finish(sums, C)
+        return
     rows: dict[int, list[tuple[int, int]]] = {}
     for key in mosaic.tiles():  # sorted by row, then column (the order render() sums in)
         if x // ts <= key[0] <= (x + w - 1) // ts and y // ts <= key[1] <= (y + h - 1) // ts:
@@ -75,58 +82,17 @@ def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int
         image, alpha = mosaic.tile_image(key)
         return (image[..., None] if image.ndim == 2 else image), alpha
 
-    if full:
-        for ty in range(y // ts, (y + h - 1) // ts + 1):
-            my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
-            image = np.zeros((my1 - my0, w, C), np.uint8)
-            alpha = np.zeros((my1 - my0, w), np.uint8)
-            for key in rows.get(ty, ()):
-                ox = key[0] * ts
-                mx0, mx1 = max(ox, x), min(ox + ts, x + w)
-                t_img, t_alpha = pixels(key)
-                image[:, mx0 - x:mx1 - x] = t_img[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
-                alpha[:, mx0 - x:mx1 - x] = t_alpha[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
-            yield image, alpha
-        return
-    step_y, step_x = h / oh, w / ow
-    start = 0  # first output row not yet emitted; acc holds rows start .. start + len(acc)
-    acc = np.zeros((0, ow, C + 1), np.float32)
-    columns: dict[int, tuple[int, np.ndarray]] = {}
     for ty in range(y // ts, (y + h - 1) // ts + 1):
         my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
-        j0 = int(math.floor((my0 - y) / step_y))
-        j1 = min(oh, int(math.ceil((my1 - y) / step_y)))
-        if j0 > start:  # rows above this tile row are complete
-            done = min(j0 - start, acc.shape[0])
-            yield _finish(acc[:done], C)
-            if j0 - start > done:
-                yield _finish(np.zeros((j0 - start - done, ow, C + 1), np.float32), C)
-            acc = acc[done:]
-            start = j0
-        if j1 - start > acc.shape[0]:
-            acc = np.concatenate([acc, np.zeros((j1 - start - acc.shape[0], ow, C + 1), np.float32)])
-        wy = None
+        image = np.zeros((my1 - my0, w, C), np.uint8)
+        alpha = np.zeros((my1 - my0, w), np.uint8)
         for key in rows.get(ty, ()):
-            ox, oy = key[0] * ts, ty * ts
+            ox = key[0] * ts
             mx0, mx1 = max(ox, x), min(ox + ts, x + w)
             t_img, t_alpha = pixels(key)
-            src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
-            a = t_alpha[src].astype(np.float32) / 255
-            if not a.any():
-                continue
-            pre = cv2.merge([*(np.multiply(p, a, dtype=np.float32) for p in cv2.split(t_img[src])), a])  # premultiplied
-            if key[0] not in columns:  # a tile column's weights are the same in every row
-                columns[key[0]] = _area_weights(mx0 - x, mx1 - x, step_x, ow)
-            u0, wx = columns[key[0]]
-            if wy is None:
-                v0, wy = _area_weights(my0 - y, my1 - y, step_y, oh)
-            block = np.tensordot(wy, pre, axes=(1, 0))
-            block = np.tensordot(block, wx, axes=(1, 1)).transpose(0, 2, 1)
-            acc[v0 - start:v0 - start + wy.shape[0], u0:u0 + wx.shape[0]] += block
-    if acc.shape[0]:
-        yield _finish(acc, C)
-    if start + acc.shape[0] < oh:
-        yield _finish(np.zeros((oh - start - acc.shape[0], ow, C + 1), np.float32), C)
+            image[:, mx0 - x:mx1 - x] = t_img[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
+            alpha[:, mx0 - x:mx1 - x] = t_alpha[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
+        yield image, alpha
 
 
 def _finish(acc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
@@ -136,12 +102,53 @@ def _finish(acc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
     return image, planes[C]
 
 
-def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
+class PngThumbnail:
+    """The PNG written by :func:`write_png` area-averaged to at most ``max_px`` on its longer
+    side, from its bands as they are written (alpha-weighted, as :meth:`TiledMosaic.render`; a
+    downscaled PNG's bands before they are rounded): the report's map without reading the map
+    again. :meth:`image` is None until the whole PNG went through."""
+
+    def __init__(self, max_px: int) -> None:
+        self.max_px = int(max_px)
+        self._rows: AreaRows | None = None
+        self._y = 0
+        self._blocks: list[np.ndarray] = []
+
+    def start(self, width: int, height: int) -> None:
+        """A PNG of ``width`` x ``height`` begins."""
+        f = min(1.0, self.max_px / max(width, height))
+        self._size = (width, height)
+        self._rows = AreaRows(height, width, max(1, round(height * f)), max(1, round(width * f)), 4)
+        self._y, self._blocks = 0, []
+
+    def add(self, bgra: np.ndarray) -> None:
+        """The PNG's next band (uint8 BGRA rows)."""
+        a = bgra[..., 3].astype(np.float32) / 255
+        self.add_sums(cv2.merge([np.multiply(p, a, dtype=np.float32) for p in cv2.split(bgra[..., :3])] + [a]))
+
+    def add_sums(self, sums: np.ndarray) -> None:
+        """The PNG's next band as alpha-weighted sums (float32 (n, w, 4): colour times
+        coverage, coverage in [0, 1]; of a colour map)."""
+        self._blocks += self._rows.add(self._y, sums)
+        self._y += sums.shape[0]
+
+    def image(self) -> np.ndarray | None:
+        """The thumbnail, BGRA uint8, or None."""
+        if self._rows is None or self._y != self._size[1]:
+            return None
+        image, alpha = _finish(np.concatenate(self._blocks + self._rows.close()), 3)
+        self._rows = None
+        return _bgra(image, alpha)
+
+
+def write_png(path: Path, mosaic: TiledMosaic, max_px: int, *, thumbnail: PngThumbnail | None = None
+              ) -> dict | None:
     """The map of ``mosaic``, downscaled to at most ``max_px`` on its longer side; its placement.
 
     Written band by band (:func:`render_bands`, :class:`~photomap.io.pngstream.PngStreamWriter`),
     each band encoded on a thread while the next renders: memory stays about two tile rows of the
     PNG whatever the map's size.
+    ``thumbnail`` (optional) is given every band too.
     Returns None for an empty map, else ``file``, ``origin_xy``, ``scale``, ``pixel_scale``,
     ``bounds`` (map rectangle x, y, w, h) and ``size`` (PNG w, h).
     """
@@ -149,11 +156,16 @@ def write_png(path: Path, mosaic: TiledMosaic, max_px: int) -> dict | None:
         return None
     _, _, w, h = mosaic.bounds()
     scale = min(1.0, max_px / max(w, h))
-    bounds, (ow, oh), bands = render_bands(mosaic, scale)
+    sums_to = thumbnail.add_sums if thumbnail is not None and scale < 1 and mosaic.channels == 3 else None
+    bounds, (ow, oh), bands = render_bands(mosaic, scale, sums_to)
+    if thumbnail is not None:
+        thumbnail.start(ow, oh)
     with PngStreamWriter(path, ow, oh, channels=4) as png, ThreadPoolExecutor(1, "photomap-png") as encoder:
         encoded = None  # a band is filtered and compressed while the next one renders (two bands in memory)
         for image, alpha in bands:
             band = _bgra(image, alpha)
+            if thumbnail is not None and sums_to is None:
+                thumbnail.add(band)
             if encoded is not None:
                 encoded.result()
             encoded = encoder.submit(png.write, band)

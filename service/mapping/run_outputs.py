@@ -37,9 +37,11 @@ from photomap.mapping.band_maps import write_band_maps, write_raw_map
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import GeoreferenceSink
 from photomap.mapping.frameprep import FramePrep
-from photomap.mapping.geo_outputs import georefs_from_maps, refresh_track_files, write_geo_outputs, write_main_cog
+from photomap.mapping.geo_outputs import (georefs_from_maps, refresh_track_files, write_geo_outputs, write_main_cog,
+                                         write_tile_georeferences)
 from photomap.mapping.loopclosure import LoopCloser
-from photomap.mapping.outputs import png_placement, remove_sidecars, render_small, write_png, write_sidecars, write_tiles
+from photomap.mapping.outputs import (PngThumbnail, png_placement, remove_sidecars, render_small, write_png,
+                                     write_sidecars, write_tiles)
 from photomap.mapping.painter import Painter
 from photomap.mapping.raw_frames import RawFrameKeeper
 from photomap.mapping.rows import RowView, TrajectoryRows
@@ -388,8 +390,8 @@ class RunOutputs:
         what vision did not (``run.json`` ``telemetry.placed``; :mod:`photomap.mapping.telemetry_place`).
 
         The georeference is fitted on the PNGs' placements first; the main map's GeoTIFF is then
-        written on the ``photomap-cog`` thread while this one writes the PNGs and tiles (both only
-        read the map). Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
+        written on the ``photomap-cog`` thread while this one writes the PNGs (the report's map
+        from the main one's bands), the tiles and their world files (all only read the map). Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
         ``write_errors``; when the map itself could not be written, the checkpoint keeps it
         (``photomap recover``), else the checkpoint is removed."""
         if self._state is not None:
@@ -416,14 +418,16 @@ class RunOutputs:
         if self.telemetry is not None:
             self._attempt("georeference", self._georeference, summary, list(placements.values()))
             summary["telemetry"]["placed"] = placed
-        cog = beside = None
+        cog = beside = tile_geo = None
         if self.telemetry is not None and self.cfg.geotiff and order and order[0] in placements:
             beside = ThreadPoolExecutor(1, "photomap-cog")
             cog = beside.submit(write_main_cog, self.out_dir, placements[order[0]], self.segments.mosaics)
+        thumbnail = PngThumbnail(THUMB_PX)  # the report's map, from the main PNG's bands
         try:
             for rank, seg in enumerate(order):
                 name = names[seg]
-                info = self._attempt(name, write_png, self.out_dir / name, self.segments.mosaics[seg], max_px)
+                info = self._attempt(name, write_png, self.out_dir / name, self.segments.mosaics[seg], max_px,
+                                     thumbnail=thumbnail if rank == 0 else None)
                 if info is None:
                     if seg in placements:
                         unwritten.append(placements[seg])
@@ -439,6 +443,8 @@ class RunOutputs:
                 if "georeference" in placements.get(seg, {}):
                     info["georeference"] = placements[seg]["georeference"]
                 maps.append(info)
+            # the tiles' world files (thousands of small files) while the GeoTIFF is still being written
+            tile_geo = write_tile_georeferences(self.out_dir, maps) if self.telemetry is not None else None
         finally:
             if beside is not None:
                 beside.shutdown(wait=True)
@@ -447,7 +453,8 @@ class RunOutputs:
         if self.telemetry is not None:
             exports = self._attempt("geo outputs", write_geo_outputs, self.out_dir, maps, self.segments.mosaics, self._rows,
                                     self._frame_size, t0_unix=summary["video_start_unix"],
-                                    cog=False, footprints=self.cfg.footprints, cog_info=cog_info)
+                                    cog=False, footprints=self.cfg.footprints, cog_info=cog_info,
+                                    tile_georeference=tile_geo)
             if exports and self.band_source is None and maps:
                 raw = self._raw_map(maps)
                 if raw:
@@ -493,9 +500,11 @@ class RunOutputs:
         timing.add("final_outputs", time.perf_counter() - t0)
         summary["timing_ms"] = timing.summary()
         self._attempt("run.json", write_json, self.out_dir / "run.json", summary)
-        try:  # report.html: the flight at a glance, offline (its map from the tiles, not the PNG)
+        try:  # report.html: the flight at a glance, offline (its map from the PNG's bands, else the tiles)
             main = self.segments.mosaics.get(maps[0]["segment"]) if maps else None
-            small = render_small(main, min(THUMB_PX, max(maps[0]["size"]))) if main is not None else None
+            small = thumbnail.image() if maps and maps[0]["segment"] == order[0] else None
+            if small is None and main is not None:
+                small = render_small(main, min(THUMB_PX, max(maps[0]["size"])))
             write_report(self.out_dir, map_image=small)
         except (OSError, ValueError, PhotomapError) as exc:
             log.warning("report.html not written: %s", exc)
