@@ -105,8 +105,8 @@ class AreaRows:
     """Area-average a ``h`` x ``w`` image given as bands of rows to ``oh`` x ``ow``.
 
     ``add(y0, band)`` takes the band of source rows ``y0 ..`` as float32 (rows, w, C), or as a
-    list of its ``C`` (rows, w) planes (bands in order, not overlapping; rows never given are 0) and returns the output rows it finished,
-    as a list of float32 (n, ow, C) blocks; :meth:`close` returns the rest. Stacked, the blocks
+    list of its ``C`` (rows, w) planes (bands in order, not overlapping; rows never given are
+    0) and returns the output rows it finished, as a list of float32 (n, ow, C) blocks; :meth:`close` returns the rest. Stacked, the blocks
     are the whole ``oh`` x ``ow`` output. The caller premultiplies colour by alpha (and
     unpremultiplies the output) so that empty pixels do not darken the map's edge."""
 
