@@ -299,29 +299,34 @@ class PacedVideoSource(SourceBase):
         self._queue: deque[Frame] = deque()
         self._cond = threading.Condition()
         self._done = False
+        self._failure: Exception | None = None  # the feeding thread's, raised to the reader
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="paced-video", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         t0 = time.monotonic()
-        with VideoFileSource(self._path) as video:
-            for k, frame in enumerate(video):
-                if self._stop.is_set():
-                    break
-                delay = t0 + k * self._period - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                with self._cond:
-                    self.stats.read += 1
-                    if len(self._queue) >= self._size:
-                        self._queue.popleft()
-                        self.stats.dropped += 1
-                    self._queue.append(Frame(frame.index, time.monotonic(), frame.image, "paced"))
-                    self._cond.notify()
-        with self._cond:
-            self._done = True
-            self._cond.notify()
+        try:
+            with VideoFileSource(self._path) as video:
+                for k, frame in enumerate(video):
+                    if self._stop.is_set():
+                        break
+                    delay = t0 + k * self._period - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                    with self._cond:
+                        self.stats.read += 1
+                        if len(self._queue) >= self._size:
+                            self._queue.popleft()
+                            self.stats.dropped += 1
+                        self._queue.append(Frame(frame.index, time.monotonic(), frame.image, "paced"))
+                        self._cond.notify()
+        except Exception as exc:  # e.g. the video removed: the run fails instead of waiting forever
+            self._failure = exc
+        finally:
+            with self._cond:
+                self._done = True
+                self._cond.notify()
 
     def __iter__(self) -> Iterator[Frame]:
         while True:
@@ -329,6 +334,8 @@ class PacedVideoSource(SourceBase):
                 while not self._queue and not self._done:
                     self._cond.wait(0.2)
                 if not self._queue:
+                    if self._failure is not None:
+                        raise RuntimeError(f"the paced video failed: {self._failure}") from self._failure
                     return
                 frame = self._queue.popleft()
             yield frame
