@@ -376,6 +376,7 @@ class MapServerConfig(_Section):
     max_raw_tiles: int = _num(256, 0, 10_000_000)
     cache_tiles: int = _num(256, 1, 1_000_000)
     min_render_interval_s: float = _num(2.0, 0.0, 3600.0)
+    jpeg_quality: int = _num(0, 0, 100)
     write_xyz: bool = True
 
 

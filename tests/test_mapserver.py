@@ -415,6 +415,39 @@ def test_a_repainted_tile_is_served_fresh_within_the_render_interval():
     assert served() == 200 and cache.renders == 3  # unchanged since: no render
 
 
+def test_tiles_mapped_everywhere_are_jpegs_with_a_jpeg_quality():
+    """map_server.jpeg_quality: a tile mapped in every pixel is a JPEG of the same picture (within
+    JPEG's error), one with empty pixels stays the PNG it was (transparent there)."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.live.livemap import LiveMap, TileCache, tile_type
+
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (320, 256, 3), dtype=np.uint8), (0, 0), 2.0)
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    full = np.full((64, 64), 255, np.uint8)
+    touched = set()
+    for ty in range(5):  # map pixels 0..255 x 0..319: pixel-frame tile (0, 0) whole, (0, 1) a quarter
+        for tx in range(4):
+            mosaic.set_tile((tx, ty), texture[ty * 64:(ty + 1) * 64, tx * 64:(tx + 1) * 64].copy(), full)
+            touched.add((tx, ty))
+    live = LiveMap(tile_hz=1e6)
+    live.on_frame(_tile_event(0, mosaic, touched))
+    snap = live.snapshot()
+    png_cache, jpeg_cache = TileCache(16, 0.0), TileCache(16, 0.0, jpeg_quality=90)
+    whole_png, whole_jpeg = png_cache.get(snap, "pixel", 0, 0, 8), jpeg_cache.get(snap, "pixel", 0, 0, 8)
+    assert tile_type(whole_png) == "image/png" and tile_type(whole_jpeg) == "image/jpeg"
+    assert len(whole_jpeg) < len(whole_png) / 3
+    a = _decode(whole_png)
+    b = cv2.imdecode(np.frombuffer(whole_jpeg, np.uint8), cv2.IMREAD_COLOR)
+    assert b.shape == (256, 256, 3) and (a[..., 3] == 255).all()
+    assert np.abs(a[..., :3].astype(int) - b).mean() < 4.0  # the same picture, JPEG's error
+    part_png, part_jpeg = png_cache.get(snap, "pixel", 0, 1, 8), jpeg_cache.get(snap, "pixel", 0, 1, 8)
+    assert tile_type(part_jpeg) == "image/png" and part_jpeg == part_png
+    part = _decode(part_jpeg)
+    assert (part[:64, :, 3] == 255).all() and (part[64:, :, 3] == 0).all()
+
+
 def test_status_bounds_follow_the_map_as_it_grows():
     """The status's bounds (worked out once per change of the served tiles) are those of the
     tiles copied so far, frame after frame."""

@@ -22,7 +22,8 @@ Tiles (rendered on request, :class:`TileCache`):
   so at ``PIXEL_ZOOM`` one tile pixel is one map pixel: Leaflet ``L.CRS.Simple`` with
   ``latlng = (-y, x) / 2**PIXEL_ZOOM``.
 
-Both are 256 x 256 RGBA PNGs, transparent where nothing is mapped. A rendered tile is kept with
+Both are 256 x 256 RGBA PNGs, transparent where nothing is mapped (or, with a JPEG quality,
+JPEGs where every pixel is mapped: :func:`render_png`). A rendered tile is kept with
 the versions of the map tiles it was made from; it is served again while they are unchanged, and
 while younger than ``min_render_interval_s`` even when they changed (a client asking for a busy
 tile many times a second gets one render per interval).
@@ -523,10 +524,11 @@ def pixel_source_rect(x: int, y: int, z: int) -> tuple[int, int, int, int]:
     return x * f, y * f, (x + 1) * f, (y + 1) * f
 
 
-def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callable[[], None] = lambda: None
-               ) -> bytes:
+def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callable[[], None] = lambda: None,
+               jpeg_quality: int = 0) -> bytes:
     """The PNG of tile ``(x, y, z)``: ``kind`` ``xyz`` (georeferenced) or ``pixel``; ``pause``
-    is called between the steps (rendering, encoding)."""
+    is called between the steps (rendering, encoding). ``jpeg_quality`` 1-100: a tile mapped
+    in every pixel is a JPEG of that quality instead (:func:`tile_type` tells them apart)."""
     pause()
     if kind == "xyz":
         tile = _xyz_tile(snap, x, y, z)
@@ -540,8 +542,16 @@ def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callabl
     if tile is None:
         return EMPTY_PNG
     pause()
-    ok, buf = cv2.imencode(".png", tile, _PNG_PARAMS)
+    if jpeg_quality > 0 and tile[..., 3].min() == 255:
+        ok, buf = cv2.imencode(".jpg", tile[..., :3], [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    else:
+        ok, buf = cv2.imencode(".png", tile, _PNG_PARAMS)
     return buf.tobytes() if ok else EMPTY_PNG
+
+
+def tile_type(body: bytes) -> str:
+    """The media type of a tile :func:`render_png` made."""
+    return "image/jpeg" if body[:3] == b"\xff\xd8\xff" else "image/png"
 
 
 @dataclass
@@ -557,8 +567,9 @@ class TileCache:
     ``max_entries``; see the module docstring for when a tile is rendered again."""
 
     def __init__(self, max_entries: int = 256, min_interval_s: float = 2.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, jpeg_quality: int = 0) -> None:
         self._entries: OrderedDict[tuple, _Entry] = OrderedDict()
+        self._jpeg_quality = int(jpeg_quality)  # see render_png
         self._lock = threading.Lock()
         self._max = max(1, int(max_entries))
         self._interval = float(min_interval_s)
@@ -584,7 +595,7 @@ class TileCache:
                     self._entries.move_to_end(key)
                 self.hits += 1
             return entry.png
-        png = render_png(snap, kind, x, y, z, pause) if deps else EMPTY_PNG
+        png = render_png(snap, kind, x, y, z, pause, self._jpeg_quality) if deps else EMPTY_PNG
         with self._lock:
             self.renders += 1
             self._entries[key] = _Entry(png, deps, now, rect)

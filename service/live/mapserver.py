@@ -55,7 +55,7 @@ from photomap.config import MapServerConfig
 from photomap.errors import ConfigError, InputError, PhotomapError
 from photomap.geo import webmercator as wm
 from photomap.live.livemap import EMPTY_PNG, PIXEL_ZOOM, LiveMap, Snapshot, TileCache, footprint_geojson, \
-    hazards_geojson, status, track_geojson
+    hazards_geojson, status, tile_type, track_geojson
 from photomap.live.viewer import parse_serve_address
 from photomap.mapping.events import FrameEvent
 from photomap.mapping.threads import WorkerFirst
@@ -218,7 +218,7 @@ class _Handler(socketserver.BaseRequestHandler):
                 if body is None:
                     self._send(404, b"no such tile\n", "text/plain", head)
                 else:
-                    self._send(200, body, "image/png", head)
+                    self._send(200, body, tile_type(body), head)
             elif path == "/status.json":
                 self._json(owner.status(), head)
             elif path == "/track.geojson":
@@ -258,7 +258,7 @@ class MapServer:
     def __init__(self, cfg: MapServerConfig, address: str = "127.0.0.1", port: int | None = None, *,
                  hazards: Hazards | None = None) -> None:
         self.live = LiveMap(cfg.tile_hz)
-        self.cache = TileCache(cfg.cache_tiles, cfg.min_render_interval_s)
+        self.cache = TileCache(cfg.cache_tiles, cfg.min_render_interval_s, jpeg_quality=cfg.jpeg_quality)
         self.hazards = hazards
         self.timeout_s = float(cfg.timeout_s)
         self.stats = {"requests": 0, "refused": 0, "timeouts": 0, "too_large": 0, "errors": 0}
