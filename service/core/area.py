@@ -24,6 +24,13 @@ import numpy as np
 _PROBE_TOL = 1e-6  # an OpenCV weight this far from the exact one: that output is recomputed
 
 
+def premultiplied_planes(image: np.ndarray, alpha: np.ndarray) -> list[np.ndarray]:
+    """The float32 planes (colour times coverage..., coverage) that :class:`AreaRows` takes, of
+    ``image`` ((h, w, C), any integer type) and its ``alpha`` (uint8 (h, w): coverage ``alpha / 255``)."""
+    a = alpha.astype(np.float32) / 255
+    return [np.multiply(p, a, dtype=np.float32) for p in cv2.split(image)] + [a]
+
+
 def banded_weights(a: int, b: int, step: float, n_out: int) -> tuple[int, np.ndarray, np.ndarray]:
     """The exact area weights of source pixels ``[a, b)`` for the outputs that overlap them.
 
@@ -106,9 +113,10 @@ class AreaRows:
 
     ``add(y0, band)`` takes the band of source rows ``y0 ..`` as float32 (rows, w, C), or as a
     list of its ``C`` (rows, w) planes (bands in order, not overlapping; rows never given are
-    0) and returns the output rows it finished, as a list of float32 (n, ow, C) blocks; :meth:`close` returns the rest. Stacked, the blocks
-    are the whole ``oh`` x ``ow`` output. The caller premultiplies colour by alpha (and
-    unpremultiplies the output) so that empty pixels do not darken the map's edge."""
+    0) and returns the output rows it finished, as a list of float32 (n, ow, C) blocks;
+    :meth:`close` returns the rest. Stacked, the blocks are the whole ``oh`` x ``ow`` output.
+    The caller premultiplies colour by alpha (:func:`premultiplied_planes`; and unpremultiplies
+    the output) so that empty pixels do not darken the map's edge."""
 
     def __init__(self, h: int, w: int, oh: int, ow: int, channels: int) -> None:
         self.h, self.w, self.oh, self.ow, self.channels = h, w, oh, ow, channels

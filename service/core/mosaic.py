@@ -51,7 +51,7 @@ import cv2
 import numpy as np
 
 from photomap.config import MosaicConfig
-from photomap.core.area import AreaRows
+from photomap.core.area import AreaRows, premultiplied_planes
 from photomap.core.exposure import SequentialGain
 from photomap.errors import InputError, PhotomapError
 from photomap.geometry import pose_scale
@@ -932,9 +932,8 @@ class TiledMosaic:
             if not cover.any():
                 continue
             for r0 in range(0, my1 - my0, _AREA_ROWS):  # premultiplied, a few rows at a time (memory)
-                a = cover[r0:r0 + _AREA_ROWS].astype(np.float32) / 255
-                planes = [np.multiply(p, a, dtype=np.float32) for p in cv2.split(image[r0:r0 + _AREA_ROWS])]
-                yield from stream.add(my0 - y + r0, planes + [a])
+                part = slice(r0, r0 + _AREA_ROWS)
+                yield from stream.add(my0 - y + r0, premultiplied_planes(image[part], cover[part]))
         yield from stream.close()
 
 

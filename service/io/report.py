@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from photomap.errors import InputError
-from photomap.core.area import AreaRows
+from photomap.core.area import AreaRows, premultiplied_planes
 from photomap.core.records import PoseRow
 from photomap.geo.georef import png_to_map
 from photomap.io.runfiles import RunFiles
@@ -104,8 +104,7 @@ def _area_premultiplied(bgra: np.ndarray, size: tuple[int, int], band: int = 256
     blocks = []
     for y0 in range(0, h, band):
         part = bgra[y0:y0 + band]
-        a = part[..., 3].astype(np.float32) / 255
-        blocks += rows.add(y0, [np.multiply(p, a, dtype=np.float32) for p in cv2.split(part[..., :3])] + [a])
+        blocks += rows.add(y0, premultiplied_planes(part[..., :3], part[..., 3]))
     return np.concatenate(blocks + rows.close())
 
 

@@ -14,7 +14,7 @@ from typing import Callable, Iterator
 import cv2
 import numpy as np
 
-from photomap.core.area import AreaRows
+from photomap.core.area import AreaRows, premultiplied_planes
 from photomap.core.mosaic import TiledMosaic, unpremultiply
 from photomap.geo.georef import Georeference, aux_xml_text, compose, png_to_map, prj_text, world_file_text
 from photomap.io.parallel_writes import ParallelWrites
@@ -123,8 +123,7 @@ class PngThumbnail:
 
     def add(self, bgra: np.ndarray) -> None:
         """The PNG's next band (uint8 BGRA rows)."""
-        a = bgra[..., 3].astype(np.float32) / 255
-        self.add_sums(cv2.merge([np.multiply(p, a, dtype=np.float32) for p in cv2.split(bgra[..., :3])] + [a]))
+        self.add_sums(cv2.merge(premultiplied_planes(bgra[..., :3], bgra[..., 3])))
 
     def add_sums(self, sums: np.ndarray) -> None:
         """The PNG's next band as alpha-weighted sums (float32 (n, w, 4): colour times
