@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Callable
 import cv2
 import numpy as np
 
+from photomap.core.mosaic import unpremultiply
 from photomap.core.thinned import ThinnedPath
 from photomap.geo import webmercator as wm
 from photomap.geo.georef import Georeference, utm_forward
@@ -87,11 +88,10 @@ def _premultiplied(bgra: np.ndarray) -> np.ndarray:
 
 
 def _unpremultiplied(pre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(bgr uint8, alpha uint8) of a premultiplied float BGRA image (alpha 0..1)."""
-    cover = pre[..., 3:4]
-    colour = np.divide(pre[..., :3], cover, out=np.zeros(pre.shape[:2] + (3,), np.float32), where=cover > 1e-6)
-    image = np.clip(np.rint(colour), 0, 255).astype(np.uint8)
-    return image, np.clip(np.rint(cover[..., 0] * 255.0), 0, 255).astype(np.uint8)
+    """(bgr uint8, alpha uint8) of a premultiplied float32 BGRA image (alpha 0..1)
+    (:func:`photomap.core.mosaic.unpremultiply`)."""
+    b, g, r, alpha = unpremultiply(pre)
+    return cv2.merge([b, g, r]), alpha
 
 
 _PACK_JPEG_QUALITY = 90
