@@ -83,3 +83,31 @@ def test_png_thumbnail_is_the_png_downscaled(tmp_path, max_px):
     if max_px >= max(m.bounds()[2:]):  # the PNG is the map: the thumbnail is the map rendered small
         assert np.abs(got.astype(int) - render_small(m, 96).astype(int)).max() <= 1
     assert PngThumbnail(96).image() is None  # nothing went through
+
+
+@pytest.mark.parametrize("h, w, opaque", [(64, 64, True), (64, 64, False), (37, 50, False), (51, 33, True)])
+def test_halving_is_the_alpha_weighted_mean_of_2x2_pixels(h, w, opaque):
+    """photomap.core.pyramid.halve against the mean computed densely in float64: colour
+    sum(c a) / sum(a), alpha mean(a), pixels past an odd edge transparent; within 1 of it (8-bit
+    rounding), and a transparent neighbour never darkens a colour."""
+    from photomap.core.pyramid import halve
+    rng = np.random.default_rng(h * w)
+    bgra = rng.integers(0, 256, (h, w, 4), np.uint8)
+    if opaque:
+        bgra[..., 3] = 255
+    else:
+        bgra[rng.random((h, w)) < 0.3, 3] = 0
+    got = halve(bgra)
+    assert got.shape == ((h + 1) // 2, (w + 1) // 2, 4) and got.dtype == np.uint8
+    x = np.zeros((h + h % 2, w + w % 2, 4))
+    x[:h, :w] = bgra
+    a = x[..., 3] / 255
+    sums = lambda v: v.reshape(x.shape[0] // 2, 2, x.shape[1] // 2, 2).sum(axis=(1, 3))  # noqa: E731
+    cover = sums(a)
+    colour = np.stack([sums(x[..., c] * a) for c in range(3)], -1) / np.maximum(cover, 1e-12)[..., None]
+    want = np.dstack([np.where(cover[..., None] > 0, colour, 0), cover / 4 * 255])
+    assert np.abs(got.astype(float) - want).max() <= 1.0
+    flat = bgra.copy()
+    flat[..., :3] = (30, 140, 250)  # one colour: every covered half pixel keeps it exactly
+    half = halve(flat)
+    assert (half[half[..., 3] > 0, :3] == (30, 140, 250)).all()

@@ -506,6 +506,90 @@ def test_cog_of_a_rotated_map_is_written_by_windows_and_resampled_right(tmp_path
     assert np.median(err) < 0.5 and err.max() < 2.0  # bilinear on a smooth pattern, 8-bit rounding
 
 
+def test_opaque_blocks_warped_directly_match_the_alpha_weighted_warp(monkeypatch):
+    """A GeoTIFF block whose source is opaque and inside the map is warped as it is: the same
+    colours (within 1) as the alpha-weighted float warp, at any rotation and scale; a block that
+    reaches past the map's edge still takes the weighted warp (its edge pixels partly transparent)."""
+    from photomap.io import geotiff
+
+    rng = np.random.default_rng(3)
+    photo = cv2.GaussianBlur(rng.integers(0, 256, (700, 700, 3), np.uint8), (0, 0), 1.5)
+    photo = np.clip(photo.astype(np.float32) * 4 - 380, 0, 255).astype(np.uint8)  # full range, sharp
+
+    def render(x, y, w, h, scale):
+        image, alpha = photo[y:y + h, x:x + w], np.full((h, w), 255, np.uint8)
+        if scale < 1:
+            size = (max(1, round(w * scale)), max(1, round(h * scale)))
+            image, alpha = (cv2.resize(a, size, interpolation=cv2.INTER_AREA) for a in (image, alpha))
+        return image, alpha
+
+    direct, taken = geotiff._samples_inside, []
+
+    def spy(*args):
+        taken.append(direct(*args))
+        return taken[-1]
+
+    for angle in np.radians([0.0, 17.0, 90.0, 143.0, 251.0]):
+        s = rng.uniform(0.6, 1.4)
+        a = np.array([[s * math.cos(angle), -s * math.sin(angle), 0.0],
+                      [s * math.sin(angle), s * math.cos(angle), 0.0]])
+        for centre, inside in (((350.0, 350.0), True), ((30.0, 350.0), False)):  # in the map; past its edge
+            a[:, 2] = np.asarray(centre) - a[:, :2] @ [60.0, 60.0]
+            monkeypatch.setattr(geotiff, "_samples_inside", spy)
+            fast = geotiff.resample_planes(render, (0, 0, 700, 700), a, (120, 120))
+            assert taken[-1] == inside and (fast[3].min() == 255) == inside
+            monkeypatch.setattr(geotiff, "_samples_inside", lambda *args: False)  # always weighted
+            weighted = geotiff.resample_planes(render, (0, 0, 700, 700), a, (120, 120))
+            assert np.array_equal(fast[3], weighted[3])
+            diff = np.abs(np.stack(fast[:3]).astype(int) - np.stack(weighted[:3]).astype(int))
+            assert diff.max() <= 1 and (diff > 0).mean() < 0.01, (math.degrees(angle), diff.max())
+
+
+def test_cog_overviews_are_the_alpha_weighted_halvings_of_its_full_resolution(tmp_path):
+    """The COG's overviews, read back with rasterio: GDAL's COG layout and level sizes, each level
+    the alpha-weighted 2 x 2 halving of the level above (within 1: 8-bit rounding), and a map of
+    one colour keeps that colour at every covered pixel of every level (empty pixels never darken
+    its edges)."""
+    rasterio = pytest.importorskip("rasterio", reason="the geo extra (rasterio) is not installed")
+    from photomap.core.pyramid import halve
+    from photomap.io.geotiff import overview_sizes, write_cog
+
+    size, colour = 700, None
+
+    def render(x, y, w, h, s):
+        ow, oh = max(1, round(w * s)), max(1, round(h * s))
+        u, v = np.meshgrid(x + (np.arange(ow) + 0.5) * w / ow - 0.5, y + (np.arange(oh) + 0.5) * h / oh - 0.5)
+        disc = np.hypot(u - size / 2, v - size / 2) < size * 0.45
+        img = np.zeros((oh, ow, 3), np.uint8)
+        img[...] = colour if colour is not None else np.dstack(
+            [np.rint((np.sin(u / 9.0) + np.cos(v / 13.0)) * 60 + 128)] * 3).astype(np.uint8)
+        return img, np.where(disc, 255, 0).astype(np.uint8)
+
+    th, mpp = math.radians(20.0), 0.05
+    m2c = np.array([[mpp * math.cos(th), mpp * math.sin(th), 400000.0],
+                    [mpp * math.sin(th), -mpp * math.cos(th), 4500000.0]])
+    for colour in (None, (40, 200, 90)):
+        info = write_cog(tmp_path / "map.tif", MapRaster(render, (0, 0, size, size), m2c, 32617), block=64)
+        sizes = overview_sizes(*info["size"], 64)
+        assert len(sizes) >= 3
+        with rasterio.open(tmp_path / "map.tif") as src:
+            assert src.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+            assert [(src.width + f - 1) // f for f in src.overviews(1)] == [w for w, _ in sizes]
+            level = np.dstack(src.read()[[2, 1, 0, 3]])  # BGRA
+        for k, (w, h) in enumerate(sizes):
+            with rasterio.open(tmp_path / "map.tif", overview_level=k) as ovr:
+                got = np.dstack(ovr.read()[[2, 1, 0, 3]])
+            assert got.shape == (h, w, 4)
+            want = halve(level)
+            diff = np.abs(got.astype(int) - want.astype(int))
+            assert diff.max() <= 1 and (diff > 0).mean() < 0.05, (k, diff.max())
+            covered = got[..., 3] > 0
+            assert covered.mean() > 0.3
+            if colour is not None:
+                assert (got[covered, :3] == colour).all()
+            level = got
+
+
 def test_track_files_grow_during_a_live_run(flight, tmp_path):
     """At each checkpoint the track is rewritten from the current GPS fit: a ground station that
     reloads track.geojson sees the coverage grow, at the simulator's true positions."""

@@ -227,12 +227,12 @@ def _enospc_after(monkeypatch, budget: int) -> dict:
     used = {"bytes": 0, "refused": 0}
     real = trajectory_files.atomic_write_bytes
 
-    def writer(path, data):
+    def writer(path, data, **kwargs):
         if used["bytes"] + len(data) > budget:
             used["refused"] += 1
             raise OSError(errno.ENOSPC, "No space left on device")
         used["bytes"] += len(data)
-        return real(path, data)
+        return real(path, data, **kwargs)
 
     real_imwrite = cv2.imwrite
 

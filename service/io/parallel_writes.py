@@ -1,10 +1,11 @@
 """Many small files written side by side: a few threads, a bounded queue, errors re-raised.
 
-An end-of-run output of many small files (the full-resolution map tiles and their world files)
-spends most of its time waiting: each file is fsync-ed before its rename (durable after a power
-loss), one journal commit each, and PNG encoding releases the GIL. :class:`ParallelWrites` runs
-such jobs on ``workers`` threads, so that the waits overlap (concurrent fsyncs share a journal
-commit) and encoding uses every core. At most ``2 * workers`` jobs wait, so memory stays a few
+An output of many small files (the full-resolution map tiles, their world files, web tiles)
+encodes each one (PNG encoding releases the GIL) and waits on the file system for each (an fsync
+before the rename where the file must be durable on its own; the end-of-run outputs skip it and
+sync once, :func:`photomap.io.trajectory_files.sync_filesystem`). :class:`ParallelWrites` runs
+such jobs on ``workers`` threads, so that encoding uses every core and the waits overlap
+(concurrent fsyncs share a journal commit). At most ``2 * workers`` jobs wait, so memory stays a few
 files whatever their number. The first job's error is raised from :meth:`submit` or at the end of
 the ``with`` block; after one the remaining jobs are dropped.
 """

@@ -5,6 +5,10 @@ time, filters each row (PNG filter type Up), compresses them with one streaming 
 compressor into IDAT chunks, and writes the file atomically (a temporary file in the same folder,
 then ``os.replace``). Memory: one band and the previous row. The pixels read back (OpenCV, PIL,
 GDAL) equal the rows given; the bytes differ from ``cv2.imencode``'s.
+
+Compression: Huffman coding only (:data:`MAP_PNG_STRATEGY`). On photo maps after the Up filter,
+deflate's string matching finds little: measured on a survey map band, level 1 took 138 ms for a
+ratio of 0.491, Huffman-only 81 ms for 0.567 (15 % more bytes for 40 % less time).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import numpy as np
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOR_TYPE = {1: 0, 3: 2, 4: 6}  # channels -> PNG colour type (gray, RGB, RGBA)
 _FILTER_ROWS = 16  # rows filtered at once (measured: 16 is 2x faster than 196 on an 8192 px map)
+MAP_PNG_STRATEGY = zlib.Z_HUFFMAN_ONLY  # zlib strategy of map PNGs (module docstring)
 
 
 def _chunk(kind: bytes, data: bytes) -> bytes:
@@ -49,7 +54,8 @@ class PngStreamWriter:
     fewer rows than ``height`` are written.
     """
 
-    def __init__(self, path: str | Path, width: int, height: int, channels: int = 4, level: int = 1) -> None:
+    def __init__(self, path: str | Path, width: int, height: int, channels: int = 4, level: int = 1,
+                 strategy: int = MAP_PNG_STRATEGY) -> None:
         if channels not in _COLOR_TYPE:
             raise ValueError(f"PNG channels must be 1, 3 or 4, got {channels}")
         if width < 1 or height < 1:
@@ -58,7 +64,7 @@ class PngStreamWriter:
         self.width, self.height, self.channels = int(width), int(height), int(channels)
         self._rows = 0
         self._previous = np.zeros(self.width * self.channels, np.uint8)
-        self._z = zlib.compressobj(level)
+        self._z = zlib.compressobj(level, zlib.DEFLATED, 15, 8, strategy)
         fd, self._tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
         self._file = os.fdopen(fd, "wb")
         ihdr = struct.pack(">IIBBBBB", self.width, self.height, 8, _COLOR_TYPE[self.channels], 0, 0, 0)

@@ -19,9 +19,13 @@ import numpy as np
 from photomap.errors import InputError
 from photomap.geo.georef import aux_xml_text, compose, prj_text, world_file_text
 from photomap.io.parallel_writes import ParallelWrites
-from photomap.io.trajectory_files import atomic_write_text
+from photomap.io.trajectory_files import atomic_write_text, sync_filesystem
 
 _TILE = re.compile(r"^tile_(-?\d+)_(-?\d+)\.png$")
+
+
+def _write_unsynced(path: Path, text: str) -> None:
+    atomic_write_text(path, text, sync=False)
 
 
 def gdal_geotransform(pixel_to_crs: np.ndarray) -> tuple[float, ...]:
@@ -32,7 +36,7 @@ def gdal_geotransform(pixel_to_crs: np.ndarray) -> tuple[float, ...]:
 
 
 def write_tile_georeference(tiles_dir: str | Path, tile_size: int, map_to_crs: np.ndarray, epsg: int,
-                            *, world_files: bool = True, vrt: bool = True) -> dict:
+                            *, world_files: bool = True, vrt: bool = True, sync: bool = True) -> dict:
     """World file + ``.aux.xml`` per tile and a ``<folder>.vrt`` over all tiles (atomically).
 
     Parameters
@@ -40,8 +44,9 @@ def write_tile_georeference(tiles_dir: str | Path, tile_size: int, map_to_crs: n
     tiles_dir : the folder of ``tile_{tx}_{ty}.png``.
     tile_size : tile side, map pixels (run.json ``tile_size``).
     map_to_crs : 2x3, map pixel centre -> CRS metres. epsg : the CRS (WGS 84 / UTM).
+    sync : the files made durable at the end (one :func:`sync_filesystem`); False when the caller does that.
 
-    Returns ``{"tiles": n, "vrt": name or None, "size": [w, h]}``.
+    Returns ``{"tiles": n, "vrt": name or None, "size": [w, h], "world_files": bool}``.
     """
     folder = Path(tiles_dir)
     keys = sorted((int(m.group(1)), int(m.group(2))) for p in (folder.iterdir() if folder.is_dir() else ())
@@ -52,12 +57,12 @@ def write_tile_georeference(tiles_dir: str | Path, tile_size: int, map_to_crs: n
     m2c = np.asarray(map_to_crs, float)[:2]
     if world_files:
         aux = aux_xml_text(epsg)
-        with ParallelWrites() as writes:  # two small fsync-ed files a tile: the waits overlap
+        with ParallelWrites() as writes:  # two small files a tile
             for tx, ty in keys:
                 shift = np.array([[1.0, 0.0, tx * ts], [0.0, 1.0, ty * ts]])
                 name = f"tile_{tx}_{ty}"
-                writes.submit(atomic_write_text, folder / f"{name}.pgw", world_file_text(compose(m2c, shift)))
-                writes.submit(atomic_write_text, folder / f"{name}.png.aux.xml", aux)
+                writes.submit(_write_unsynced, folder / f"{name}.pgw", world_file_text(compose(m2c, shift)))
+                writes.submit(_write_unsynced, folder / f"{name}.png.aux.xml", aux)
     tx0, ty0 = min(k[0] for k in keys), min(k[1] for k in keys)
     w = (max(k[0] for k in keys) - tx0 + 1) * ts
     h = (max(k[1] for k in keys) - ty0 + 1) * ts
@@ -79,5 +84,7 @@ def write_tile_georeference(tiles_dir: str | Path, tile_size: int, map_to_crs: n
                 f'<GeoTransform>{", ".join(repr(v) for v in gt)}</GeoTransform>\n'
                 + "\n".join(bands) + "\n</VRTDataset>\n")
         name = f"{folder.name}.vrt"
-        atomic_write_text(folder.parent / name, text)
-    return {"tiles": len(keys), "vrt": name, "size": [w, h]}
+        atomic_write_text(folder.parent / name, text, sync=False)
+    if sync:
+        sync_filesystem(folder)
+    return {"tiles": len(keys), "vrt": name, "size": [w, h], "world_files": bool(world_files)}

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import ctypes
 import io
 import json
 import logging
@@ -64,15 +65,36 @@ def atomic_file(path: str | Path, mode: str = "wb", *, sync: bool = True) -> Ite
         raise
 
 
+def sync_filesystem(path: str | Path) -> None:
+    """Flush every file written on the filesystem that holds ``path`` to its disk (Linux
+    ``syncfs``; ``os.sync`` elsewhere). Thousands of files written with ``sync=False`` become
+    durable with this one call instead of an fsync (a journal commit) each; temporaries removed
+    before it (GDAL's) are never written out. OSError when the disk reports an error."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        os.sync()
+        return
+    try:
+        syncfs = getattr(ctypes.CDLL(None, use_errno=True), "syncfs", None)
+        if syncfs is None:
+            os.sync()
+        elif syncfs(fd) != 0:
+            err = ctypes.get_errno()
+            raise OSError(err, os.strerror(err), os.fspath(path))
+    finally:
+        os.close(fd)
+
+
 def atomic_write_bytes(path: str | Path, data: bytes, *, sync: bool = True) -> None:
     """Write ``data`` to ``path`` atomically (:func:`atomic_file`)."""
     with atomic_file(path, "wb", sync=sync) as f:
         f.write(data)
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write UTF-8 ``text`` to ``path`` atomically."""
-    atomic_write_bytes(path, text.encode("utf-8"))
+def atomic_write_text(path: str | Path, text: str, *, sync: bool = True) -> None:
+    """Write UTF-8 ``text`` to ``path`` atomically (:func:`atomic_file`)."""
+    atomic_write_bytes(path, text.encode("utf-8"), sync=sync)
 
 
 def _jsonable(obj: Any) -> Any:

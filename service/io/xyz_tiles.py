@@ -26,7 +26,7 @@ from photomap.errors import InputError
 from photomap.geo import webmercator as wm
 from photomap.geo.georef import png_to_map, utm_forward, utm_inverse
 from photomap.io.mapsource import MapRaster
-from photomap.io.trajectory_files import atomic_write_bytes, write_json
+from photomap.io.trajectory_files import atomic_write_bytes, sync_filesystem, write_json
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +142,8 @@ def render_tile(raster: MapRaster, x: int, y: int, z: int) -> tuple[np.ndarray, 
 def write_xyz_tiles(folder: str | Path, raster: MapRaster, *, zooms: tuple[int, int] | None = None,
                     tms: bool = False, max_tiles: int = 200_000,
                     progress: Callable[[int, int], None] | None = None) -> dict:
-    """Write the map as web-mercator PNG tiles ``folder/{z}/{x}/{y}.png`` (each atomically).
+    """Write the map as web-mercator PNG tiles ``folder/{z}/{x}/{y}.png`` (each atomically; all
+    made durable at the end with one :func:`~photomap.io.trajectory_files.sync_filesystem`).
 
     Parameters
     ----------
@@ -173,13 +174,14 @@ def write_xyz_tiles(folder: str | Path, raster: MapRaster, *, zooms: tuple[int, 
                 row = wm.tms_y(y, z) if tms else y
                 path = folder / str(z) / str(x) / f"{row}.png"
                 path.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write_bytes(path, buf.tobytes())
+                atomic_write_bytes(path, buf.tobytes(), sync=False)
                 written += 1
             if progress is not None:
                 progress(i + 1, len(jobs))
     info = {"scheme": "tms" if tms else "xyz", "zooms": [zmin, zmax], "tiles": written,
             "bounds": [box[1], box[0], box[3], box[2]], "url": "{z}/{x}/{y}.png"}
     folder.mkdir(parents=True, exist_ok=True)
+    sync_filesystem(folder)
     write_json(folder / "tiles.json", info)
     log.info("wrote %d %s tiles, zoom %d-%d, to %s", written, info["scheme"].upper(), zmin, zmax, folder)
     return info

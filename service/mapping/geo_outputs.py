@@ -3,7 +3,7 @@
 - :func:`write_geo_outputs` (end of run, after the georeference, **before** the tile cache is
   removed): the north-up COG ``map.tif`` of the main map from the live mosaic
   (:func:`write_main_cog`, when the ``geo`` extra is installed; else one INFO line; or written
-  already, beside the PNGs), world files + ``tiles.vrt`` for full-resolution ``tiles/``
+  already, beside the PNGs), ``tiles.vrt`` over full-resolution ``tiles/``
   (:func:`write_tile_georeferences`; or written already, while the GeoTIFF was), and
   ``track.kml`` / ``track.geojson``.
 - :func:`refresh_track_files` (each checkpoint): rewrite ``track.kml`` / ``track.geojson``
@@ -72,10 +72,13 @@ def write_main_cog(out_dir: str | Path, main: dict, mosaics: dict[int, TiledMosa
         return None
 
 
-def write_tile_georeferences(out_dir: str | Path, maps: Sequence[dict]) -> list[dict]:
-    """World files and ``tiles.vrt`` of every georeferenced map of ``maps`` (run.json
-    ``mosaics[]`` entries) with full-resolution ``tiles``; returns what was written (a failure
-    is a warning)."""
+def write_tile_georeferences(out_dir: str | Path, maps: Sequence[dict], *, world_files: bool = False,
+                             sync: bool = True) -> list[dict]:
+    """``tiles.vrt`` (one georeferenced layer over the tiles) of every georeferenced map of
+    ``maps`` (run.json ``mosaics[]`` entries) with full-resolution ``tiles``; returns what was
+    written (a failure is a warning). ``world_files``: also a world file and CRS per tile (two
+    files a tile; ``photomap export --tile-georef``). ``sync``: False when the caller makes them
+    durable (:func:`~photomap.io.trajectory_files.sync_filesystem`)."""
     georefs = georefs_from_maps(maps)
     done = []
     for m in maps:
@@ -83,7 +86,7 @@ def write_tile_georeferences(out_dir: str | Path, maps: Sequence[dict]) -> list[
         if m.get("tiles") and s in georefs:
             try:
                 done.append(write_tile_georeference(Path(out_dir) / m["tiles"], int(m.get("tile_size") or 256),
-                                                    *georefs[s]))
+                                                    *georefs[s], world_files=world_files, sync=sync))
             except (PhotomapError, OSError) as exc:
                 log.warning("tile world files not written: %s", exc)
     return done

@@ -62,7 +62,7 @@ from photomap.mapping.run_outputs import RunOutputs
 from photomap.mapping.segments import SegmentMaps
 from photomap.mapping.telemetry_join import TelemetryJoin
 from photomap.mapping.telemetry_place import TelemetryPlacer
-from photomap.mapping.threads import WorkerFirst, switch_interval
+from photomap.mapping.threads import OUTPUTS_SWITCH_INTERVAL_S, WorkerFirst, switch_interval
 from photomap.mapping.timing import StageTimes
 from photomap.telemetry.samples import TelemetrySample
 
@@ -352,7 +352,8 @@ class MappingPipeline:
                         closed = True
                         self.source.close()
                 self.source.close()  # bounded: never releases a decoder under a running read
-                summary = self.finish()
+                with switch_interval(OUTPUTS_SWITCH_INTERVAL_S):
+                    summary = self.finish()
         finally:
             cv2.setNumThreads(opencv_threads)
         if failure:

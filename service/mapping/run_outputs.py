@@ -32,7 +32,7 @@ from photomap.errors import OutputError, PhotomapError
 from photomap.geometry import pose_angle_deg
 from photomap.io.report import THUMB_PX, write_report
 from photomap.io.statestore import MANIFEST
-from photomap.io.trajectory_files import tum_skipped_message, write_json, write_trajectory_csv, write_tum
+from photomap.io.trajectory_files import sync_filesystem, tum_skipped_message, write_json, write_trajectory_csv, write_tum
 from photomap.mapping.band_maps import write_band_maps, write_raw_map
 from photomap.mapping.checkpoint import Checkpointer, state_folder
 from photomap.mapping.events import GeoreferenceSink
@@ -437,15 +437,15 @@ class RunOutputs:
                 info["segment"] = seg
                 if info["scale"] < 1.0:
                     tiles = self.out_dir / ("tiles" if rank == 0 else f"tiles_segment{seg}")
-                    if not self._attempt(f"{tiles.name}/", lambda t=tiles, m=self.segments.mosaics[seg]: write_tiles(t, m) or True):
+                    if not self._attempt(f"{tiles.name}/", lambda t=tiles, m=self.segments.mosaics[seg]: write_tiles(t, m, sync=False) or True):
                         unwritten.append(info)
                     info["tiles"] = tiles.name
                     info["tile_size"] = self.segments.mosaics[seg].tile_size
                 if "georeference" in placements.get(seg, {}):
                     info["georeference"] = placements[seg]["georeference"]
                 maps.append(info)
-            # the tiles' world files (thousands of small files) while the GeoTIFF is still being written
-            tile_geo = write_tile_georeferences(self.out_dir, maps) if self.telemetry is not None else None
+            # tiles.vrt while the GeoTIFF is still being written (a world file per tile: photomap export --tile-georef)
+            tile_geo = write_tile_georeferences(self.out_dir, maps, sync=False) if self.telemetry is not None else None
         finally:
             if beside is not None:
                 beside.shutdown(wait=True)
@@ -472,6 +472,8 @@ class RunOutputs:
         for name, write in self._final_outputs.items():  # e.g. the hazards, from the final poses
             summary[name] = self._attempt(name, write, self._rows, maps)
         summary["complete"] = True
+        # the thousands of tiles and world files, unsynced so far, durable before the checkpoint goes
+        self._attempt("the outputs (sync to disk)", sync_filesystem, self.out_dir)
         if unwritten:  # the map is not all on disk as outputs: the checkpoint must hold it
             georefs = {str(i["segment"]): i["georeference"] for i in maps + unwritten
                        if (i.get("georeference") or {}).get("crs")}

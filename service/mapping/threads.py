@@ -14,6 +14,10 @@ the same flight's worst frames went from 164 to 112 ms (99.9th percentile 98 -> 
 median frame unchanged. A run sets :data:`SWITCH_INTERVAL_S` for its duration
 (:func:`switch_interval`); the threads whose work can wait (trajectory writer, re-renders,
 loop registrations, pose-graph solves) lower their own priority (:func:`lower_priority`).
+The end-of-run outputs, with no worker left to wait for, go back to Python's 5 ms
+(:data:`OUTPUTS_SWITCH_INTERVAL_S`): there half a dozen threads (the map's PNG bands and their
+encoder, the GeoTIFF, the tile writers) each hold the GIL briefly, and at 0.2 ms their hand-overs
+cost more CPU than they save (measured on the 57-still survey of ``tools/bench_survey.py``).
 """
 
 from __future__ import annotations
@@ -24,11 +28,12 @@ import sys
 import threading
 from typing import Callable, Iterable, Iterator, TypeVar
 
-__all__ = ["SWITCH_INTERVAL_S", "BACKGROUND_NICE", "WorkerFirst", "lower_priority", "switch_interval"]
+__all__ = ["SWITCH_INTERVAL_S", "OUTPUTS_SWITCH_INTERVAL_S", "BACKGROUND_NICE", "WorkerFirst", "lower_priority", "switch_interval"]
 
 T = TypeVar("T")
 
-SWITCH_INTERVAL_S = 0.0002  # seconds (Python's default: 0.005)
+SWITCH_INTERVAL_S = 0.0002  # seconds, while the worker maps
+OUTPUTS_SWITCH_INTERVAL_S = 0.005  # Python's default, for the end-of-run outputs (see below)
 BACKGROUND_NICE = 10  # added to the nice value of threads whose work can wait
 
 
