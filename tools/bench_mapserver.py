@@ -21,9 +21,9 @@ requests answered (and failed, by reason), their median and largest latency, its
 the server's renders and cache hits. Target: no measurable slowdown (the client's fps ratio within the noise
 that a server with no client shows, or 3 %).
 
-    python -m tools.bench_mapserver [--frames 300] [--passes 3] [--hz 5] [--no-live] [--out FILE]
+    python -m tools.bench_mapserver [--frames 1500] [--live-frames 300] [--passes 3] [--hz 5] [--no-live] [--out FILE]
 
-Then (unless ``--no-live``) the live case: the video fed at its frame rate like a camera
+Then (unless ``--no-live``) the live case: a flight of ``--live-frames`` frames (the same simulation) fed at its frame rate like a camera
 (``tools.bench_pipeline.PacedVideoSource``), without a server and with the server and the
 client: frames mapped and dropped, the worker's ms per frame.
 
@@ -271,8 +271,8 @@ def _own(rs: list[dict]) -> str:
 
 def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, float]) -> str:
     lines = ["## Map server", "",
-             f"Written by `python -m tools.bench_mapserver --frames {args.frames} --passes {args.passes} "
-             f"--hz {args.hz:g}` on {datetime.date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} cores, Python "
+             f"Written by `python -m tools.bench_mapserver --frames {args.frames} --live-frames {args.live_frames} "
+             f"--passes {args.passes} --hz {args.hz:g}` on {datetime.date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} cores, Python "
              f"{platform.python_version()}; {args.frames} frames of {SIZE[0]}x{SIZE[1]} (simulated, with "
              f"telemetry) mapped by `photomap replay` as fast as possible, {args.passes} passes per condition, "
              f"interleaved; 1-minute load {loads[0]:.1f} before, {loads[1]:.1f} after; {took / 60:.1f} min.", "",
@@ -333,7 +333,7 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
               f"latencies are those it saw on loopback while the mapping ran flat out."]
     live = rows.get("live")
     if live:
-        lines += ["", f"Live: the same video fed at {FPS:g} fps through a drop-oldest queue of "
+        lines += ["", f"Live: {args.live_frames} frames of the same simulation fed at {FPS:g} fps through a drop-oldest queue of "
                   f"`capture.queue_size` frames, as a camera is (the server's Python code waits while the "
                   f"worker maps a frame, `MappingPipeline.worker_first`), no telemetry (pixel-frame tiles), "
                   f"{args.passes} passes each, interleaved:", "",
@@ -365,7 +365,9 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--frames", type=int, default=300, help="frames of the flight (default 300)")
+    ap.add_argument("--frames", type=int, default=1500, help="frames of the flight mapped flat out (default 1500: "
+                    "a few seconds a pass, a few dozen client rounds)")
+    ap.add_argument("--live-frames", type=int, default=300, help="frames of the live passes' flight (default 300: 10 s)")
     ap.add_argument("--passes", type=int, default=3, help="passes per condition (default 3)")
     ap.add_argument("--hz", type=float, default=5.0, help="client rounds per second (default 5)")
     ap.add_argument("--out", default=str(REPO / "docs" / "benchmarks.md"),
@@ -375,8 +377,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.client:
         return client_main(args.client, args.hz)
-    if args.frames < 30 or args.passes < 1 or not args.hz > 0:
-        print("error: --frames >= 30, --passes >= 1, --hz > 0", file=sys.stderr)
+    if min(args.frames, args.live_frames) < 30 or args.passes < 1 or not args.hz > 0:
+        print("error: --frames and --live-frames >= 30, --passes >= 1, --hz > 0", file=sys.stderr)
         return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     logging.getLogger("photomap").setLevel(logging.WARNING)
@@ -394,6 +396,10 @@ def main(argv: list[str] | None = None) -> int:
                 log.info("pass %d, %s: %.1f fps%s", k + 1, cond, row["fps"],
                          f", {row['requests']} requests" if "requests" in row else "")
         if args.live:
+            if args.live_frames != args.frames:
+                log.info("simulating %d frames of %dx%d for the live passes", args.live_frames, *SIZE)
+                flight = simulate_flight(tmp_dir / "live-flight", n_frames=args.live_frames, size=SIZE, fps=FPS,
+                                         seed=2, video_codec="mjpg")
             rows["live"] = {"no server": [], "server + client": []}
             for k in range(args.passes):
                 for cond in rows["live"]:
