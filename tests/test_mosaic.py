@@ -258,6 +258,32 @@ def test_spill_to_disk_is_lossless(tmp_path):
         np.testing.assert_array_equal(got, want)
 
 
+def test_a_downscaled_render_reads_a_spilled_map_one_tile_row_at_a_time(tmp_path):
+    """area_sums (mosaic.png, render(scale < 1), the report) holds about one tile row of a map
+    spilled to disk, never the whole map: the tiles read from the store and still alive, counted
+    while the rows are produced, stay within a row's worth."""
+    import weakref
+
+    store = DiskTileStore(tmp_path / "cache")
+    mosaic = TiledMosaic(MosaicConfig(tile_size=16, max_tiles_in_memory=2), store=store)
+    mosaic.add(smooth_texture(160, 160, seed=4), np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+    assert len(mosaic.tiles()) >= 100 and mosaic.tiles_in_memory <= 2
+    alive, peak, real_get = set(), [0], store.get
+
+    def counting_get(key):
+        arrays = real_get(key)
+        if arrays:
+            first = next(iter(arrays.values()))
+            alive.add(id(first))
+            weakref.finalize(first, alive.discard, id(first))
+            peak[0] = max(peak[0], len(alive))
+        return arrays
+
+    store.get = counting_get
+    rows = sum(len(block) for block in mosaic.area_sums(mosaic.bounds(), (80, 80)))
+    assert rows == 80 and 0 < peak[0] <= 12, peak
+
+
 def test_disk_tile_store_round_trip(tmp_path):
     store = DiskTileStore(tmp_path)
     arrays = {"color": noise(8, 8, seed=4), "cover": np.full((8, 8), 255, np.uint8)}

@@ -131,6 +131,7 @@ def measure(sim: Path, out: Path, overrides: list[str]) -> dict:
     """Map the survey in this process; RSS per phase."""
     import photomap.mapping.pipeline as pm
     import photomap.mapping.run_outputs as ro
+    from photomap.mapping.painter import Painter
     from photomap.cli.replay import replay
     from photomap.config import load_config
 
@@ -147,7 +148,9 @@ def measure(sim: Path, out: Path, overrides: list[str]) -> dict:
 
     ro.write_png = timed("mosaic.png", ro.write_png)
     ro.write_tiles = timed("tiles/", ro.write_tiles)
-    ro.write_geo_outputs = timed("map.tif + track files", ro.write_geo_outputs)
+    ro.write_main_cog = timed("map.tif (on its thread, beside mosaic.png and tiles/)", ro.write_main_cog)
+    ro.write_geo_outputs = timed("track files", ro.write_geo_outputs)
+    Painter.write_preview = timed("preview", Painter.write_preview)
     finish = pm.MappingPipeline.finish
     pm.MappingPipeline.finish = timed("outputs (all)", finish)
     cfg = load_config(overrides=overrides)
@@ -158,8 +161,8 @@ def measure(sim: Path, out: Path, overrides: list[str]) -> dict:
         summary = replay(str(video), out, cfg, mavlink=str(sim / "telemetry.tlog"))
         t1 = time.monotonic()
     end_map = next(t for name, t, _ in phases if name == "outputs (all)")
-    previews = [(a, b) for name, a, b in phases if name == "mosaic.png" and b <= end_map]
-    phases = [p for p in phases if p[1] >= end_map]  # the end of the run (not checkpoint previews)
+    previews = [(a, b) for name, a, b in phases if name == "preview" and b <= end_map]
+    phases = [p for p in phases if p[1] >= end_map and p[0] != "preview"]  # the end of the run
     entry = summary["mosaics"][0]
     x, y, w, h = entry["bounds"]
     result = {"overrides": overrides, "frames": summary["frames_in"], "registered": summary["registered"],
@@ -225,8 +228,9 @@ def report(args, r: dict, cog: dict, elapsed: float, load: tuple[float, float]) 
     for p in r["phases"]:
         lines.append(f"| peak RSS in {p['name']} | {p['peak_mb'] or 0:.0f} MB ({p['s']:.1f} s) |")
     pv = r["previews"]
-    lines.append(f"| checkpoint previews (preview.png, {pv['count']} while mapping) | peak {pv['peak_mb'] or 0:.0f} MB, "
-                 f"{pv['s']:.0f} s in all ({100 * pv['s'] / r['mapping_s']:.0f} % of the mapping time) |")
+    lines.append(f"| checkpoint previews (preview.png, {pv['count']} while mapping; their thumbnails and encoding in "
+                 f"the background) | peak {pv['peak_mb'] or 0:.0f} MB, {pv['s']:.1f} s of the worker in all "
+                 f"({100 * pv['s'] / r['mapping_s']:.1f} % of the mapping time) |")
     return "\n".join(lines) + "\n"
 
 

@@ -867,7 +867,13 @@ class TiledMosaic:
 
     def _region_tiles(self, x: int, y: int, w: int, h: int):
         """(key, tile, (x0, y0, x1, y1) of the tile's part inside the region, tile origin)
-        for every tile that meets the region; map coordinates, x1/y1 exclusive."""
+        for every tile that meets the region; map coordinates, x1/y1 exclusive. Each tile is
+        read (from the store, for a spilled one) as it is yielded."""
+        for key, box, origin in self._region_parts(x, y, w, h):
+            yield key, self._peek(key), box, origin
+
+    def _region_parts(self, x: int, y: int, w: int, h: int):
+        """:meth:`_region_tiles` without the tiles: (key, part, origin), by row, then column."""
         ts = self.tile_size
         tx0, tx1, ty0, ty1 = x // ts, (x + w - 1) // ts, y // ts, (y + h - 1) // ts
         if (tx1 - tx0 + 1) * (ty1 - ty0 + 1) < len(self._tiles) + len(self._spilled):
@@ -881,7 +887,7 @@ class TiledMosaic:
                 ox, oy = key[0] * ts, key[1] * ts
                 mx0, mx1 = max(ox, x), min(ox + ts, x + w)
                 my0, my1 = max(oy, y), min(oy + ts, y + h)
-                yield key, self._peek(key), (mx0, my0, mx1, my1), (ox, oy)
+                yield key, (mx0, my0, mx1, my1), (ox, oy)
 
     def _render_full(self, x: int, y: int, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
         image = np.zeros((h, w, self.channels), self.dtype)
@@ -917,15 +923,15 @@ class TiledMosaic:
         ow, oh = size
         ts, C = self.tile_size, self.channels
         rows: dict[int, list] = {}
-        for key, tile, box, origin in self._region_tiles(x, y, w, h):  # by row, then column
-            rows.setdefault(key[1], []).append((tile, box, origin))
+        for key, box, origin in self._region_parts(x, y, w, h):  # by row, then column; read row by row
+            rows.setdefault(key[1], []).append((key, box, origin))
         stream = AreaRows(h, w, oh, ow, C + 1)
         for ty in sorted(rows):
             my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
             image = np.zeros((my1 - my0, w, C), self.dtype)  # the tile row, full width
             cover = np.zeros((my1 - my0, w), np.uint8)
-            for tile, (mx0, _, mx1, _), (ox, oy) in rows[ty]:
-                t_img, t_alpha = self._tile_pixels(tile)
+            for key, (mx0, _, mx1, _), (ox, oy) in rows.pop(ty):
+                t_img, t_alpha = self._tile_pixels(self._peek(key))
                 src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
                 image[:, mx0 - x:mx1 - x] = t_img[src]
                 cover[:, mx0 - x:mx1 - x] = t_alpha[src]
