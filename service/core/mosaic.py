@@ -903,14 +903,8 @@ class TiledMosaic:
     def _render_area(self, x: int, y: int, w: int, h: int, ow: int, oh: int
                      ) -> tuple[np.ndarray, np.ndarray]:
         """Area-averaged (``INTER_AREA``) render to (oh, ow), alpha-weighted (:meth:`area_sums`)."""
-        C = self.channels
-        acc = np.concatenate(list(self.area_sums((x, y, w, h), (ow, oh))))
-        cover = acc[..., C]
-        image = np.zeros((oh, ow, C), self.dtype)
-        covered = cover > 1e-6
-        image[covered] = np.clip(np.rint(acc[..., :C][covered] / cover[covered][:, None]), 0, self._max)
-        alpha = np.clip(np.rint(cover * 255), 0, 255).astype(np.uint8)
-        return image, alpha
+        *colour, alpha = unpremultiply(np.concatenate(list(self.area_sums((x, y, w, h), (ow, oh)))), self.dtype)
+        return (cv2.merge(colour) if len(colour) > 1 else colour[0][..., None]), alpha
 
     def area_sums(self, bounds: Rect, size: tuple[int, int]) -> Iterator[np.ndarray]:
         """The map rectangle ``bounds`` (x, y, w, h) area-averaged to ``size`` (W, H), as float32

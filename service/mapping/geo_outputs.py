@@ -88,7 +88,7 @@ def write_tile_georeferences(out_dir: str | Path, maps: Sequence[dict], *, world
                 done.append(write_tile_georeference(Path(out_dir) / m["tiles"], int(m.get("tile_size") or 256),
                                                     *georefs[s], world_files=world_files, sync=sync))
             except (PhotomapError, OSError) as exc:
-                log.warning("tile world files not written: %s", exc)
+                log.warning("tiles.vrt not written: %s", exc)
     return done
 
 

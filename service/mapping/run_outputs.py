@@ -391,7 +391,7 @@ class RunOutputs:
 
         The georeference is fitted on the PNGs' placements first; the main map's GeoTIFF is then
         written on the ``photomap-cog`` thread while this one writes the PNGs (the report's map
-        from the main one's bands), the tiles and their world files (all only read the map).
+        from the main one's bands), the tiles and ``tiles.vrt`` (all only read the map).
         Every write is attempted: one that fails (e.g. disk full) is reported in one line and in
         ``write_errors``; when the map itself could not be written, the checkpoint keeps it
         (``photomap recover``), else the checkpoint is removed."""
