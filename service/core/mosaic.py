@@ -906,32 +906,41 @@ class TiledMosaic:
         *colour, alpha = unpremultiply(np.concatenate(list(self.area_sums((x, y, w, h), (ow, oh)))), self.dtype)
         return (cv2.merge(colour) if len(colour) > 1 else colour[0][..., None]), alpha
 
+    def tile_rows(self, bounds: Rect) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """The map rectangle ``bounds`` (x, y, w, h) one tile row at a time from the top, full
+        width: ``(y0, image (n, w, C) of the map's dtype, alpha uint8 (n, w))`` for every tile row
+        it meets (zeros where nothing is mapped; ``y0`` its first map row). Each row's tiles are
+        read (from the store, for spilled ones) when the row is made: memory is one tile row."""
+        x, y, w, h = bounds
+        ts, C = self.tile_size, self.channels
+        rows: dict[int, list] = {}
+        for key, box, origin in self._region_parts(x, y, w, h):  # by row, then column
+            rows.setdefault(key[1], []).append((key, box, origin))
+        for ty in range(y // ts, (y + h - 1) // ts + 1):
+            my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
+            image = np.zeros((my1 - my0, w, C), self.dtype)
+            cover = np.zeros((my1 - my0, w), np.uint8)
+            for key, (mx0, _, mx1, _), (ox, oy) in rows.pop(ty, ()):
+                t_img, t_alpha = self._tile_pixels(self._peek(key))
+                src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
+                image[:, mx0 - x:mx1 - x] = t_img[src]
+                cover[:, mx0 - x:mx1 - x] = t_alpha[src]
+            yield my0, image, cover
+
     def area_sums(self, bounds: Rect, size: tuple[int, int]) -> Iterator[np.ndarray]:
         """The map rectangle ``bounds`` (x, y, w, h) area-averaged to ``size`` (W, H), as float32
         (n, W, C + 1) blocks of output rows from the top: colour times coverage, coverage (in
-        [0, 1]); stacked they are all H rows. One tile row is read at a time (full width), then
+        [0, 1]); stacked they are all H rows. One tile row is read at a time (:meth:`tile_rows`), then
         premultiplied and reduced by :class:`~photomap.core.area.AreaRows` a few rows at a time:
         memory is one tile row of the region's pixels and the output rows under way, never the
         whole map."""
         x, y, w, h = bounds
         ow, oh = size
-        ts, C = self.tile_size, self.channels
-        rows: dict[int, list] = {}
-        for key, box, origin in self._region_parts(x, y, w, h):  # by row, then column; read row by row
-            rows.setdefault(key[1], []).append((key, box, origin))
-        stream = AreaRows(h, w, oh, ow, C + 1)
-        for ty in sorted(rows):
-            my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
-            image = np.zeros((my1 - my0, w, C), self.dtype)  # the tile row, full width
-            cover = np.zeros((my1 - my0, w), np.uint8)
-            for key, (mx0, _, mx1, _), (ox, oy) in rows.pop(ty):
-                t_img, t_alpha = self._tile_pixels(self._peek(key))
-                src = (slice(my0 - oy, my1 - oy), slice(mx0 - ox, mx1 - ox))
-                image[:, mx0 - x:mx1 - x] = t_img[src]
-                cover[:, mx0 - x:mx1 - x] = t_alpha[src]
+        stream = AreaRows(h, w, oh, ow, self.channels + 1)
+        for my0, image, cover in self.tile_rows(bounds):
             if not cover.any():
                 continue
-            for r0 in range(0, my1 - my0, _AREA_ROWS):  # premultiplied, a few rows at a time (memory)
+            for r0 in range(0, image.shape[0], _AREA_ROWS):  # premultiplied, a few rows at a time (memory)
                 part = slice(r0, r0 + _AREA_ROWS)
                 yield from stream.add(my0 - y + r0, premultiplied_planes(image[part], cover[part]))
         yield from stream.close()

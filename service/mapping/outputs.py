@@ -66,32 +66,13 @@ def render_bands(mosaic: TiledMosaic, scale: float, on_sums: Callable[[np.ndarra
 
 def _bands(mosaic: TiledMosaic, x: int, y: int, w: int, h: int, ow: int, oh: int, full: bool,
            on_sums: Callable[[np.ndarray], None] | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    ts, C = mosaic.tile_size, mosaic.channels
     if not full:
         for sums in mosaic.area_sums((x, y, w, h), (ow, oh)):
             if on_sums is not None:
                 on_sums(sums)
-            yield _finish(sums, C)
+            yield _finish(sums, mosaic.channels)
         return
-    rows: dict[int, list[tuple[int, int]]] = {}
-    for key in mosaic.tiles():  # sorted by row, then column (the order render() sums in)
-        if x // ts <= key[0] <= (x + w - 1) // ts and y // ts <= key[1] <= (y + h - 1) // ts:
-            rows.setdefault(key[1], []).append(key)
-
-    def pixels(key):
-        image, alpha = mosaic.tile_image(key)
-        return (image[..., None] if image.ndim == 2 else image), alpha
-
-    for ty in range(y // ts, (y + h - 1) // ts + 1):
-        my0, my1 = max(ty * ts, y), min((ty + 1) * ts, y + h)
-        image = np.zeros((my1 - my0, w, C), np.uint8)
-        alpha = np.zeros((my1 - my0, w), np.uint8)
-        for key in rows.get(ty, ()):
-            ox = key[0] * ts
-            mx0, mx1 = max(ox, x), min(ox + ts, x + w)
-            t_img, t_alpha = pixels(key)
-            image[:, mx0 - x:mx1 - x] = t_img[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
-            alpha[:, mx0 - x:mx1 - x] = t_alpha[my0 - ty * ts:my1 - ty * ts, mx0 - ox:mx1 - ox]
+    for _, image, alpha in mosaic.tile_rows((x, y, w, h)):
         yield image, alpha
 
 
