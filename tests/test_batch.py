@@ -171,10 +171,14 @@ def test_batch_on_two_workers(flights, tmp_path, capsys):
                mavlink=str(flights / f"f{seed}" / "telemetry.tlog"))
         a, b = read_trajectory_csv(run / "trajectory.csv"), read_trajectory_csv(ref / "trajectory.csv")
         assert len(a) == len(b) == FRAMES
-        np.testing.assert_allclose(np.array([r.M for r in a]), np.array([r.M for r in b]), atol=1e-6)
+        # the same poses to float rounding (CI once saw 2.5e-6 px in one of 270 values between the two
+        # processes), so the same mosaic but for a rounding flip of one level here and there
+        np.testing.assert_allclose(np.array([r.M for r in a]), np.array([r.M for r in b]), rtol=0, atol=1e-4)
         ma = cv2.imread(str(run / "mosaic.png"), cv2.IMREAD_UNCHANGED)
         mb = cv2.imread(str(ref / "mosaic.png"), cv2.IMREAD_UNCHANGED)
-        assert ma.shape == mb.shape and np.array_equal(ma, mb)
+        assert ma.shape == mb.shape
+        diff = np.abs(ma.astype(np.int16) - mb)
+        assert diff.max() <= 1 and np.count_nonzero(diff) <= 1e-3 * diff.size
 
     # the catalogue: one footprint per georeferenced flight, holding the true frame centres
     catalogue = json.loads((out / "flights.geojson").read_text())
