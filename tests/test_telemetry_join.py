@@ -133,19 +133,26 @@ def run_with_udp_replay(flight_dir, out_dir, monkeypatch, overrides=(), **faults
         streamer.start()
         return started
 
-    monkeypatch.setattr(TelemetryReader, "start", start_then_stream)
-    try:
-        return replay(str(flight_dir / "video.mp4"), out_dir, load_config(overrides=overrides), realtime=True,
-                      mavlink=f"udpin:127.0.0.1:{port}")
-    finally:
-        stop.set()
-        streamer.join(5)
+    with monkeypatch.context() as patch:  # undone after: a test may replay twice
+        patch.setattr(TelemetryReader, "start", start_then_stream)
+        try:
+            return replay(str(flight_dir / "video.mp4"), out_dir, load_config(overrides=overrides), realtime=True,
+                          mavlink=f"udpin:127.0.0.1:{port}")
+        finally:
+            stop.set()
+            streamer.join(5)
 
 
 def test_sitl_style_udp_replay_is_joined_like_a_live_autopilot(flight, tmp_path, monkeypatch):
-    summary = run_with_udp_replay(flight, tmp_path, monkeypatch)
+    out = tmp_path / "a"
+    summary = run_with_udp_replay(flight, out, monkeypatch)
+    if summary["telemetry"]["stopped_at_frame"] is not None:
+        # a realtime replay that fell behind the link's clock on a loaded machine (CI under -n 2 once
+        # did, frames 17-26) gets priors that disagree with the images whatever the join: once more
+        out = tmp_path / "b"
+        summary = run_with_udp_replay(flight, out, monkeypatch)
     assert summary["registered"] == 60
-    run = check_joined(tmp_path, flight, max_error_m=3.0)
+    run = check_joined(out, flight, max_error_m=3.0)
     assert run["telemetry"]["frames_with_telemetry"] >= 55
 
 
