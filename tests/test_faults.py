@@ -292,10 +292,24 @@ def test_disk_full_keeps_the_map_in_the_checkpoint(flight, tmp_path, monkeypatch
     checkpoint keeps the map and recover rebuilds it once there is room again."""
     frames = _frames(flight / "video.avi")
     used = _enospc_after(monkeypatch, 1_500_000)
+    filled = {}
+
+    def on_frame(event):
+        # checkpoints come from a low-priority writer that skips one while the last is still being
+        # written: from frame 30 on, each frame gives it time until the disk is full
+        if "at" in filled or event.index < 30:
+            return
+        deadline = time.monotonic() + 2
+        while time.monotonic() < deadline and not used["refused"]:
+            time.sleep(0.01)
+        if used["refused"]:
+            filled["at"] = event.index
+
     cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
-    pipe = MappingPipeline(ListSource(frames), cfg, tmp_path / "run")
+    pipe = MappingPipeline(ListSource(frames), cfg, tmp_path / "run", sinks=[on_frame])
     summary = pipe.run()  # never raises
-    assert used["refused"] > 0 and summary["frames_in"] == len(frames)
+    assert filled.get("at", len(frames)) < len(frames) - 1, "the disk did not fill while the flight ran"
+    assert summary["frames_in"] == len(frames)
     assert "mosaic.png" in summary["write_errors"] and summary["map_kept_in"] == "checkpoint"
     assert not (tmp_path / "run" / "mosaic.png").exists()
     assert summary["registered"] > 0.9 * len(frames)  # mapping went on
