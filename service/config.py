@@ -372,6 +372,7 @@ class MapServerConfig(_Section):
     threads: int = _num(4, 1, 64)
     max_connections: int = _num(32, 1, 10000)
     timeout_s: float = _num(5.0, 0.0, 600.0, lo_open=True)
+    keepalive_s: float = _num(15.0, 0.0, 3600.0)
     tile_hz: float = _num(2.0, 0.0, 1000.0, lo_open=True)
     max_raw_tiles: int = _num(256, 0, 10_000_000)
     cache_tiles: int = _num(256, 1, 1_000_000)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import http.client
 import json
 import shutil
 import socket
@@ -187,7 +188,7 @@ def test_hostile_clients_cost_the_mapping_nothing_and_are_bounded(flight, tmp_pa
         pipeline = MappingPipeline(source, cfg, tmp_path / "with", sinks=[server.on_frame])
         with_server = pipeline.run()
         threads = [t for t in threading.enumerate() if t.name.startswith("photomap-mapserver")]
-        assert len(threads) <= 2 + 2  # the pool, the accepting and the packing thread
+        assert len(threads) <= 2 + 3  # the pool, the accepting, the idle and the packing thread
         # beyond max_connections a connection is closed at once
         assert server.stats["refused"] >= 12 - 4
         # the slow ones were cut off after the timeout; then a good client is answered
@@ -207,7 +208,7 @@ def test_hostile_clients_cost_the_mapping_nothing_and_are_bounded(flight, tmp_pa
                 answer += chunk
         except OSError:
             pass
-        assert answer.startswith(b"HTTP/1.0 431")
+        assert answer.startswith(b"HTTP/1.1 431")
         assert server.stats["too_large"] >= 1
     finally:
         for s in slow:
@@ -470,8 +471,9 @@ def test_status_bounds_follow_the_map_as_it_grows():
 
 
 def test_bad_requests_get_one_line_answers():
-    """A request line that is not HTTP gets 400, a method but GET and HEAD 501, HEAD the headers
-    of the GET without its body: each one whole answer, then the connection is closed."""
+    """A request line that is not HTTP (or HTTP/1.1 without Host) gets 400, a method but GET and
+    HEAD 501, HEAD the headers of the GET without its body: each one whole answer, then the
+    connection is closed (HTTP/1.0, or asked to close)."""
     server = MapServer(load_config().map_server, "127.0.0.1", 0)
 
     def ask(request: bytes) -> tuple[str, dict, bytes]:
@@ -486,17 +488,89 @@ def test_bad_requests_get_one_line_answers():
 
     try:
         line, _, _ = ask(b"GARBAGE\r\n\r\n")
-        assert line == "HTTP/1.0 400 Bad Request"
+        assert line == "HTTP/1.1 400 Bad Request"
+        line, _, _ = ask(b"GET /status.json HTTP/1.1\r\n\r\n")  # HTTP/1.1 without Host
+        assert line == "HTTP/1.1 400 Bad Request"
         line, _, _ = ask(b"POST /status.json HTTP/1.0\r\nContent-Length: 0\r\n\r\n")
-        assert line == "HTTP/1.0 501 Not Implemented"
-        line, headers, body = ask(b"GET /status.json?x=1 HTTP/1.1\r\nHost: a\r\n\r\n")
-        assert line == "HTTP/1.0 200 OK" and headers["Content-Type"] == "application/json"
+        assert line == "HTTP/1.1 501 Not Implemented"
+        line, headers, body = ask(b"GET /status.json?x=1 HTTP/1.1\r\nHost: a\r\nConnection: close\r\n\r\n")
+        assert line == "HTTP/1.1 200 OK" and headers["Content-Type"] == "application/json"
+        assert headers["Connection"] == "close"
         assert int(headers["Content-Length"]) == len(body) and json.loads(body)["frames_in"] == 0
         line, head_headers, body = ask(b"HEAD /status.json HTTP/1.0\r\n\r\n")
-        assert line == "HTTP/1.0 200 OK" and body == b"" and int(head_headers["Content-Length"]) > 0
+        assert line == "HTTP/1.1 200 OK" and body == b"" and int(head_headers["Content-Length"]) > 0
         line, _, body = ask(b"GET /nothing/here HTTP/1.0\n\n")  # bare newlines too
-        assert line == "HTTP/1.0 404 Not Found" and body == b"not found\n"
+        assert line == "HTTP/1.1 404 Not Found" and body == b"not found\n"
         assert server.stats["errors"] == 0
+    finally:
+        server.close()
+
+
+def _answers(sock: socket.socket, methods: str) -> list[tuple[str, dict, bytes]]:
+    """The answers to requests of ``methods`` (``"GGH"``: GET, GET, HEAD) read off one
+    connection, each by its Content-Length (none after a HEAD)."""
+    data, out, n = b"", [], len(methods)
+    while len(out) < n:
+        head, sep, rest = data.partition(b"\r\n\r\n")
+        if sep:
+            lines = head.decode("latin-1").split("\r\n")
+            headers = dict(line.split(": ", 1) for line in lines[1:])
+            size = 0 if methods[len(out)] == "H" else int(headers["Content-Length"])
+            if len(rest) >= size:
+                out.append((lines[0], headers, rest[:size]))
+                data = rest[size:]
+                continue
+        chunk = sock.recv(65536)
+        assert chunk, f"closed after {len(out)} of {n} answers"
+        data += chunk
+    return out
+
+
+def test_keep_alive_connections_answer_request_after_request_and_are_bounded():
+    """HTTP/1.1 (and HTTP/1.0 asking for keep-alive) keeps the connection for the next request,
+    pipelined ones included, as http.client and browsers use it; an idle one is closed after
+    keepalive_s, the longest idle first when a new client needs its slot, and none holds an
+    answering thread while it waits."""
+    cfg = load_config().updated({"map_server": {"threads": 1, "max_connections": 2, "keepalive_s": 1.0}})
+    server = MapServer(cfg.map_server, "127.0.0.1", 0)
+    try:
+        conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
+        for path in ("/status.json", "/track.geojson", "/nothing", "/status.json"):
+            conn.request("GET", path)
+            answer = conn.getresponse()
+            body = answer.read()
+            assert answer.status == (404 if path == "/nothing" else 200) and answer.version == 11
+            assert answer.getheader("Connection") == "keep-alive"
+        assert json.loads(body)["server"]["connections"] == 1  # four answers, one connection
+        conn.close()
+        with socket.create_connection(("127.0.0.1", server.port), timeout=10) as s:  # pipelined
+            s.sendall(b"GET /status.json HTTP/1.1\r\nHost: a\r\n\r\nHEAD /track.geojson HTTP/1.1\r\nHost: a\r\n\r\n"
+                      b"GET /footprint.geojson HTTP/1.0\r\nConnection: keep-alive\r\n\r\n")
+            (l1, h1, b1), (l2, h2, b2), (l3, h3, b3) = _answers(s, "GHG")
+            assert l1 == l2 == l3 == "HTTP/1.1 200 OK" and json.loads(b1)["frames_in"] == 0
+            assert b2 == b"" and int(h2["Content-Length"]) > 0 and json.loads(b3)["type"] == "FeatureCollection"
+            s.sendall(b"GET /status.json HTTP/1.0\r\n\r\n")  # HTTP/1.0 without keep-alive: closed after
+            (line, headers, _), = _answers(s, "G")
+            assert headers["Connection"] == "close" and s.recv(1) == b""
+        # two idle keep-alive connections fill max_connections, while the one thread is free
+        idle = [socket.create_connection(("127.0.0.1", server.port), timeout=10) for _ in range(2)]
+        for s in idle:
+            s.sendall(b"GET /status.json HTTP/1.1\r\nHost: a\r\n\r\n")
+            _answers(s, "G")
+            time.sleep(0.05)
+        fresh = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
+        fresh.request("GET", "/status.json")  # answered: the longest idle was closed for it
+        answer = fresh.getresponse()
+        assert answer.status == 200 and json.loads(answer.read())["server"]["refused"] == 0
+        assert idle[0].recv(1) == b""
+        t0 = time.monotonic()
+        assert idle[1].recv(1) == b"" and time.monotonic() - t0 < 5  # idle past keepalive_s: closed
+        fresh.request("GET", "/status.json")
+        st = json.loads(fresh.getresponse().read())
+        assert st["server"]["timeouts"] == 0 and st["server"]["errors"] == 0
+        fresh.close()
+        for s in idle:
+            s.close()
     finally:
         server.close()
 

@@ -87,9 +87,10 @@ def load_average() -> float:
 class Client(threading.Thread):
     """Fetches the status and the 3 x 3 tiles around the vehicle ``hz`` times a second.
 
-    One HTTP/1.0 GET per connection over a plain socket (the server's protocol): the client
-    shares the cores with the mapping here, as a ground station on another computer does not,
-    so it spends as little CPU as it can, and its CPU is reported beside the server's. It is
+    HTTP/1.1 GETs over one kept-alive plain socket, as a browser or Qt client reuses its
+    connections (a new one when the server closes it): the client shares the cores with the
+    mapping here, as a ground station on another computer does not, so it spends as little CPU
+    as it can, and its CPU is reported beside the server's. It is
     stopped before the server closes at the end of the run (:func:`one_pass`): any error once
     the server has answered, or an answer but 200, is a failure of the server, counted by reason."""
 
@@ -103,6 +104,8 @@ class Client(threading.Thread):
         self.reasons: dict[str, int] = {}
         self.tiles = 0
         self.last_status: dict | None = None
+        self.sock: socket.socket | None = None
+        self.buffer = b""
 
     def _fail(self, reason: str) -> None:
         self.failed += 1
@@ -111,22 +114,52 @@ class Client(threading.Thread):
     def _get(self, path: str) -> bytes | None:
         t0 = time.perf_counter()
         try:
-            with socket.create_connection(self.address, timeout=5.0) as s:
-                s.sendall(f"GET /{path} HTTP/1.0\r\nHost: {self.address[0]}\r\n\r\n".encode())
-                chunks = []
-                while chunk := s.recv(65536):
-                    chunks.append(chunk)
-        except OSError as exc:
+            try:
+                code, body = self._ask(path)
+            except (ConnectionError, EOFError):  # closed by the server between requests: once more
+                self._close()
+                code, body = self._ask(path)
+        except (OSError, EOFError) as exc:
+            self._close()
             if self.latencies:  # not before the server is up
                 self._fail(type(exc).__name__)
             return None
-        head, _, body = b"".join(chunks).partition(b"\r\n\r\n")
-        code = head.split(b" ", 2)[1].decode(errors="replace") if head.count(b" ") >= 2 else "no answer"
         if code != "200":
             self._fail(f"HTTP {code}")
             return None
         self.latencies.append(time.perf_counter() - t0)
         return body
+
+    def _ask(self, path: str) -> tuple[str, bytes]:
+        """One GET on the kept connection (opened when there is none): its status code and body."""
+        if self.sock is None:
+            self.sock = socket.create_connection(self.address, timeout=5.0)
+            self.buffer = b""
+        self.sock.sendall(f"GET /{path} HTTP/1.1\r\nHost: {self.address[0]}\r\n\r\n".encode())
+        while b"\r\n\r\n" not in self.buffer:
+            self.buffer += self._recv()
+        head, _, rest = self.buffer.partition(b"\r\n\r\n")
+        lines = head.decode("latin-1").split("\r\n")
+        fields = {k.lower(): v for k, _, v in (line.partition(": ") for line in lines[1:])}
+        size = int(fields.get("content-length", "0"))
+        while len(rest) < size:
+            rest += self._recv()
+        self.buffer = rest[size:]
+        if fields.get("connection", "").lower() == "close":
+            self._close()
+        words = lines[0].split(" ", 2)
+        return (words[1] if len(words) >= 2 else "no answer"), rest[:size]
+
+    def _recv(self) -> bytes:
+        chunk = self.sock.recv(65536)
+        if not chunk:
+            raise EOFError
+        return chunk
+
+    def _close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+        self.sock, self.buffer = None, b""
 
     def _tick(self) -> None:
         body = self._get("status.json")
@@ -164,6 +197,7 @@ def client_main(base: str, hz: float) -> int:
     sys.stdin.read()
     client.stop.set()
     client.join()
+    client._close()
     lat = sorted(client.latencies)
     st = client.last_status or {}
     print(json.dumps({"requests": len(lat), "failed": client.failed, "reasons": client.reasons,

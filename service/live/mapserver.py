@@ -26,9 +26,11 @@ never reads the pipeline's state). It serves:
 Bounds: ``threads`` threads answer (live, their Python code waits while the worker maps a frame:
 :attr:`MapServer.gate`; not at a lowered priority: a thread holding the interpreter lock while the
 kernel runs others would keep the worker waiting), at most ``max_connections``
-connections are open at once (more are closed at once), a request (line and headers) must arrive
-whole within ``timeout_s`` and within 8 KiB, only GET and HEAD are answered, one request per
-connection. The mapping worker never waits for any of it.
+connections are open at once (a new one beyond closes the longest idle, or itself when none is),
+a request (line and headers) must arrive whole within ``timeout_s`` and within 8 KiB, only GET
+and HEAD are answered. A connection is kept for the next request (HTTP/1.1 keep-alive) for
+``keepalive_s`` and :data:`KEEPALIVE_REQUESTS` answers, waiting in one selector thread, not in an
+answering thread. The mapping worker never waits for any of it.
 
 The network: the server listens on ``127.0.0.1`` unless an address is given. It has no
 authentication and is read-only; whoever reaches the port sees the map.
@@ -39,6 +41,7 @@ from __future__ import annotations
 import json
 import logging
 import re
+import selectors
 import socket
 import socketserver
 import threading
@@ -63,6 +66,8 @@ from photomap.mapping.threads import WorkerFirst
 log = logging.getLogger(__name__)
 
 MAX_REQUEST_BYTES = 8192
+KEEPALIVE_REQUESTS = 1000  # answers on one connection before it is closed (nginx's keepalive_requests)
+_FIELDS = frozenset({"connection", "content-length", "transfer-encoding", "host"})
 OVERZOOM = 3  # web tiles are served this many zooms beyond the map's resolution (upsampled)
 _VERSION = re.compile(r"^HTTP/\d\.\d$")
 _PHRASES = {int(s): s.phrase for s in HTTPStatus}
@@ -90,102 +95,290 @@ def _encode(obj: dict) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
 
 
+def _head_end(data: bytearray) -> int:
+    """The length of the request head at the start of ``data`` (through its blank line), or -1."""
+    crlf, lf = data.find(b"\r\n\r\n"), data.find(b"\n\n")
+    if crlf >= 0 and (lf < 0 or crlf + 2 < lf):
+        return crlf + 4
+    return lf + 2 if lf >= 0 else -1
+
+
+def _fields(lines: list[str]) -> dict[str, str]:
+    """The header fields this server looks at, by lower-case name (values lower-cased)."""
+    out = {}
+    for line in lines[1:]:
+        name, sep, value = line.partition(":")
+        name = name.strip().lower()
+        if sep and name in _FIELDS:
+            out[name] = value.strip().lower()
+    return out
+
+
 def _static(name: str) -> bytes:
     return resources.files("photomap.live").joinpath("static", *name.split("/")).read_bytes()
 
 
+class _Connection:
+    """A client's connection: its socket, the bytes read past the last request (a pipelined next
+    one), the answers given on it and when it was last parked."""
+
+    __slots__ = ("sock", "address", "pending", "answered", "parked_at")
+
+    def __init__(self, sock: socket.socket, address) -> None:
+        self.sock, self.address = sock, address
+        self.pending = bytearray()
+        self.answered = 0
+        self.parked_at = 0.0
+
+
+class _Parking(threading.Thread):
+    """Idle keep-alive connections, waiting for their next request in one selector instead of
+    in answering threads. A connection that becomes readable goes back to the pool
+    (``resume``); one idle for ``idle_s`` is closed (``drop``), as is the longest idle when a
+    new connection needs its slot (:meth:`evict_oldest`)."""
+
+    def __init__(self, idle_s: float, resume: Callable[[_Connection], None],
+                 drop: Callable[[_Connection], None]) -> None:
+        super().__init__(name="photomap-mapserver-idle", daemon=True)
+        self.idle_s, self._resume, self._drop = idle_s, resume, drop
+        self._selector = selectors.DefaultSelector()
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._selector.register(self._wake_r, selectors.EVENT_READ, None)
+        self._lock = threading.Lock()
+        self._parked: dict[_Connection, None] = {}  # oldest first
+        self._closing = False
+
+    def park(self, conn: _Connection) -> None:
+        conn.parked_at = time.monotonic()
+        with self._lock:
+            if self._closing:
+                closed = True
+            else:
+                closed = False
+                wake = not self._parked  # the loop waits without a deadline while nothing is parked
+                self._selector.register(conn.sock, selectors.EVENT_READ, conn)
+                self._parked[conn] = None
+        if closed:
+            self._drop(conn)
+        elif wake:
+            self._wake()
+
+    def evict_oldest(self) -> bool:
+        """Close the connection idle longest (its slot is free on return); False if none is idle."""
+        with self._lock:
+            conn = next(iter(self._parked), None)
+            if conn is not None:
+                self._unpark(conn)
+        if conn is None:
+            return False
+        self._drop(conn)
+        return True
+
+    def close(self) -> None:
+        with self._lock:
+            self._closing = True
+        self._wake()
+        self.join(timeout=5.0)
+
+    def run(self) -> None:
+        while True:
+            with self._lock:
+                if self._closing:
+                    break
+                oldest = next(iter(self._parked), None)
+            timeout = None if oldest is None else max(0.0, oldest.parked_at + self.idle_s - time.monotonic())
+            events = self._selector.select(timeout)
+            ready, expired = [], []
+            with self._lock:
+                for key, _ in events:
+                    if key.data is None:
+                        self._drain()
+                    elif key.data in self._parked:
+                        self._unpark(key.data)
+                        ready.append(key.data)
+                now = time.monotonic()
+                for conn in list(self._parked):
+                    if now - conn.parked_at < self.idle_s:
+                        break
+                    self._unpark(conn)
+                    expired.append(conn)
+            for conn in ready:
+                self._resume(conn)
+            for conn in expired:
+                self._drop(conn)
+        with self._lock:
+            left = list(self._parked)
+            for conn in left:
+                self._unpark(conn)
+        for conn in left:
+            self._drop(conn)
+        self._selector.close()
+        self._wake_r.close()
+        self._wake_w.close()
+
+    def _unpark(self, conn: _Connection) -> None:  # under the lock
+        del self._parked[conn]
+        self._selector.unregister(conn.sock)
+
+    def _wake(self) -> None:
+        try:
+            self._wake_w.send(b"w")
+        except OSError:  # closed, or its buffer full of wakes: awake anyway
+            pass
+
+    def _drain(self) -> None:
+        try:
+            while self._wake_r.recv(4096):
+                pass
+        except OSError:
+            pass
+
+
 class _Server(HTTPServer):
-    """An HTTP server answering in a bounded pool; a connection beyond ``max_connections`` is
-    closed at once."""
+    """An HTTP server answering in a bounded pool. At most ``max_connections`` connections are
+    open: a new one beyond closes the longest idle keep-alive connection, or is closed at once
+    when none is idle. Between requests a keep-alive connection waits in :class:`_Parking`, not
+    in a pool thread."""
 
     daemon_threads = True
     request_queue_size = 64
 
-    def __init__(self, address: tuple[str, int], owner: "MapServer", threads: int, max_connections: int) -> None:
+    def __init__(self, address: tuple[str, int], owner: "MapServer", threads: int, max_connections: int,
+                 keepalive_s: float) -> None:
         self.address_family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
         self.owner = owner
+        self.keepalive_s = keepalive_s
         self._slots = threading.BoundedSemaphore(max_connections)
         self._pool = ThreadPoolExecutor(threads, "photomap-mapserver")
         super().__init__(address, _Handler)
+        self._parking = _Parking(keepalive_s, self._resume, self._close)
+        self._parking.start()
 
     def server_bind(self) -> None:
         socketserver.TCPServer.server_bind(self)  # HTTPServer's would look the name up (DNS)
         self.server_name, self.server_port = str(self.server_address[0]), int(self.server_address[1])
 
     def process_request(self, request, client_address) -> None:
-        if not self._slots.acquire(blocking=False):
+        self.owner.stats["connections"] += 1
+        if not self._slots.acquire(blocking=False) and not (
+                self._parking.evict_oldest() and self._slots.acquire(blocking=False)):
             self.owner.stats["refused"] += 1
             self.shutdown_request(request)
             return
-        try:
-            self._pool.submit(self._work, request, client_address)
-        except RuntimeError:  # shutting down
-            self._slots.release()
-            self.shutdown_request(request)
+        self._resume(_Connection(request, client_address))
 
-    def _work(self, request, client_address) -> None:
+    def _resume(self, conn: _Connection) -> None:
         try:
-            self.finish_request(request, client_address)
+            self._pool.submit(self._work, conn)
+        except RuntimeError:  # shutting down
+            self._close(conn)
+
+    def _work(self, conn: _Connection) -> None:
+        keep = False
+        try:
+            keep = _Handler(conn, self).serve()
         except Exception:  # a client that vanishes mid-answer, a broken request
             self.owner.stats["errors"] += 1
-        finally:
-            self.shutdown_request(request)
-            self._slots.release()
+        if keep:
+            self._parking.park(conn)
+        else:
+            self._close(conn)
+
+    def _close(self, conn: _Connection) -> None:
+        self.shutdown_request(conn.sock)
+        self._slots.release()
 
     def server_close(self) -> None:
         super().server_close()
+        if hasattr(self, "_parking"):  # not when the port could not be bound
+            self._parking.close()
         self._pool.shutdown(wait=False, cancel_futures=True)
 
 
-class _Handler(socketserver.BaseRequestHandler):
-    """One request per connection: read it whole (:meth:`handle`), answer it with one send.
+class _Handler:
+    """The requests of one connection while they come (:meth:`serve`): each read whole, answered
+    with one send.
 
-    The request line is parsed here and the headers are not (nothing here depends on them):
+    The request line is parsed and of the headers only ``Connection``, ``Content-Length``,
+    ``Transfer-Encoding`` and ``Host`` are looked at (nothing else here depends on them):
     ``http.server``'s parsing of them (the email package), its buffered files and its
-    header-by-header writes were most of the server's CPU per answer beside the tile renders."""
+    header-by-header writes were most of the server's CPU per answer beside the tile renders.
+    HTTP/1.1 connections stay open unless the client says ``Connection: close`` (HTTP/1.0 ones
+    when it says ``keep-alive``), for at most :data:`KEEPALIVE_REQUESTS` answers; a request with
+    a body, or one answered with an error, closes its connection."""
 
-    server: _Server
-    requestline: str = ""
-    path: str = ""
+    def __init__(self, conn: _Connection, server: _Server) -> None:
+        self.conn, self.server, self.request, self.client_address = conn, server, conn.sock, conn.address
+        self.requestline = ""
+        self.path = ""
+        self.keep = False
 
-    def handle(self) -> None:
-        """Read the request (line and headers) whole within the timeout and size limit, then answer."""
+    def serve(self) -> bool:
+        """Answer the connection's requests while they are ready; True to park it for the next."""
+        while True:
+            if not self._one():
+                return False
+            self.conn.answered += 1
+            if not self.conn.pending:  # a pipelined request is answered at once
+                return True
+
+    def _one(self) -> bool:
+        """Read one request (line and headers) whole within the timeout and size limit and answer
+        it; True when the connection stays open."""
         owner = self.server.owner
+        conn = self.conn
         connection = self.request
         timeout_s = owner.timeout_s
         deadline = time.monotonic() + timeout_s
-        data = bytearray()
-        while b"\r\n\r\n" not in data and b"\n\n" not in data:
+        data = conn.pending
+        while (end := _head_end(data)) < 0:
+            if len(data) > MAX_REQUEST_BYTES:
+                owner.stats["too_large"] += 1
+                self._raw(431, b"request too large\n", "text/plain")
+                return False
             left = deadline - time.monotonic()
             if left <= 0:
                 owner.stats["timeouts"] += 1
-                return
+                return False
             connection.settimeout(left)
             try:
                 chunk = connection.recv(4096)
             except (TimeoutError, socket.timeout):
                 owner.stats["timeouts"] += 1
-                return
+                return False
             except OSError:
-                return
-            if not chunk:
-                return
+                return False
+            if not chunk:  # the client closed it (between requests: as a keep-alive client does)
+                return False
             data += chunk
-            if len(data) > MAX_REQUEST_BYTES:
-                owner.stats["too_large"] += 1
-                self._raw(431, b"request too large\n", "text/plain")
-                return
+        if end > MAX_REQUEST_BYTES:
+            owner.stats["too_large"] += 1
+            self._raw(431, b"request too large\n", "text/plain")
+            return False
+        head = bytes(data[:end]).decode("latin-1")
+        del data[:end]
         connection.settimeout(timeout_s)  # the answer must be taken within it too
-        self.requestline = bytes(data.split(b"\n", 1)[0]).decode("latin-1").rstrip("\r")
+        lines = head.split("\n")
+        self.requestline = lines[0].rstrip("\r")
         words = self.requestline.split()
         if len(words) != 3 or not _VERSION.match(words[2]):
             self._raw(400, b"bad request\n", "text/plain")
-            return
-        method, self.path = words[0], words[1]
+            return False
+        fields = _fields(lines)
+        method, self.path, version = words
+        if version == "HTTP/1.1" and "host" not in fields:
+            self._raw(400, b"no Host header\n", "text/plain")
+            return False
         if method not in ("GET", "HEAD"):
             self._raw(501, b"unsupported method\n", "text/plain")
-            return
+            return False
+        tokens = {t.strip() for t in fields.get("connection", "").split(",")}
+        self.keep = (self.server.keepalive_s > 0 and conn.answered + 1 < KEEPALIVE_REQUESTS
+                     and fields.get("content-length", "0") == "0" and "transfer-encoding" not in fields
+                     and ("keep-alive" in tokens if version == "HTTP/1.0" else "close" not in tokens))
         self._answer(head=method == "HEAD")
+        return self.keep
 
     def _raw(self, code: int, body: bytes, ctype: str) -> None:
         """An answer before the request is known (no error if the client is gone)."""
@@ -196,9 +389,12 @@ class _Handler(socketserver.BaseRequestHandler):
 
     def _send(self, code: int, body: bytes, ctype: str, head: bool, cache: str = "no-cache") -> None:
         """The whole answer (status line, headers and, unless ``head``, the body) in one send."""
-        text = (f"HTTP/1.0 {code} {_PHRASES.get(code, '')}\r\nServer: photomap\r\n"
+        if code >= 400 and code != 404:  # an error answer closes the connection
+            self.keep = False
+        persist = (f"keep-alive\r\nKeep-Alive: timeout={self.server.keepalive_s:g}" if self.keep else "close")
+        text = (f"HTTP/1.1 {code} {_PHRASES.get(code, '')}\r\nServer: photomap\r\n"
                 f"Date: {formatdate(usegmt=True)}\r\nContent-Type: {ctype}\r\nContent-Length: {len(body)}\r\n"
-                f"Cache-Control: {cache}\r\nAccess-Control-Allow-Origin: *\r\nConnection: close\r\n\r\n")
+                f"Cache-Control: {cache}\r\nAccess-Control-Allow-Origin: *\r\nConnection: {persist}\r\n\r\n")
         if log.isEnabledFor(logging.DEBUG):  # one per request: not even formatted otherwise
             log.debug("map server: %s \"%s\" %d %d", self.client_address[0], self.requestline, code, len(body))
         self.request.sendall(text.encode("latin-1") if head else text.encode("latin-1") + body)
@@ -261,7 +457,7 @@ class MapServer:
         self.cache = TileCache(cfg.cache_tiles, cfg.min_render_interval_s, jpeg_quality=cfg.jpeg_quality)
         self.hazards = hazards
         self.timeout_s = float(cfg.timeout_s)
-        self.stats = {"requests": 0, "refused": 0, "timeouts": 0, "too_large": 0, "errors": 0}
+        self.stats = {"connections": 0, "requests": 0, "refused": 0, "timeouts": 0, "too_large": 0, "errors": 0}
         # answers built from the live map, by name: (what they were built from, the answer)
         self._answers: dict[str, tuple[tuple, object]] = {}
         self._warned: set[str] = set()
@@ -271,7 +467,7 @@ class MapServer:
         self.page = _static("index.html")
         try:
             self._server = _Server((address, cfg.port if port is None else int(port)), self, cfg.threads,
-                                   cfg.max_connections)
+                                   cfg.max_connections, float(cfg.keepalive_s))
         except OSError as exc:
             raise InputError(f"map server cannot listen on {address}:{cfg.port if port is None else port}: "
                              f"{exc.strerror or exc}") from None
