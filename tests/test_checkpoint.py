@@ -54,6 +54,20 @@ def test_only_changed_tiles_are_written(tmp_path):
     assert restored.bounds() == mosaic.bounds()
 
 
+def test_a_grey_map_is_checkpointed_and_restored(tmp_path):
+    """A grey map's tiles are saved as grey + alpha PNGs (which OpenCV cannot write) and come back
+    pixel for pixel."""
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64, channels=1))
+    mosaic.add(frame()[..., 1], shift(3, 2))
+    state = MapState(tmp_path)
+    state.write(state.snapshot({0: mosaic}, {}))
+    restored, report = restore_mosaic(tmp_path, load_manifest(tmp_path), 0)
+    assert report.unreadable == [] and report.restored == len(mosaic.tiles()) == 6
+    for key in mosaic.tiles():
+        assert np.array_equal(restored.tile_image(key)[0], mosaic.tile_image(key)[0])
+        assert np.array_equal(restored.tile_image(key)[1], mosaic.tile_image(key)[1])
+
+
 def test_snapshot_budget_spreads_a_big_change_over_checkpoints(tmp_path):
     mosaic = TiledMosaic(MosaicConfig(tile_size=32, blend="feather"))
     mosaic.add(frame(), shift(-7, 3))

@@ -3,6 +3,8 @@ OpenCV and PIL; memory bounded by a tile row."""
 
 from __future__ import annotations
 
+import io
+
 import cv2
 import numpy as np
 import pytest
@@ -66,6 +68,32 @@ def test_stream_writer_round_trip(tmp_path, channels):
             png.write(img[r0:r0 + 5])
     back = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)
     assert np.array_equal(back.reshape(img.shape), img)
+
+
+@pytest.mark.parametrize("deflate", ["isal", "zlib"])
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+def test_encode_png_reads_back_equal(channels, deflate, monkeypatch):
+    """encode_png with ISA-L's deflate, and with zlib where isal is not installed: PIL reads the
+    pixels back exactly (grey + alpha too); OpenCV too for gray, BGR and BGRA."""
+    from photomap.io import pngstream
+
+    if deflate == "zlib":
+        monkeypatch.setattr(pngstream, "_isal", None)
+    elif pngstream._isal is None:
+        pytest.skip("isal (a dependency) is not installed here")
+    rng = np.random.default_rng(channels)
+    img = rng.integers(0, 256, (256, 256, channels), dtype=np.uint8)
+    img[40:90] = 7  # flat rows and noise
+    data = pngstream.encode_png(img if channels > 1 else img[..., 0])
+    with Image.open(io.BytesIO(data)) as pil:
+        back = np.asarray(pil).reshape(img.shape)
+    order = {1: [0], 2: [0, 1], 3: [2, 1, 0], 4: [2, 1, 0, 3]}[channels]  # PIL's RGB(A) against BGR(A)
+    assert np.array_equal(back, img[..., order])
+    if channels != 2:
+        cv = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(cv.reshape(img.shape), img)
+    with pytest.raises(ValueError, match="uint8"):
+        pngstream.encode_png(img.astype(np.uint16))
 
 
 def test_stream_writer_leaves_nothing_on_error(tmp_path):

@@ -286,6 +286,29 @@ def measure_stills(stills: Path, out: Path) -> dict:
             "median_gps_m": float(np.median(errors)) if errors else None}
 
 
+def host_reference_s() -> float:
+    """Seconds of a fixed single-thread workload (JPEG encode and decode of one synthetic
+    2400x1800 frame, deflate of its pixels), the median of 5: the same work on any host, so that
+    wall times measured on different hosts (or the same host on another day) can be compared."""
+    import zlib
+
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    image = cv2.resize(rng.integers(0, 256, (180, 240, 3), dtype=np.uint8), (2400, 1800),
+                       interpolation=cv2.INTER_CUBIC)
+    cv2.setNumThreads(1)
+    times = []
+    for _ in range(5):
+        t0 = time.process_time()
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        zlib.compress(image.tobytes(), 1)
+        times.append(time.process_time() - t0)
+    return float(np.median(times))
+
+
 def run_stills(work: Path) -> list[dict]:
     results = []
     for name, (flags, blank) in STILLS.items():
@@ -304,7 +327,7 @@ def run_stills(work: Path) -> list[dict]:
     return results
 
 
-def report_stills(results: list[dict], elapsed: float, load: tuple[float, float]) -> str:
+def report_stills(results: list[dict], elapsed: float, load: tuple[float, float], reference: tuple[float, float]) -> str:
     when = datetime.date.today().isoformat()
     lines = ["## Survey stills at survey speed", "",
              f"Written by `python -m tools.bench_survey --stills` on {when} (Python {platform.python_version()}, "
@@ -312,7 +335,10 @@ def report_stills(results: list[dict], elapsed: float, load: tuple[float, float]
              f"{load[1]:.1f} at the end: other processes shared the cores, wall times are upper bounds of a "
              "calm machine's). Simulated lawn-mower surveys of JPEG stills with EXIF GPS and DJI XMP "
              "(`photomap simulate --mode stills --terrain texture --altitude 60:60`), mapped by "
-             "`photomap replay` from their own telemetry in a fresh process (target: <= 10 s each).", "",
+             "`photomap replay` from their own telemetry in a fresh process (target: <= 10 s each). "
+             f"The host's speed: {1000 * reference[0]:.0f} ms before and {1000 * reference[1]:.0f} ms after "
+             "for a fixed single-thread workload (`host_reference_s`: JPEG encode and decode of a 2400x1800 "
+             "frame and deflate of its pixels; lower is faster), to compare runs on different hosts.", "",
              "| survey | stills / placed / segments | wall s | CPU s | loop closure s (worker) | joins | "
              "telemetry placed | telemetry | frame centres vs photo GPS (median) |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -349,11 +375,13 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(measure_stills(Path(spec["stills"]), Path(spec["out"]))))
         return 0
     if args.stills:
-        start, load0 = time.perf_counter(), os.getloadavg()[0]
+        start, load0, ref0 = time.perf_counter(), os.getloadavg()[0], host_reference_s()
         with tempfile.TemporaryDirectory(prefix="bench-stills-") as tmp:
             work = args.work or Path(tmp)
             work.mkdir(parents=True, exist_ok=True)
-            body = report_stills(run_stills(work), time.perf_counter() - start, (load0, os.getloadavg()[0]))
+            results = run_stills(work)
+            body = report_stills(results, time.perf_counter() - start, (load0, os.getloadavg()[0]),
+                                 (ref0, host_reference_s()))
         print(body)
         out_md = args.out if args.out is not None else REPO / "docs" / "benchmarks.md"
         replace_section(out_md, "survey-stills", body)

@@ -41,6 +41,7 @@ import numpy as np
 from photomap.config import MosaicConfig
 from photomap.core.mosaic import TiledMosaic
 from photomap.errors import InputError, PhotomapError
+from photomap.io.pngstream import encode_png
 from photomap.io.trajectory_files import atomic_write_bytes, write_json
 
 log = logging.getLogger(__name__)
@@ -52,7 +53,6 @@ STATE_DIR = "checkpoint"
 MANIFEST = "manifest.json"
 FORMAT = 1
 _TILE = re.compile(r"^(-?\d+)_(-?\d+)_g(\d+)\.png$")
-_PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 
 TileKey = tuple[int, int]
 
@@ -79,6 +79,17 @@ class Snapshot:
     channels: int
     pending: int = 0  # changed tiles left for the next checkpoint (byte budget)
     taken_s: float = 0.0
+
+
+def _tile_png(pixels: np.ndarray) -> bytes:
+    """A saved tile's PNG: 8-bit ones by :func:`~photomap.io.pngstream.encode_png` (a third of
+    OpenCV's CPU; grey + alpha too, which OpenCV cannot write), others by OpenCV."""
+    if pixels.dtype == np.uint8:
+        return encode_png(pixels)
+    ok, buf = cv2.imencode(".png", pixels, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise OSError("PNG encoding of a tile failed")
+    return buf.tobytes()
 
 
 def _with_alpha(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -186,10 +197,8 @@ class MapState:
                 if tile is None:  # left the map's tile store meanwhile: the next checkpoint decides
                     del fresh[(seg, key)]
                     continue
-                ok, buf = cv2.imencode(".png", _with_alpha(*tile), _PNG_FAST)
+                buf = _tile_png(_with_alpha(*tile))
                 del tile, pixels
-                if not ok:
-                    raise OSError(f"PNG encoding of tile {key} failed")
                 path = self._tile_path(seg, key, gen)
                 folder, name = os.path.split(path)
                 with contextlib.suppress(FileExistsError):
@@ -319,6 +328,8 @@ def restore_mosaic(folder: str | Path, manifest: dict, segment: int, *, store=No
     for tx, ty, gen in manifest["tiles"].get(str(segment), []):
         path = folder / f"seg{segment}" / f"{tx}_{ty}_g{gen}.png"
         bgra = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if channels == 1 and bgra is not None and bgra.ndim == 3 and bgra.shape[2] == 4:
+            bgra = bgra[..., [0, 3]]  # grey + alpha, which OpenCV reads as BGRA
         if bgra is None or bgra.ndim != 3 or bgra.shape[:2] != (params.tile_size,) * 2 \
                 or bgra.shape[2] != channels + 1:
             report.unreadable.append(path.name)

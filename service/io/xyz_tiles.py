@@ -26,6 +26,7 @@ from photomap.errors import InputError
 from photomap.geo import webmercator as wm
 from photomap.geo.georef import png_to_map, utm_forward, utm_inverse
 from photomap.io.mapsource import MapRaster
+from photomap.io.pngstream import encode_png
 from photomap.io.trajectory_files import atomic_write_bytes, sync_filesystem, write_json
 
 log = logging.getLogger(__name__)
@@ -168,13 +169,11 @@ def write_xyz_tiles(folder: str | Path, raster: MapRaster, *, zooms: tuple[int, 
         for i, (z, x, y) in enumerate(jobs):
             tile = render_tile(raster, x, y, z)
             if tile is not None:
-                ok, buf = cv2.imencode(".png", np.dstack(tile))
-                if not ok:
-                    raise InputError(f"PNG encoding of tile {z}/{x}/{y} failed")
+                buf = encode_png(np.dstack(tile))
                 row = wm.tms_y(y, z) if tms else y
                 path = folder / str(z) / str(x) / f"{row}.png"
                 path.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write_bytes(path, buf.tobytes(), sync=False)
+                atomic_write_bytes(path, buf, sync=False)
                 written += 1
             if progress is not None:
                 progress(i + 1, len(jobs))

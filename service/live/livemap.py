@@ -47,6 +47,7 @@ from photomap.core.thinned import ThinnedPath
 from photomap.geo import webmercator as wm
 from photomap.geo.georef import Georeference, utm_forward
 from photomap.geometry import frame_centre
+from photomap.io.pngstream import encode_png
 from photomap.io.xyz_tiles import tile_source_grid, upsample_grid
 from photomap.live.viewer import frame_outline, geo_footprint
 
@@ -59,13 +60,7 @@ _MAX_PATH = 5000  # track points kept (thinned by halving beyond)
 _FPS_WINDOW_S = 5.0
 
 
-def _empty_png() -> bytes:
-    ok, buf = cv2.imencode(".png", np.zeros((wm.TILE_PX, wm.TILE_PX, 4), np.uint8))
-    assert ok
-    return buf.tobytes()
-
-
-EMPTY_PNG = _empty_png()
+EMPTY_PNG = encode_png(np.zeros((wm.TILE_PX, wm.TILE_PX, 4), np.uint8))
 
 
 def _bgra(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -95,10 +90,6 @@ def _unpremultiplied(pre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 _PACK_JPEG_QUALITY = 90
-# served tiles: the "up" filter and run-length zlib at level 1 encode a 256 px RGBA tile of
-# imagery in 60 % of the CPU of the default adaptive filters (2.2 against 3.7 ms), 10 % larger
-_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP,
-               cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
 
 
 class _Tile:
@@ -544,9 +535,8 @@ def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callabl
     pause()
     if jpeg_quality > 0 and tile[..., 3].min() == 255:
         ok, buf = cv2.imencode(".jpg", tile[..., :3], [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
-    else:
-        ok, buf = cv2.imencode(".png", tile, _PNG_PARAMS)
-    return buf.tobytes() if ok else EMPTY_PNG
+        return buf.tobytes() if ok else EMPTY_PNG
+    return encode_png(tile)  # a third of cv2.imencode's CPU (photomap.io.pngstream)
 
 
 def tile_type(body: bytes) -> str:
