@@ -30,6 +30,7 @@ the ``survey-stills`` section of ``docs/benchmarks.md``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import logging
@@ -37,12 +38,14 @@ import math
 import os
 import platform
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Iterator
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -309,28 +312,67 @@ def host_reference_s() -> float:
     return float(np.median(times))
 
 
-def run_stills(work: Path) -> list[dict]:
+def _measured_stills(stills: Path, out: Path, package: Path | None = None) -> dict:
+    """:func:`measure_stills` in a fresh process; ``package``: a folder holding the ``photomap``
+    package to measure instead of the installed one (``--against``)."""
+    env = dict(os.environ)
+    if package is not None:
+        env["PYTHONPATH"] = str(package)
+    spec = json.dumps({"stills": str(stills), "out": str(out)})
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--measure-stills", spec],
+                          capture_output=True, text=True, cwd=REPO, env=env)
+    if proc.returncode != 0:
+        raise RuntimeError(f"the measured run failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@contextlib.contextmanager
+def _package_at(rev: str, work: Path) -> Iterator[Path]:
+    """A folder whose ``photomap`` is the package of git revision ``rev`` (a detached worktree)."""
+    tree = work / "against"
+    subprocess.run(["git", "worktree", "add", "--detach", "-q", str(tree), rev], check=True, cwd=REPO)
+    try:
+        (work / "pkg").mkdir()
+        (work / "pkg" / "photomap").symlink_to(tree / "service")
+        yield work / "pkg"
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO)
+
+
+def run_stills(work: Path, rounds: int = 1, against: str | None = None) -> list[dict]:
+    """Each survey simulated once and mapped ``rounds`` times (medians), alternating with the
+    package of git revision ``against`` when given (the same host, the same minutes)."""
     results = []
-    for name, (flags, blank) in STILLS.items():
-        sim = work / f"sim{len(results)}"
-        cmd = [sys.executable, "-m", "photomap", "simulate", "--out", str(sim), "--mode", "stills", "--terrain",
-               "texture", "--altitude", "60:60", *flags, "-q"]
-        subprocess.run(cmd, check=True, cwd=REPO)
-        blank_stills(sim / "stills", blank)
-        spec = json.dumps({"stills": str(sim / "stills"), "out": str(work / f"run{len(results)}")})
-        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--measure-stills", spec],
-                              capture_output=True, text=True, cwd=REPO)
-        if proc.returncode != 0:
-            raise RuntimeError(f"the measured run failed:\n{proc.stderr[-3000:]}")
-        results.append({"case": name, **json.loads(proc.stdout.strip().splitlines()[-1])})
-        log.info("%s: %.1f s wall, %.1f s CPU", name, results[-1]["wall_s"], results[-1]["cpu_s"])
+    with contextlib.ExitStack() as stack:
+        package = stack.enter_context(_package_at(against, work)) if against else None
+        for name, (flags, blank) in STILLS.items():
+            sim = work / f"sim{len(results)}"
+            cmd = [sys.executable, "-m", "photomap", "simulate", "--out", str(sim), "--mode", "stills", "--terrain",
+                   "texture", "--altitude", "60:60", *flags, "-q"]
+            subprocess.run(cmd, check=True, cwd=REPO)
+            blank_stills(sim / "stills", blank)
+            runs, theirs = [], []
+            for _ in range(rounds):
+                runs.append(_measured_stills(sim / "stills", work / f"run{len(results)}"))
+                if package is not None:
+                    theirs.append(_measured_stills(sim / "stills", work / f"against{len(results)}", package))
+            row = dict(runs[-1], wall_s=statistics.median(r["wall_s"] for r in runs),
+                       cpu_s=statistics.median(r["cpu_s"] for r in runs), case=name)
+            if theirs:
+                row["against_wall_s"] = statistics.median(r["wall_s"] for r in theirs)
+                row["against_cpu_s"] = statistics.median(r["cpu_s"] for r in theirs)
+            results.append(row)
+            log.info("%s: %.1f s wall, %.1f s CPU%s", name, row["wall_s"], row["cpu_s"],
+                     f" ({against}: {row['against_wall_s']:.1f} s, {row['against_cpu_s']:.1f} s)" if theirs else "")
     return results
 
 
-def report_stills(results: list[dict], elapsed: float, load: tuple[float, float], reference: tuple[float, float]) -> str:
+def report_stills(results: list[dict], elapsed: float, load: tuple[float, float], reference: tuple[float, float],
+                  rounds: int = 1, against: str | None = None) -> str:
     when = datetime.date.today().isoformat()
+    flags = (f" --rounds {rounds}" if rounds > 1 else "") + (f" --against {against}" if against else "")
     lines = ["## Survey stills at survey speed", "",
-             f"Written by `python -m tools.bench_survey --stills` on {when} (Python {platform.python_version()}, "
+             f"Written by `python -m tools.bench_survey --stills{flags}` on {when} (Python {platform.python_version()}, "
              f"{os.cpu_count()} cores, {elapsed:.0f} s; 1-minute load average {load[0]:.1f} at the start and "
              f"{load[1]:.1f} at the end: other processes shared the cores, wall times are upper bounds of a "
              "calm machine's). Simulated lawn-mower surveys of JPEG stills with EXIF GPS and DJI XMP "
@@ -338,14 +380,18 @@ def report_stills(results: list[dict], elapsed: float, load: tuple[float, float]
              "`photomap replay` from their own telemetry in a fresh process (target: <= 10 s each). "
              f"The host's speed: {1000 * reference[0]:.0f} ms before and {1000 * reference[1]:.0f} ms after "
              "for a fixed single-thread workload (`host_reference_s`: JPEG encode and decode of a 2400x1800 "
-             "frame and deflate of its pixels; lower is faster), to compare runs on different hosts.", "",
-             "| survey | stills / placed / segments | wall s | CPU s | loop closure s (worker) | joins | "
-             "telemetry placed | telemetry | frame centres vs photo GPS (median) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "frame and deflate of its pixels; lower is faster), to compare runs on different hosts."
+             + (f" Wall and CPU s are medians of {rounds} runs." if rounds > 1 else "")
+             + (f" Each run alternates with one of the code at `{against}` (git revision, a worktree) on the "
+                "same stills: its wall s beside, and the ratio (below 1: this code faster)." if against else ""), "",
+             "| survey | stills / placed / segments | wall s | CPU s |" + (f" `{against}` wall s (ratio) |" if against else "")
+             + " loop closure s (worker) | joins | telemetry placed | telemetry | frame centres vs photo GPS (median) |",
+             "|---|---|---|---|" + ("---|" if against else "") + "---|---|---|---|---|"]
     for r in results:
         gps = f"{r['median_gps_m']:.2f} m" if r["median_gps_m"] is not None else "-"
+        theirs = f" {r['against_wall_s']:.1f} ({r['wall_s'] / r['against_wall_s']:.2f}) |" if against else ""
         lines.append(f"| {r['case']} | {r['stills']} / {r['registered']} / {r['segments']} | {r['wall_s']:.1f} | "
-                     f"{r['cpu_s']:.1f} | {r['loop_closure_s']:.2f} | {r['joins']} | {r['placed'] or 0} | "
+                     f"{r['cpu_s']:.1f} |{theirs} {r['loop_closure_s']:.2f} | {r['joins']} | {r['placed'] or 0} | "
                      f"{r['status']} | {gps} |")
     return "\n".join(lines) + "\n"
 
@@ -361,6 +407,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="markdown file whose survey section is replaced "
                     "(default docs/benchmarks.md; none with --quick)")
     ap.add_argument("--stills", action="store_true", help="survey stills at survey speed (section survey-stills)")
+    ap.add_argument("--rounds", type=int, default=1, help="--stills: runs of each survey (medians; default 1)")
+    ap.add_argument("--against", metavar="REV", help="--stills: alternate each run with the code of git revision "
+                    "REV (a temporary worktree) and report the ratio")
     ap.add_argument("--measure", metavar="JSON", help=argparse.SUPPRESS)
     ap.add_argument("--measure-stills", metavar="JSON", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -379,9 +428,9 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory(prefix="bench-stills-") as tmp:
             work = args.work or Path(tmp)
             work.mkdir(parents=True, exist_ok=True)
-            results = run_stills(work)
+            results = run_stills(work, max(1, args.rounds), args.against)
             body = report_stills(results, time.perf_counter() - start, (load0, os.getloadavg()[0]),
-                                 (ref0, host_reference_s()))
+                                 (ref0, host_reference_s()), max(1, args.rounds), args.against)
         print(body)
         out_md = args.out if args.out is not None else REPO / "docs" / "benchmarks.md"
         replace_section(out_md, "survey-stills", body)
