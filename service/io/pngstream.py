@@ -79,16 +79,17 @@ def _header(width: int, height: int, channels: int) -> bytes:
 
 
 def encode_png(image: np.ndarray) -> bytes:
-    """The PNG of a uint8 image, gray ``(h, w)`` or ``(h, w, 1)``, BGR or BGRA ``(h, w, 3|4)``
-    (OpenCV's channel order), filtered and compressed as :class:`PngStreamWriter` does: for map
-    tiles, at about a third of ``cv2.imencode``'s CPU (module docstring)."""
+    """The PNG of a uint8 image, gray ``(h, w)`` or ``(h, w, 1)``, gray + alpha ``(h, w, 2)``
+    (which OpenCV cannot write), BGR or BGRA ``(h, w, 3|4)`` (OpenCV's channel order), filtered
+    and compressed as :class:`PngStreamWriter` does: for map tiles, at about a third of
+    ``cv2.imencode``'s CPU (module docstring)."""
     image = np.asarray(image)
     if image.dtype != np.uint8:
         raise ValueError(f"PNG pixels must be uint8, got {image.dtype}")
     if image.ndim == 2:
         image = image[..., None]
     if image.ndim != 3 or image.shape[2] not in _COLOR_TYPE or image.shape[0] < 1 or image.shape[1] < 1:
-        raise ValueError(f"PNG image must be (h, w) or (h, w, 1|3|4), got {image.shape}")
+        raise ValueError(f"PNG image must be (h, w) or (h, w, 1-4), got {image.shape}")
     height, width, channels = image.shape
     rows = _png_rows(image)
     z = deflater()
@@ -97,7 +98,8 @@ def encode_png(image: np.ndarray) -> bytes:
 
 
 class PngStreamWriter:
-    """Write a ``width`` x ``height`` PNG of ``channels`` (1 gray, 3 BGR, 4 BGRA) uint8 band by band.
+    """Write a ``width`` x ``height`` PNG of ``channels`` (1 gray, 2 gray + alpha, 3 BGR, 4 BGRA)
+    uint8 band by band.
 
     Use as a context manager: ``write(band)`` each band of rows top to bottom (``(n, width,
     channels)`` or ``(n, width)`` for gray, OpenCV channel order); on a clean exit the file is
@@ -107,7 +109,7 @@ class PngStreamWriter:
 
     def __init__(self, path: str | Path, width: int, height: int, channels: int = 4) -> None:
         if channels not in _COLOR_TYPE:
-            raise ValueError(f"PNG channels must be 1, 3 or 4, got {channels}")
+            raise ValueError(f"PNG channels must be 1 to 4, got {channels}")
         if width < 1 or height < 1:
             raise ValueError(f"PNG size must be positive, got {width}x{height}")
         self.path = Path(path)
