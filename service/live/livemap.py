@@ -148,12 +148,11 @@ class _Tile:
         levels = max(0, int(math.log2(side)))
         for n in range(2, levels + 1):
             self.level(n)
-        ok1, jpeg = cv2.imencode(".jpg", np.ascontiguousarray(self._bgra[..., :3]),
-                                 [cv2.IMWRITE_JPEG_QUALITY, _PACK_JPEG_QUALITY])
-        ok2, alpha = cv2.imencode(".png", np.ascontiguousarray(self._bgra[..., 3]), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-        if not (ok1 and ok2):
+        ok, jpeg = cv2.imencode(".jpg", np.ascontiguousarray(self._bgra[..., :3]),
+                                [cv2.IMWRITE_JPEG_QUALITY, _PACK_JPEG_QUALITY])
+        if not ok:
             return self
-        return _Tile(None, self.version, (jpeg.tobytes(), alpha.tobytes()),
+        return _Tile(None, self.version, (jpeg.tobytes(), encode_png(self._bgra[..., 3])),
                      {n: m for n, m in self.mips.items() if n >= 2})
 
 
