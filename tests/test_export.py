@@ -7,7 +7,6 @@ import html.parser
 import json
 import math
 import shutil
-import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from photomap.io.xyz_tiles import render_tile
 from photomap.sim.flight import latlon_to_pixel, pixel_to_latlon
 from photomap.sim.simulate import simulate_flight
 from photomap.sim.terrain import load_terrain
+from tests.waiting import wait_until
 
 T0_UNIX = None  # set from meta.yaml in the fixture
 
@@ -609,10 +609,7 @@ def test_track_files_grow_during_a_live_run(flight, tmp_path):
         # the track comes from a low-priority checkpoint writer: from frame 10 on, a frame that finds
         # none yet gives it time (a loaded host had the writer far behind the frames)
         path = out / "track.geojson"
-        deadline = time.monotonic() + (2.0 if event.index >= 10 and not seen else 0.0)
-        while not path.is_file() and time.monotonic() < deadline:
-            time.sleep(0.01)
-        if path.is_file():
+        if wait_until(path.is_file, 2.0 if event.index >= 10 and not seen else 0.0, 0.01):
             seen.setdefault(event.index, json.loads(path.read_text()))
 
     MappingPipeline(VideoFileSource(sim / "video.mp4"), cfg, out, sinks=[watch], telemetry=join).run()

@@ -31,9 +31,9 @@ from photomap.io import statestore
 from photomap.io.pngstream import PngStreamWriter
 from photomap.io.statestore import MapState, load_manifest, restore_mosaic
 from photomap.io.trajectory_files import read_groundtruth, read_trajectory_csv
-from photomap.mapping import checkpoint as checkpoint_module
 from photomap.mapping.checkpoint import recover_run
 from photomap.mapping.pipeline import MappingPipeline
+from tests.waiting import wait_until
 
 LONG = os.environ.get("PHOTOMAP_FAULTS") == "long"  # tools/faults.py: more kills, both codecs, longer videos
 
@@ -127,7 +127,7 @@ def test_checkpoint_survives_a_kill_at_every_write(tmp_path, monkeypatch):
     state.write(state.snapshot({0: mosaic}, {"order": [0]}))
     truth = {k: mosaic.tile_image(k) for k in mosaic.tiles()}
     mosaic.add(rng.integers(0, 255, (100, 150, 3), dtype=np.uint8), np.array([[1.0, 0, 90], [0, 1, 40]]))
-    real = {name: getattr(statestore, name) for name in ("_write_file", "_fsync_file", "atomic_write_bytes")}
+    real = {name: getattr(statestore, name) for name in ("_write_file", "_fsync_file")}
     kills = 0
     for k in range(1, 100):
         calls = {"n": 0}
@@ -250,7 +250,7 @@ def _enospc_after(monkeypatch, budget: int) -> dict:
             used["bytes"] += size
             super().write(band)
 
-    for module in (trajectory_files, outputs, statestore):
+    for module in (trajectory_files, outputs):
         monkeypatch.setattr(module, "atomic_write_bytes", writer)
     monkeypatch.setattr(outputs, "PngStreamWriter", BudgetPng)
     monkeypatch.setattr(statestore, "_write_file", writer)
@@ -297,12 +297,7 @@ def test_disk_full_keeps_the_map_in_the_checkpoint(flight, tmp_path, monkeypatch
     def on_frame(event):
         # checkpoints come from a low-priority writer that skips one while the last is still being
         # written: from frame 30 on, each frame gives it time until the disk is full
-        if "at" in filled or event.index < 30:
-            return
-        deadline = time.monotonic() + 2
-        while time.monotonic() < deadline and not used["refused"]:
-            time.sleep(0.01)
-        if used["refused"]:
+        if "at" not in filled and event.index >= 30 and wait_until(lambda: used["refused"], 2.0, 0.01):
             filled["at"] = event.index
 
     cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])

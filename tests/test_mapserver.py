@@ -29,6 +29,7 @@ from photomap.mapping.pipeline import MappingPipeline
 from photomap.sim.flight import latlon_to_pixel, pixel_to_latlon
 from photomap.sim.simulate import simulate_flight
 from photomap.sim.terrain import load_terrain
+from tests.waiting import wait_until
 
 W, H = 640, 480
 
@@ -59,17 +60,6 @@ def _status(base: str) -> dict | None:
     except OSError:
         return None
     return json.loads(body) if code == 200 else None
-
-
-def _wait(predicate, timeout: float = 60.0):
-    """Poll ``predicate`` until it gives something truthy (a generous bound on a busy machine)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        got = predicate()
-        if got:
-            return got
-        time.sleep(0.2)
-    return None
 
 
 def _decode(png: bytes) -> np.ndarray:
@@ -127,11 +117,11 @@ def test_live_tile_at_the_vehicle_is_mapped_during_a_realtime_replay(flight, tmp
     meta = yaml.safe_load((flight / "meta.yaml").read_text())
     samples = []
     try:
-        st = _wait(lambda: (s := _status(base)) and s["georeferenced"] and s["position"] and s)
+        st = wait_until(lambda: (s := _status(base)) and s["georeferenced"] and s["position"] and s, 60.0, 0.2)
         assert st is not None, "no georeferenced status during the replay"
         assert st["tiles_url"] == "/tiles/{z}/{x}/{y}.png" and st["telemetry"] == "georeferenced"
         for due in (60, 95, 130):  # of the 160 frames
-            st = _wait(lambda: (s := _status(base)) and s["frames_in"] >= due and s, timeout=30.0)
+            st = wait_until(lambda: (s := _status(base)) and s["frames_in"] >= due and s, 30.0, 0.2)
             if st is None:
                 break
             z = st["max_zoom"]
@@ -192,12 +182,12 @@ def test_hostile_clients_cost_the_mapping_nothing_and_are_bounded(flight, tmp_pa
         # beyond max_connections a connection is closed at once
         assert server.stats["refused"] >= 12 - 4
         # the slow ones were cut off after the timeout; then a good client is answered
-        assert _wait(lambda: server.stats["timeouts"] >= 2, timeout=30.0)
+        assert wait_until(lambda: server.stats["timeouts"] >= 2, timeout=30.0)
         try:
             huge.sendall(b"GET /" + b"a" * 20000 + b" HTTP/1.0\r\n\r\n")
         except OSError:
             pass  # refused at once: the pool was full
-        got = _wait(lambda: _status(base), timeout=30.0)
+        got = wait_until(lambda: _status(base), 30.0, 0.2)
         assert got is not None and got["frames_in"] == with_server["frames_in"]
         s = socket.create_connection(("127.0.0.1", server.port))
         s.sendall(b"GET /" + b"a" * 20000 + b" HTTP/1.0\r\n\r\n")
@@ -307,7 +297,7 @@ def test_page_renders_map_pixels_in_chromium(flight, tmp_path):
                                                         map_server=str(port)))
     worker.start()
     try:
-        st = _wait(lambda: (s := _status(base)) and s["georeferenced"] and s["frames_in"] >= 100 and s)
+        st = wait_until(lambda: (s := _status(base)) and s["georeferenced"] and s["frames_in"] >= 100 and s, 60.0, 0.2)
         assert st is not None, "no georeferenced status during the replay"
         before = st["server"]["requests"]
         shot = tmp_path / "page.png"
@@ -649,7 +639,7 @@ def test_hazards_found_during_a_replay_are_served_where_they_were_planted(tmp_pa
                 return None
             placed = [f for f in got["features"] if f["geometry"] is not None]
             return placed if len(placed) >= len(planted) else None
-        features = _wait(served, timeout=60.0)
+        features = wait_until(served, 60.0, 0.2)
     finally:
         worker.join(timeout=120)
     assert not worker.is_alive() and result["summary"]["registered"] == 120

@@ -10,7 +10,6 @@ import socket
 import struct
 import sys
 import threading
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from photomap.config import load_config
 from photomap.errors import ConfigError, InputError
 from photomap.telemetry.samples import TelemetryBuffer
+from tests.waiting import wait_until
 from tools.mavlink_replay import main as replay_main
 from tools.mavlink_replay import replay
 
@@ -106,16 +106,6 @@ def free_port(kind=socket.SOCK_DGRAM) -> int:
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def wait_for(cond, timeout=5.0) -> bool:
-    """Poll ``cond`` until true or ``timeout`` (a deadline for the test, not an assertion on speed)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return cond()
 
 
 # ----------------------------------------------------------------------------- connection strings
@@ -269,7 +259,7 @@ def test_udp_replay_end_to_end_keeps_counts_and_timing(synthetic):
     with TelemetryReader(f"udpin:127.0.0.1:{port}", TelemetryBuffer(horizon=None)) as reader:  # bound before the replay
         th, result = _replay_thread(path, f"udpout:127.0.0.1:{port}", speed=10.0)
         th.join(10)
-        assert wait_for(lambda: reader.stats.total >= result["sent"])
+        assert wait_until(lambda: reader.stats.total >= result["sent"])
     assert result["sent"] == sum(written.values())
     assert reader.stats.messages == written
     t, _ = reader.buffer.series("yaw")
@@ -286,7 +276,7 @@ def test_tcp_replay_end_to_end(synthetic):
     with TelemetryReader(f"tcpin:127.0.0.1:{port}") as reader:
         th, result = _replay_thread(path, f"tcp:127.0.0.1:{port}", speed=50.0)
         th.join(10)
-        assert wait_for(lambda: reader.stats.total >= result["sent"])
+        assert wait_until(lambda: reader.stats.total >= result["sent"])
     assert reader.stats.messages == written
 
 
@@ -297,7 +287,7 @@ def test_garbage_on_the_link_loses_little_and_raises_nothing(synthetic):
         th, result = _replay_thread(path, f"udpout:127.0.0.1:{port}", speed=20.0,
                                     garbage_rate=0.2, seed=7)
         th.join(10)
-        wait_for(lambda: reader.stats.total >= result["sent"], timeout=1.0)
+        wait_until(lambda: reader.stats.total >= result["sent"], timeout=1.0)
         assert reader.running
     assert reader.stats.receive_errors > 0             # garbage did arrive
     assert reader.stats.messages["ATTITUDE"] >= 0.7 * written["ATTITUDE"]
@@ -310,7 +300,7 @@ def test_replay_stopping_mid_flight_is_reported_as_link_lost(synthetic):
     with TelemetryReader(f"udpin:127.0.0.1:{port}", link_timeout=0.3) as reader:
         th, result = _replay_thread(path, f"udpout:127.0.0.1:{port}", speed=10.0, stop_after=0.1)
         th.join(10)
-        assert wait_for(lambda: reader.link_lost)
+        assert wait_until(lambda: reader.link_lost)
         assert 0 < result["sent"] and reader.stats.link_lost == 1 and reader.stats.gaps == 1
         with reader.lock:
             t_last, _ = reader.buffer.latest("yaw")
@@ -368,7 +358,7 @@ def test_replay_start_offset_and_loop(synthetic):
         assert n_late == 22
         n_loop = replay(path, f"udpout:127.0.0.1:{port}", speed=50.0, loop=True, stop_after=0.4)
         assert n_loop > total
-        assert wait_for(lambda: len(got) == n_late + n_loop, timeout=2.0)
+        assert wait_until(lambda: len(got) == n_late + n_loop, timeout=2.0)
         mav = mavlink2.MAVLink(None)
         assert mav.parse_char(got[0]).get_type() in ("HEARTBEAT", "SYSTEM_TIME", "ATTITUDE")
     finally:
@@ -509,7 +499,7 @@ def test_live_reader_follows_one_vehicle(tmp_path):
                 return reader.buffer.latest("yaw")[1]
 
         # the vehicle's last attitude arrives (on a busy machine, a little after the replay ends)
-        assert wait_for(lambda: abs(last_yaw() - true_yaw(2.9)) < 1e-6), last_yaw()
+        assert wait_until(lambda: abs(last_yaw() - true_yaw(2.9)) < 1e-6), last_yaw()
     assert reader.stats.system_id == 1 and reader.stats.other_systems[2] > 0
 
 
@@ -537,7 +527,7 @@ def test_a_live_link_that_brings_nothing_is_reported_once_by_name(caplog):
     spec = f"udpin:127.0.0.1:{port}"
     with caplog.at_level(logging.WARNING, logger="photomap.drivers.mavlink"):
         with TelemetryReader(spec, no_data_warning=0.3) as reader:
-            assert wait_for(lambda: any("no telemetry" in r.getMessage() for r in caplog.records))
+            assert wait_until(lambda: any("no telemetry" in r.getMessage() for r in caplog.records))
             reader._stop.wait(0.8)  # a while longer: still one warning
     warned = [r for r in caplog.records if "no telemetry" in r.getMessage()]
     assert len(warned) == 1 and warned[0].levelno == logging.WARNING
@@ -552,7 +542,7 @@ def test_only_a_ground_station_on_the_link_is_reported(caplog):
             gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255)
             try:
                 gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 4)
-                assert wait_for(lambda: any("no telemetry" in r.getMessage() for r in caplog.records))
+                assert wait_until(lambda: any("no telemetry" in r.getMessage() for r in caplog.records))
             finally:
                 gcs.close()
     message = next(r.getMessage() for r in caplog.records if "no telemetry" in r.getMessage())
@@ -568,7 +558,7 @@ def test_a_link_going_silent_is_a_warning_naming_it(synthetic, caplog):
         with TelemetryReader(spec, link_timeout=0.3) as reader:
             th, _ = _replay_thread(path, f"udpout:127.0.0.1:{port}", speed=10.0, stop_after=0.1)
             th.join(10)
-            assert wait_for(lambda: reader.link_lost)
+            assert wait_until(lambda: reader.link_lost)
     lost = [r.getMessage() for r in caplog.records if "link lost" in r.getMessage()]
     # once when the replay stops (and maybe once more mid-stream on a busy machine), by name
     assert lost and all(spec in m for m in lost)

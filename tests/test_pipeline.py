@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import json
-import time
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -19,6 +19,7 @@ from photomap.core.records import GroundTruth
 from photomap.geometry import frame_centre
 from photomap.eval.metrics import evaluate_trajectory
 from photomap.io.trajectory_files import read_trajectory_csv
+from tests.waiting import wait_until
 
 SIZE = (240, 320)  # (h, w)
 
@@ -160,16 +161,12 @@ def test_checkpoints_during_the_run(aukerman, tmp_path):
         # the last is still being written is skipped): from frame 10 on, each frame gives it time
         if "run" in seen or event.index < 10:
             return
-        deadline = time.monotonic() + 2
-        while time.monotonic() < deadline:
-            if all((tmp_path / name).is_file() for name in names):
-                run = json.loads((tmp_path / "run.json").read_text())
-                if run["frames_in"] >= 10:
-                    seen["run"], seen["index"] = run, event.index
-                    seen["rows"] = len(read_trajectory_csv(tmp_path / "trajectory.csv"))
-                    seen["preview"] = cv2.imread(str(tmp_path / "preview.png"), cv2.IMREAD_UNCHANGED)
-                    return
-            time.sleep(0.01)
+        run = wait_until(lambda: all((tmp_path / name).is_file() for name in names)
+                         and (r := json.loads((tmp_path / "run.json").read_text()))["frames_in"] >= 10 and r, 2.0, 0.01)
+        if run:
+            seen["run"], seen["index"] = run, event.index
+            seen["rows"] = len(read_trajectory_csv(tmp_path / "trajectory.csv"))
+            seen["preview"] = cv2.imread(str(tmp_path / "preview.png"), cv2.IMREAD_UNCHANGED)
 
     cfg = load_config(overrides=["output.checkpoint_interval=0.000001"])
     MappingPipeline(ListSource(seq.frames), cfg, tmp_path, sinks=[on_frame]).run()

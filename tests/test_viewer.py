@@ -32,6 +32,7 @@ from photomap.mapping.pipeline import MappingPipeline  # noqa: E402
 from photomap.geometry import frame_centre  # noqa: E402
 from photomap.live.viewer import (Viewer, _port_free, footprint_tiles, frame_outline,  # noqa: E402
                                   parse_serve_address, parse_viewer_mode)
+from tests.waiting import wait_until  # noqa: E402
 
 W, H = 160, 120
 N_FRAMES = 40
@@ -388,32 +389,23 @@ def _listeners(port: int) -> set[str]:
             if c.status == psutil.CONN_LISTEN and c.laddr.port == port}
 
 
-def _wait_for(predicate, timeout: float = 15.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.1)
-    return predicate()
-
-
 def test_serve_listens_on_loopback_unless_told_otherwise(caplog):
     port = _free_port()
     with caplog.at_level(logging.INFO, logger="photomap.live.viewer"):
         viewer = Viewer("serve", str(port))
     assert viewer.address == ("127.0.0.1", port) and viewer.url == f"rerun+http://127.0.0.1:{port}/proxy"
-    assert _wait_for(lambda: _listeners(port)), "nothing listens"
+    assert wait_until(lambda: _listeners(port), 15.0, 0.1), "nothing listens"
     assert _listeners(port) == {"127.0.0.1"}  # not reachable from the network
     assert "ssh -N -L" in viewer.connect_hint and "ssh -N -L" in caplog.text
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     viewer.close()
-    assert _wait_for(lambda: not _listeners(port)), "the server outlived close() with no client"
+    assert wait_until(lambda: not _listeners(port), 15.0, 0.1), "the server outlived close() with no client"
 
     port = _free_port()
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="photomap.live.viewer"):
         viewer = Viewer("serve", f"0.0.0.0:{port}")  # exposed deliberately
-    assert _wait_for(lambda: _listeners(port)) and _listeners(port) == {"0.0.0.0"}
+    assert wait_until(lambda: _listeners(port), 15.0, 0.1) and _listeners(port) == {"0.0.0.0"}
     assert "WITHOUT authentication" in caplog.text and "write into the live view" in caplog.text
     viewer.close()
 
@@ -438,7 +430,7 @@ def test_serve_restarts_at_once_after_a_stop_with_a_viewer_connected(tmp_path):
         def conns(status: str) -> list:
             return [c for c in psutil.net_connections(kind="tcp")
                     if c.status == status and c.laddr.port == port]
-        assert _wait_for(lambda: conns(psutil.CONN_ESTABLISHED), 30.0), "the viewer never connected"
+        assert wait_until(lambda: conns(psutil.CONN_ESTABLISHED), 30.0, 0.1), "the viewer never connected"
         service.stdin.close()  # the service stops, its viewer still connected
         assert service.wait(30.0) == 0
     finally:
@@ -447,14 +439,14 @@ def test_serve_restarts_at_once_after_a_stop_with_a_viewer_connected(tmp_path):
         if client is not None:
             os.killpg(client.pid, signal.SIGKILL)
             client.wait()
-    if not _wait_for(lambda: conns(psutil.CONN_TIME_WAIT), 3.0):
+    if not wait_until(lambda: conns(psutil.CONN_TIME_WAIT), 3.0, 0.1):
         pytest.skip("no TIME_WAIT on the server's side this time (the client closed first): nothing to prove")
     with socket.socket() as s:  # a bind without SO_REUSEADDR (the old check) fails here ...
         with pytest.raises(OSError):
             s.bind(("127.0.0.1", port))
     assert _port_free(port, "127.0.0.1")  # ... the check the service makes does not
     viewer = Viewer("serve", str(port))  # the restart gets its port
-    assert _wait_for(lambda: _listeners(port) == {"127.0.0.1"})
+    assert wait_until(lambda: _listeners(port) == {"127.0.0.1"}, 15.0, 0.1)
     viewer.close()
 
 

@@ -42,7 +42,7 @@ from photomap.config import MosaicConfig
 from photomap.core.mosaic import TiledMosaic
 from photomap.errors import InputError, PhotomapError
 from photomap.io.pngstream import encode_png
-from photomap.io.trajectory_files import atomic_write_bytes, write_json
+from photomap.io.trajectory_files import write_json
 
 log = logging.getLogger(__name__)
 
