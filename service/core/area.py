@@ -84,20 +84,30 @@ def _opencv_misses(w: int, n_out: int) -> np.ndarray:
     return np.flatnonzero(np.abs(got - want).max(axis=0) > _PROBE_TOL)
 
 
-def area_columns(band: np.ndarray, n_out: int, misses: np.ndarray | None = None) -> np.ndarray:
+def column_fixes(w: int, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What :func:`area_columns` recomputes of ``w`` columns reduced to ``n_out``, the same for
+    every band: the outputs OpenCV gets wrong (:func:`_opencv_misses`), their source columns and
+    exact weights (rows of :func:`banded_weights`)."""
+    misses = _opencv_misses(w, n_out)
+    _, index, weight = banded_weights(0, w, w / n_out, n_out)
+    return misses, index[misses], weight[misses]
+
+
+def area_columns(band: np.ndarray, n_out: int,
+                 fixes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """The columns of ``band`` (float32 (rows, w) or (rows, w, C), C <= 4, the full width)
-    area-averaged to ``n_out``: ``cv2.resize`` ``INTER_AREA``, the outputs ``misses``
-    (:func:`_opencv_misses`; computed when None) recomputed from the exact weights."""
+    area-averaged to ``n_out``: ``cv2.resize`` ``INTER_AREA``, the outputs it gets wrong
+    recomputed from the exact weights (``fixes``: :func:`column_fixes` of the band's width,
+    computed when None)."""
     rows, w = band.shape[:2]
     if n_out == w:
         return band.copy()
     out = cv2.resize(band, (n_out, rows), interpolation=cv2.INTER_AREA)
     if out.ndim < band.ndim:  # OpenCV drops a last axis of 1
         out = out[..., None]
-    misses = _opencv_misses(w, n_out) if misses is None else misses
+    misses, index, weight = column_fixes(w, n_out) if fixes is None else fixes
     if misses.size:
-        _, index, weight = banded_weights(0, w, w / n_out, n_out)
-        out[:, misses] = _weighted_sum(band, index[misses], weight[misses], axis=1)
+        out[:, misses] = _weighted_sum(band, index, weight, axis=1)
     return out
 
 
@@ -123,7 +133,7 @@ class AreaRows:
         self._step = h / oh
         self._start = 0  # first output row not yet returned; _acc holds rows _start ..
         self._acc = np.zeros((0, ow, channels), np.float32)
-        self._misses = _opencv_misses(w, ow) if ow != w else np.zeros(0, np.intp)
+        self._fixes = column_fixes(w, ow) if ow != w else None  # the same for every band
 
     def _emit_to(self, j: int) -> list[np.ndarray]:
         """Return the output rows above ``j`` (finished)."""
@@ -141,8 +151,8 @@ class AreaRows:
     def columns(self, band: np.ndarray | list[np.ndarray]) -> np.ndarray:
         """The band's columns reduced to ``ow`` (:func:`area_columns`): float32 (rows, ow, C)."""
         if isinstance(band, list):
-            return cv2.merge([area_columns(p, self.ow, self._misses) for p in band])
-        return area_columns(band, self.ow, self._misses)
+            return cv2.merge([area_columns(p, self.ow, self._fixes) for p in band])
+        return area_columns(band, self.ow, self._fixes)
 
     def add(self, y0: int, band: np.ndarray | list[np.ndarray]) -> list[np.ndarray]:
         return self.add_columns(y0, self.columns(band))
