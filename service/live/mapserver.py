@@ -152,14 +152,11 @@ class _Parking(threading.Thread):
     def park(self, conn: _Connection) -> None:
         conn.parked_at = time.monotonic()
         with self._lock:
-            if self._closing:
-                closed = True
-            else:
-                closed = False
-                wake = not self._parked  # the loop waits without a deadline while nothing is parked
+            closing, wake = self._closing, not self._parked  # nothing parked: the loop waits without a deadline
+            if not closing:
                 self._selector.register(conn.sock, selectors.EVENT_READ, conn)
                 self._parked[conn] = None
-        if closed:
+        if closing:
             self._drop(conn)
         elif wake:
             self._wake()
@@ -309,7 +306,7 @@ class _Handler:
     a body, or one answered with an error, closes its connection."""
 
     def __init__(self, conn: _Connection, server: _Server) -> None:
-        self.conn, self.server, self.request, self.client_address = conn, server, conn.sock, conn.address
+        self.conn, self.server = conn, server
         self.requestline = ""
         self.path = ""
         self.keep = False
@@ -328,15 +325,11 @@ class _Handler:
         it; True when the connection stays open."""
         owner = self.server.owner
         conn = self.conn
-        connection = self.request
+        connection = conn.sock
         timeout_s = owner.timeout_s
         deadline = time.monotonic() + timeout_s
         data = conn.pending
-        while (end := _head_end(data)) < 0:
-            if len(data) > MAX_REQUEST_BYTES:
-                owner.stats["too_large"] += 1
-                self._raw(431, b"request too large\n", "text/plain")
-                return False
+        while (end := _head_end(data)) < 0 and len(data) <= MAX_REQUEST_BYTES:
             left = deadline - time.monotonic()
             if left <= 0:
                 owner.stats["timeouts"] += 1
@@ -352,7 +345,7 @@ class _Handler:
             if not chunk:  # the client closed it (between requests: as a keep-alive client does)
                 return False
             data += chunk
-        if end > MAX_REQUEST_BYTES:
+        if not 0 <= end <= MAX_REQUEST_BYTES:  # no blank line within the limit
             owner.stats["too_large"] += 1
             self._raw(431, b"request too large\n", "text/plain")
             return False
@@ -396,8 +389,8 @@ class _Handler:
                 f"Date: {formatdate(usegmt=True)}\r\nContent-Type: {ctype}\r\nContent-Length: {len(body)}\r\n"
                 f"Cache-Control: {cache}\r\nAccess-Control-Allow-Origin: *\r\nConnection: {persist}\r\n\r\n")
         if log.isEnabledFor(logging.DEBUG):  # one per request: not even formatted otherwise
-            log.debug("map server: %s \"%s\" %d %d", self.client_address[0], self.requestline, code, len(body))
-        self.request.sendall(text.encode("latin-1") if head else text.encode("latin-1") + body)
+            log.debug("map server: %s \"%s\" %d %d", self.conn.address[0], self.requestline, code, len(body))
+        self.conn.sock.sendall(text.encode("latin-1") if head else text.encode("latin-1") + body)
 
     def _json(self, obj: dict, head: bool, ctype: str = "application/json") -> None:
         self._send(200, _encode(obj), ctype, head)
