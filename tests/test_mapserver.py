@@ -460,6 +460,12 @@ def test_status_bounds_follow_the_map_as_it_grows():
     assert st["bounds"] == [0.0, 0.0, 192.0, 128.0] and st["frames_in"] == 3
 
 
+def _status_line_and_headers(head: bytes) -> tuple[str, dict]:
+    """An answer's status line and headers (``head``: up to its blank line)."""
+    lines = head.decode("latin-1").split("\r\n")
+    return lines[0], dict(line.split(": ", 1) for line in lines[1:])
+
+
 def test_bad_requests_get_one_line_answers():
     """A request line that is not HTTP (or HTTP/1.1 without Host) gets 400, a method but GET and
     HEAD 501, HEAD the headers of the GET without its body: each one whole answer, then the
@@ -473,8 +479,7 @@ def test_bad_requests_get_one_line_answers():
             while chunk := s.recv(65536):
                 answer += chunk
         head, _, body = answer.partition(b"\r\n\r\n")
-        lines = head.decode("latin-1").split("\r\n")
-        return lines[0], dict(line.split(": ", 1) for line in lines[1:]), body
+        return (*_status_line_and_headers(head), body)
 
     try:
         line, _, _ = ask(b"GARBAGE\r\n\r\n")
@@ -503,11 +508,10 @@ def _answers(sock: socket.socket, methods: str) -> list[tuple[str, dict, bytes]]
     while len(out) < n:
         head, sep, rest = data.partition(b"\r\n\r\n")
         if sep:
-            lines = head.decode("latin-1").split("\r\n")
-            headers = dict(line.split(": ", 1) for line in lines[1:])
+            line, headers = _status_line_and_headers(head)
             size = 0 if methods[len(out)] == "H" else int(headers["Content-Length"])
             if len(rest) >= size:
-                out.append((lines[0], headers, rest[:size]))
+                out.append((line, headers, rest[:size]))
                 data = rest[size:]
                 continue
         chunk = sock.recv(65536)
