@@ -35,6 +35,8 @@ from photomap.mapping.threads import BACKGROUND_NICE, WorkerFirst, lower_priorit
 
 log = logging.getLogger(__name__)
 
+_READ_AHEAD = 2  # kept images read at once while strips render together
+
 
 @dataclass(frozen=True)
 class KeptFrame:
@@ -377,8 +379,8 @@ class Rerenderer:
                        cull: bool = True) -> list[Strip]:
         """Render each strip of ``strips`` (tile keys) from ``frames`` (oldest first) into a scratch
         map of its own, the strips together frame by frame: each kept image is read once for all
-        of them (with more than one strip, the next one in a second thread while one is painted:
-        after the last frame no worker needs the CPU), and every scratch map gets the same paints
+        of them (with more than one strip, the next ones on :data:`_READ_AHEAD` threads while one is
+        painted: after the last frame no worker needs the CPU), and every scratch map gets the same paints
         as when rendered alone. ``cull``: each tile only from the newest frame that covers it
         whole on (:func:`hidden_before`: the same pixels in an overwrite map; a correction late
         in a flight that went over the same ground again and again re-renders each tile from the
@@ -402,18 +404,19 @@ class Rerenderer:
                     todo.append((plan, clip))
             if todo:
                 steps.append((frames[i], todo))
-        # strips together (after the last frame): the next kept image is read while one is painted
-        ahead = ThreadPoolExecutor(1, "photomap-rerender-read", initializer=lower_priority, initargs=(self.nice,)) \
-            if len(plans) > 1 and len(steps) > 1 else None
+        # strips together (after the last frame): the next kept images are read while one is painted
+        ahead = ThreadPoolExecutor(_READ_AHEAD, "photomap-rerender-read", initializer=lower_priority,
+                                   initargs=(self.nice,)) if len(plans) > 1 and len(steps) > 1 else None
+        reads: deque = deque()
         try:
-            reading = ahead.submit(self._image, steps[0][0].index) if ahead is not None else None
             for k, (frame, todo) in enumerate(steps):
                 if all(plan.failed for plan in plans):
                     break  # each to be rendered again, uncut
                 self.first.wait()
-                if reading is not None:
-                    image, mask = reading.result()
-                    reading = ahead.submit(self._image, steps[k + 1][0].index) if k + 1 < len(steps) else None
+                if ahead is not None:
+                    while len(reads) < _READ_AHEAD and k + len(reads) < len(steps):
+                        reads.append(ahead.submit(self._image, steps[k + len(reads)][0].index))
+                    image, mask = reads.popleft().result()
                 else:
                     image, mask = self._image(frame.index)
                 for plan, clip in todo:
