@@ -380,8 +380,8 @@ class Rerenderer:
         """Render each strip of ``strips`` (tile keys) from ``frames`` (oldest first) into a scratch
         map of its own, the strips together frame by frame: each kept image is read once for all
         of them (with more than one strip, the next ones on :data:`_READ_AHEAD` threads while one is
-        painted: after the last frame no worker needs the CPU), and every scratch map gets the same paints
-        as when rendered alone. ``cull``: each tile only from the newest frame that covers it
+        painted, and half of the strips painted on a second thread: after the last frame no worker
+        needs the CPU), and every scratch map gets the same paints as when rendered alone. ``cull``: each tile only from the newest frame that covers it
         whole on (:func:`hidden_before`: the same pixels in an overwrite map; a correction late
         in a flight that went over the same ground again and again re-renders each tile from the
         few frames on top, not from every pass)."""
@@ -405,8 +405,12 @@ class Rerenderer:
             if todo:
                 steps.append((frames[i], todo))
         # strips together (after the last frame): the next kept images are read while one is painted
+        together = len(plans) > 1 and len(steps) > 1
         ahead = ThreadPoolExecutor(_READ_AHEAD, "photomap-rerender-read", initializer=lower_priority,
-                                   initargs=(self.nice,)) if len(plans) > 1 and len(steps) > 1 else None
+                                   initargs=(self.nice,)) if together else None
+        # ... and painted into half of the strips on a second thread (each strip's own scratch map)
+        painter = ThreadPoolExecutor(1, "photomap-rerender-paint", initializer=lower_priority,
+                                     initargs=(self.nice,)) if together else None
         reads: deque = deque()
         try:
             for k, (frame, todo) in enumerate(steps):
@@ -419,22 +423,16 @@ class Rerenderer:
                     image, mask = reads.popleft().result()
                 else:
                     image, mask = self._image(frame.index)
-                for plan, clip in todo:
-                    if plan.failed:
-                        continue
-                    if image is None:
-                        plan.failed = plan.redo  # a frame that hides others not painted: render them all
-                        continue
-                    try:
-                        extra = {} if frame.gain is None else {"gain": frame.gain}
-                        plan.scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
-                        plan.painted += 1
-                    except PhotomapError as exc:
-                        plan.failed = plan.redo
-                        log.debug("frame %d not re-rendered: %s", frame.index, exc)
+                if painter is not None and len(todo) > 1:  # the strips in two halves, one on each thread
+                    other = painter.submit(_paint, frame, image, mask, todo[1::2])
+                    _paint(frame, image, mask, todo[::2])
+                    other.result()
+                else:
+                    _paint(frame, image, mask, todo)
         finally:
-            if ahead is not None:
-                ahead.shutdown(wait=True, cancel_futures=True)
+            for pool in (ahead, painter):
+                if pool is not None:
+                    pool.shutdown(wait=True, cancel_futures=True)
         render_s = (time.perf_counter() - t) / len(plans)
         failed = [plan.keys for plan in plans if plan.failed]
         again = iter(self._render_strips(job, segment, frames, failed, cull=False) if failed else ())
@@ -464,6 +462,25 @@ class Rerenderer:
                  else np.zeros(len(keys), int))
         return _Plan(keys, tile_rects(keys, ts), {i: pos for pos, i in enumerate(near.tolist())}, cull,
                      start.tolist(), cull and bool(start.any()), TiledMosaic(self.params))
+
+
+def _paint(frame: KeptFrame, image: np.ndarray | None, mask: np.ndarray | None,
+           todo: list[tuple["_Plan", list]]) -> None:
+    """Paint the kept image of ``frame`` into each strip of ``todo`` (``(plan, clip)``); a strip
+    it cannot be painted into is marked to be rendered again (``plan.failed``)."""
+    for plan, clip in todo:
+        if plan.failed:
+            continue
+        if image is None:
+            plan.failed = plan.redo  # a frame that hides others not painted: render them all
+            continue
+        try:
+            extra = {} if frame.gain is None else {"gain": frame.gain}
+            plan.scratch.add(image, frame.pose[:2], mask, clip=clip, **extra)
+            plan.painted += 1
+        except PhotomapError as exc:
+            plan.failed = plan.redo
+            log.debug("frame %d not re-rendered: %s", frame.index, exc)
 
 
 @dataclass
