@@ -134,11 +134,13 @@ class _Placed:
 
 
 def _prefetch(source: FrameSource, depth: int, stop: threading.Event, *,
-              poll: float = 0.2, join_timeout: float = 5.0,
-              timing: StageTimes | None = None, max_bytes: int = 64 << 20) -> Iterator[Frame]:
+              poll: float = 0.2, join_timeout: float = 5.0, timing: StageTimes | None = None,
+              max_bytes: int = 64 << 20, prepare: Callable[[Frame], object] = lambda frame: None
+              ) -> Iterator[tuple[Frame, object]]:
     """Decode ``source`` in a thread, ``depth`` frames ahead but at most ``max_bytes`` of frames
-    (at least 2; 4K frames are 25 MB each) (blocking: never drops); the time of each frame's
-    reading and decoding goes to ``timing`` (stage ``decode``).
+    (at least 2; 4K frames are 25 MB each) (blocking: never drops); yields ``(frame,
+    prepare(frame))``, ``prepare`` called in that thread too. The time of each frame's reading
+    and decoding goes to ``timing`` (stage ``decode``).
 
     The decode thread is the only one that iterates ``source``; when it stops (end, ``stop``
     set, or this generator closed) it closes its own iterator, so a video source releases its
@@ -179,7 +181,7 @@ def _prefetch(source: FrameSource, depth: int, stop: threading.Event, *,
                     with q.mutex:
                         q.maxsize = max(2, min(depth, max_bytes // max(1, frame.image.nbytes)))
                     sized = True
-                if stop.is_set() or not put(frame) or stop.is_set():
+                if stop.is_set() or not put((frame, prepare(frame))) or stop.is_set():
                     break
         except BaseException as exc:  # handed to the consumer
             failure.append(exc)
@@ -274,6 +276,8 @@ class MappingPipeline:
         self._placer: TelemetryPlacer | None = None  # frames vision left unplaced, with telemetry
         self._placed: dict | None = None  # what the placer did (run.json telemetry.placed)
         self._deep = RunningStretch()  # deep frames a source delivers raw (a Y16 camera) to uint8, one range a flight
+        self._small: tuple[int, int] | None = None  # the working size (w, h), from the first frame
+        self._presized = True  # frames reach the tracker as decoded (:meth:`_presize`; the worker's)
 
     @property
     def on_georeference(self) -> GeoreferenceSink | None:
@@ -319,17 +323,18 @@ class MappingPipeline:
         failure: list[BaseException] = []
 
         def work() -> None:
-            frames = self.source if self.source.live else _prefetch(self.source, 8, self._stop,
-                                                                    timing=self.stats.timing)
+            prefetched = None if self.source.live else _prefetch(self.source, 8, self._stop, timing=self.stats.timing,
+                                                                 prepare=self._presize)
+            frames = ((frame, None) for frame in self.source) if prefetched is None else prefetched
             try:
-                for frame in frames:  # after stop(), the frames already queued are drained
+                for frame, small in frames:  # after stop(), the frames already queued are drained
                     with self._first.frame():
-                        self._process(frame)
+                        self._process(frame, small)
             except BaseException as exc:  # reported by run(), after the outputs are written
                 failure.append(exc)
             finally:
-                if frames is not self.source:
-                    frames.close()  # stops the decode thread (bounded wait), also after an error
+                if prefetched is not None:
+                    prefetched.close()  # stops the decode thread (bounded wait), also after an error
 
         # The thread budget, for the whole run (the worker, the loop closer's optimiser, the
         # re-render thread, the viewer and the final outputs): BLAS pools pinned to one thread
@@ -461,16 +466,26 @@ class MappingPipeline:
         self._warn_once("segment-dropped", f"map segment {seg} dropped: nothing registered to its first frame "
                                            f"(featureless or dark ground?); such frames count as low_confidence")
 
-    def _process(self, frame: Frame) -> None:
+    def _presize(self, frame: Frame) -> np.ndarray | None:
+        """The frame at the working size, made in the decode thread ahead of the worker
+        (:meth:`_track` takes it when neither the lens nor the tilt changes the frame), or None:
+        before the first frame, for another size or a deep frame, and while they do change it."""
+        size, presized = self._small, self._presized
+        if size is None or not presized or frame.image.dtype != np.uint8 or \
+                frame.image.shape[:2] != (self.frame_size[1], self.frame_size[0]):
+            return None
+        return cv2.resize(frame.image, size, interpolation=cv2.INTER_AREA)
+
+    def _process(self, frame: Frame, small: np.ndarray | None = None) -> None:
         t0 = time.perf_counter()
         try:
-            self._process_frame(frame)
+            self._process_frame(frame, small)
         finally:  # the worker's whole time for the frame: the largest is its longest stall
             self.stats.timing.add("frame", time.perf_counter() - t0)
 
-    def _process_frame(self, frame: Frame) -> None:
+    def _process_frame(self, frame: Frame, small: np.ndarray | None = None) -> None:
         """One frame through the worker: tracked, painted, recorded, loops closed, the maps kept
-        up, the sinks told, and a checkpoint when one is due."""
+        up, the sinks told, and a checkpoint when one is due. ``small``: :meth:`_presize`."""
         t0 = time.perf_counter()
         timing = self.stats.timing
         self._gaps(frame.index)  # frames before this one that never came: dropped or undecodable
@@ -490,7 +505,7 @@ class MappingPipeline:
             self._skip(frame, "corrupt", t0)
             return
         try:
-            placed = self._track(frame, t0)
+            placed = self._track(frame, t0, small)
             self._paint(frame, placed)
         except Exception as exc:  # never lose the map for one bad frame
             self.stats.errors += 1
@@ -517,10 +532,11 @@ class MappingPipeline:
             self.checkpoint()
             timing.add("outputs", time.perf_counter() - t6)
 
-    def _track(self, frame: Frame, t0: float) -> _Placed:
+    def _track(self, frame: Frame, t0: float, presized: np.ndarray | None = None) -> _Placed:
         """Undistort and mask the frame (``camera`` lens, ``capture.mask``), rectify it with its
-        telemetry, resize it to the working size and track it (a new keyframe snapped to the map
-        when ``mapping.map_relative``); ``t0`` (perf_counter s) is when the frame's work began."""
+        telemetry, resize it to the working size (``presized``: the unchanged frame's, from
+        :meth:`_presize`) and track it (a new keyframe snapped to the map when
+        ``mapping.map_relative``); ``t0`` (perf_counter s) is when the frame's work began."""
         timing = self.stats.timing
         image = frame.image
         sample = self.telemetry.sample(frame) if self.telemetry else None
@@ -530,7 +546,10 @@ class MappingPipeline:
         if sample is not None:
             view = self.telemetry.rectify_frame(image, sample, frame.index)
             image, mask = view.image, (view.mask if view.homography is not None else mask)
-        small = cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
+        unchanged = image is frame.image
+        self._presized = unchanged  # the decode thread resizes the next frames while frames stay as decoded
+        small = presized if unchanged and presized is not None else \
+            cv2.resize(image, self._small, interpolation=cv2.INTER_AREA)
         t1 = time.perf_counter()
         timing.add("resize", t1 - t0)
         started = self.tracker.segments
@@ -728,7 +747,7 @@ class MappingPipeline:
                     "dropped": max(counts.get("dropped", 0), int(src.dropped))})
         out["skipped"] = out["low_confidence"] + out["corrupt"]
         out.update({"input": self.input_name, "frame_size": list(self.frame_size or ()),
-                    "working_size": list(getattr(self, "_small", ())),
+                    "working_size": list(self._small or ()),
                     "reconnects": src.reconnects, "map_scale": self._map_scale,
                     "video_start_unix": self._video_start_unix()})
         if self._prep is not None:
