@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import glob
 import logging
+import os
 import re
 from pathlib import Path
 from typing import Iterator
@@ -33,6 +34,7 @@ IMAGE_SUFFIXES = image_suffixes()
 _GLOB_CHARS = re.compile(r"[*?\[]")
 #: Stills with a side shorter than this (pixels) are skipped: too small to register.
 MIN_SIDE = 16
+_READ_FLAGS = cv2.IMREAD_ANYCOLOR | cv2.IMREAD_ANYDEPTH  # stills at their own depth and colour
 #: Captures whose registering band sets a multi-band flight's 16-bit range (spread over the flight).
 RANGE_SAMPLES = 8
 
@@ -155,6 +157,7 @@ class ImageFolderSource(SourceBase):
             self.times = [i / rate for i in range(len(self.paths))]
         self._closed = False
         self.stretch = RunningStretch()   # 16-bit / float stills: one range for the flight
+        self._again: set[int] = set()  # frames read_again gives back as they were yielded
 
     def _choose_band(self, spec: str, where: str) -> None:
         """The registering band, its files as ``paths``, and its 16-bit range (multi-band)."""
@@ -211,8 +214,25 @@ class ImageFolderSource(SourceBase):
             return None
         return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR) if image.ndim == 3 and image.shape[2] == 4 else image
 
+    def readable_again(self, index: int) -> bool:
+        """Whether :meth:`read_again` gives frame ``index``'s pixels back exactly as it was
+        yielded: an 8-bit single-band still whose read printed nothing."""
+        return index in self._again
+
+    def read_again(self, index: int) -> np.ndarray | None:
+        """Frame ``index``'s image read again from its file, the same pixels as when it was
+        yielded (:meth:`readable_again`; ``cv2.imread``, safe from any thread), or None (not such
+        a frame, or the file cannot be read any more)."""
+        path = str(self.paths[index]) if index in self._again else None
+        if path is None or not os.path.isfile(path):  # (imread warns on stderr about a missing file)
+            return None
+        image = cv2.imread(path, _READ_FLAGS)
+        if image is None or image.dtype != np.uint8:
+            return None
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR) if image.ndim == 3 and image.shape[2] == 4 else image
+
     def __iter__(self) -> Iterator[Frame]:
-        reader = ImageReader()
+        reader = ImageReader(_READ_FLAGS)
         try:
             yield from self._frames(reader)
         finally:
@@ -237,6 +257,8 @@ class ImageFolderSource(SourceBase):
                             "side)", path, image.shape[1], image.shape[0], MIN_SIDE)
                 self.stats.corrupt += 1
                 continue
+            if self.captures is None and reader.quiet and image.dtype == np.uint8:
+                self._again.add(index)
             if image.ndim == 3 and image.shape[2] == 4:
                 image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
             self.stats.read += 1

@@ -93,6 +93,8 @@ class ImageReader:
         ``(library, message kind)`` -> in how many files.
     first_file : dict
         ``(library, message kind)`` -> the first file that printed it.
+    quiet : bool
+        The last read printed nothing (no warning, no other output).
     """
 
     def __init__(self, flags: int = cv2.IMREAD_ANYCOLOR | cv2.IMREAD_ANYDEPTH) -> None:
@@ -101,11 +103,13 @@ class ImageReader:
         self.files_warned: Counter = Counter()
         self.first_file: dict[tuple[str, str], str] = {}
         self._spool = None
+        self.quiet = True
 
     def read(self, path: str | Path) -> np.ndarray | None:
         """The image as stored (``uint8``, ``uint16`` or ``float32``; 1 or 3 channels, BGR), or
         None when OpenCV cannot decode it."""
         image, caught = self._captured(lambda: cv2.imread(str(path), self.flags))
+        self.quiet = not caught
         kinds = set()
         passed = []
         for line in caught.splitlines(keepends=True):

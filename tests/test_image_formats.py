@@ -216,6 +216,32 @@ def test_a_truncated_jpeg_is_read_and_its_warning_counted(tmp_path, capfd):
     assert reader.summary() == ["libjpeg warned 2 time(s) in 2 file(s) (first cut.jpg): Premature end of JPEG file"]
 
 
+def test_stills_read_again_give_back_the_pixels_yielded_and_only_those(tmp_path, capfd):
+    """What a re-render reads instead of a kept JPEG copy: the still's pixels exactly, from any
+    8-bit single-band still whose read printed nothing; never a 16-bit one (stretched by the
+    flight's range) nor one whose read warned (a second read would print it again)."""
+    img = texture(120, 160)
+    cv2.imwrite(str(tmp_path / "a.jpg"), img)
+    cv2.imwrite(str(tmp_path / "b.png"), cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+    cv2.imwrite(str(tmp_path / "c.png"), cv2.cvtColor(img, cv2.COLOR_BGR2BGRA))
+    cv2.imwrite(str(tmp_path / "d.png"), (texture(120, 160, seed=1).astype(np.uint16) * 257))
+    ok, data = cv2.imencode(".jpg", texture(120, 160, seed=2))
+    (tmp_path / "e.jpg").write_bytes(data.tobytes()[: len(data) // 2])  # libjpeg warns, fills the rest
+    source = ImageFolderSource(tmp_path)
+    frames = {f.source: f for f in source}
+    assert sorted(frames) == ["a.jpg", "b.png", "c.png", "d.png", "e.jpg"]
+    for name in ("a.jpg", "b.png", "c.png"):
+        frame = frames[name]
+        assert source.readable_again(frame.index), name
+        again = source.read_again(frame.index)
+        assert again.dtype == np.uint8 and np.array_equal(again, frame.image), name
+    for name in ("d.png", "e.jpg"):
+        assert not source.readable_again(frames[name].index) and source.read_again(frames[name].index) is None
+    (tmp_path / "a.jpg").unlink()  # gone since: None, not an error
+    assert source.read_again(frames["a.jpg"].index) is None
+    assert capfd.readouterr().err == ""
+
+
 _QUIET_SCRIPT = """
 import logging, sys
 logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(message)s")

@@ -277,6 +277,39 @@ def test_a_correction_rerenders_the_moved_tiles_in_the_background(tmp_path, as_t
     painter.close()
 
 
+def test_frames_kept_by_reference_rerender_from_the_inputs_own_pixels(tmp_path):
+    """Stills painted as decoded are kept by reference (``as_read``): no JPEG is written, and a
+    correction re-renders their tiles from the input's pixels read again, exactly as a map
+    painted from scratch at the corrected poses; a frame painted through a mask is kept as a
+    JPEG still (its pixels are not the input's)."""
+    params = MosaicConfig(tile_size=64)
+    images = {i: texture(120, 160, 30 + i) for i in range(4)}
+    reads: list[int] = []
+    store = KeyframeStore(tmp_path / "kf", read_again=lambda i: reads.append(i) or images.get(i))
+    painter = Painter((160, 120), 64, rerenderer=Rerenderer(store, params, strip_tiles=5), interval_s=0.0)
+    live = TiledMosaic(params)
+    poses = {i: pose(3 * i, 55.0 * i, 8.0 * i) for i in images}
+    mask = np.ones((120, 160), bool)
+    mask[:, :16] = False
+    for i, p in poses.items():
+        painter.paint(live, 0, i, images[i], p, mask if i == 3 else None, whole=True, as_read=True)
+    painter.rerenderer.wait()
+    assert sorted(f.name for f in (tmp_path / "kf").iterdir()) == ["kf0000003.jpg", "kf0000003_mask.png"]
+    corrected = {i: pose(3 * i, 55.0 * i - 1.5 * i, 8.0 * i + 2.5 * i) for i in images}
+    assert painter.on_correction(0, corrected) == 3
+    changed = painter.finish({0: live})
+    assert changed[0] and set(reads) == {0, 1, 2}  # frame 3 from its JPEG
+    want = TiledMosaic(params)
+    for i in images:
+        want.add(images[i] if i < 3 else store.image(3), corrected[i][:2], mask if i == 3 else None)
+    for key in changed[0]:
+        assert (key in live.tiles()) == (key in want.tiles()), key
+        if key in want.tiles():
+            for a, b in zip(live.tile_image(key), want.tile_image(key)):
+                np.testing.assert_array_equal(a, b, err_msg=str(key))
+    painter.close()
+
+
 def test_tiles_painted_during_a_rerender_keep_their_pixels_until_redone(tmp_path):
     params = MosaicConfig(tile_size=64)
     store = KeyframeStore(tmp_path / "kf")

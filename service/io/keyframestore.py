@@ -3,8 +3,10 @@
 Each keyframe keeps up to three files in the store's folder: ``kf{index:07d}.png``, the grey frame
 at the working resolution (what loop closure registers); ``kf{index:07d}.jpg``, the frame as it was
 painted into the map (at the map's resolution: what re-renders the map after a pose-graph
-correction); and ``kf{index:07d}_mask.png`` when only part of that image is valid. Different
-indices may be written from different threads.
+correction), unless the input gives that image back itself (:meth:`KeyframeStore.put_source`:
+a still painted as decoded is read again from its file, no JPEG encoded and no JPEG loss); and
+``kf{index:07d}_mask.png`` when only part of that image is valid. Different indices may be
+written from different threads.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import os
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -20,10 +23,15 @@ from photomap.io.trajectory_files import atomic_write_bytes
 
 
 class KeyframeStore:
-    """Keyframe images by frame index in ``folder`` (created)."""
+    """Keyframe images by frame index in ``folder`` (created). ``read_again(index)``: the
+    input's frame ``index`` as it was painted, read again (any thread), or None; used for the
+    frames kept by :meth:`put_source`."""
 
-    def __init__(self, folder: str | Path, jpeg_quality: int = 92) -> None:
+    def __init__(self, folder: str | Path, jpeg_quality: int = 92,
+                 read_again: Callable[[int], np.ndarray | None] | None = None) -> None:
         self.folder = Path(folder)
+        self.read_again = read_again
+        self._sourced: set[int] = set()  # frames whose image read_again gives back
         self.folder.mkdir(parents=True, exist_ok=True)
         self._dir = str(self.folder)  # file names as str: pathlib would intern each one it parses
         self._jpeg = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
@@ -51,6 +59,7 @@ class KeyframeStore:
         """Keep the image of frame ``index`` that re-renders the map (JPEG), and where it is
         valid (``mask`` non-zero; None: everywhere). A write that fails (disk full) counts in
         ``failures``: no re-render from this frame (:meth:`image` gives None)."""
+        self._sourced.discard(index)
         if not self._write(self._path(index, "jpg"), ".jpg", image, self._jpeg):
             self.failures += 1
             return
@@ -61,6 +70,15 @@ class KeyframeStore:
                 self.failures += 1
         else:
             _unlink(mask_path)
+
+    def put_source(self, index: int) -> None:
+        """Keep the image of frame ``index`` by reference: :meth:`image` reads it again from the
+        input (``read_again``), valid everywhere. Nothing is written."""
+        if self.read_again is None:
+            raise ValueError("this store has no read_again: keep the image with put_image")
+        _unlink(self._path(index, "jpg"))
+        _unlink(self._path(index, "mask"))
+        self._sourced.add(index)
 
     @staticmethod
     def _write(path: str, ext: str, image: np.ndarray, params: list[int] | None = None) -> bool:
@@ -88,7 +106,10 @@ class KeyframeStore:
         return img
 
     def image(self, index: int) -> np.ndarray | None:
-        """The image of frame ``index`` kept by :meth:`put_image` (BGR), or None if it cannot be read."""
+        """The image of frame ``index`` kept by :meth:`put_image` (BGR) or :meth:`put_source`, or
+        None if it cannot be read."""
+        if index in self._sourced:
+            return self.read_again(index)
         path = self._path(index, "jpg")  # (imread warns on stderr about a missing file)
         return cv2.imread(path, cv2.IMREAD_COLOR) if os.path.isfile(path) else None
 
@@ -100,6 +121,7 @@ class KeyframeStore:
     def discard(self, index: int) -> None:
         """Forget keyframe ``index`` (its files too)."""
         self._unsaved.pop(index, None)
+        self._sourced.discard(index)
         for kind in ("png", "jpg", "mask"):
             _unlink(self._path(index, kind))
 

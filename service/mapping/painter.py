@@ -247,11 +247,13 @@ class Painter:
 
     # ------------------------------------------------------------------ live painting
     def paint(self, mosaic: TiledMosaic, segment: int, index: int, image: np.ndarray, pose: np.ndarray,
-              mask: np.ndarray | None = None, *, whole: bool = False) -> set[TileKey]:
+              mask: np.ndarray | None = None, *, whole: bool = False, as_read: bool = False) -> set[TileKey]:
         """Paint frame ``index`` at ``pose`` into ``mosaic`` (the map of ``segment``): whole, or
         its new ground only (``whole_frames``: whole anyway), after the next band of the last
         whole paint (``band_px``). A frame painted ``whole`` is kept for re-rendering (a
-        keyframe). Returns the tiles it changed."""
+        keyframe): by reference when ``as_read`` (``image`` is the input's frame as its source
+        reads it again, :meth:`~photomap.io.keyframestore.KeyframeStore.put_source`) and it is
+        painted as it is (no resize, no mask). Returns the tiles it changed."""
         pose = to_h(np.asarray(pose, float))
         mosaic.prefetch(pose[:2], self.frame_size)  # the tiles the next frames will paint, read ahead
         seg = self._seg(segment)
@@ -287,7 +289,8 @@ class Painter:
             self.stats.new_ground += 1
         if keyframe:  # with the exposure gain it got (maps with mosaic.exposure), for an equal re-render
             self._keep(seg, _Kept(index, pose.copy(), to_kept, (img.shape[1], img.shape[0]),
-                                  getattr(mosaic, "last_gain", None), mask_m is None), img, mask_m)
+                                  getattr(mosaic, "last_gain", None), mask_m is None), img, mask_m,
+                       as_read=as_read and img is image and mask_m is None)
         kept = keyframe and self.keep  # a kept tail needs no image: end_segment has nothing to paint
         seg.tail = _Tail(index, None if kept else image, pose, None if kept else mask, kept)
         seg.last_painted = pose
@@ -370,11 +373,12 @@ class Painter:
                               interpolation=cv2.INTER_AREA) == 255
         return small, pose @ np.linalg.inv(to_small), mask, to_small
 
-    def _keep(self, seg: _Segment, kept: _Kept, image: np.ndarray, mask: np.ndarray | None) -> None:
+    def _keep(self, seg: _Segment, kept: _Kept, image: np.ndarray, mask: np.ndarray | None,
+              as_read: bool = False) -> None:
         if not self.keep:
             return
         seg.kept.append(kept)
-        self.rerenderer.save(kept.index, image, mask)
+        self.rerenderer.save(kept.index, None if as_read else image, mask)
         self.stats.kept += 1
 
     def end_segment(self, mosaic: TiledMosaic | None, segment: int) -> set[TileKey]:

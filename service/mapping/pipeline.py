@@ -394,7 +394,7 @@ class MappingPipeline:
         if mapping.keyframes and mapping.loop_closure:
             keyframes = (state_folder(self.out_dir) / "keyframes" if self.outputs.checkpointing and not self.cfg.mosaic.cache_dir
                          else self.segments.cache() / "keyframes")  # kept with the checkpoint: a restart can re-render
-            store = KeyframeStore(keyframes)
+            store = KeyframeStore(keyframes, read_again=getattr(self.source, "read_again", None))
             self.loops = LoopCloser(store, matcher, self.frame_size,
                                     f, mapping, self.cfg.posegraph, use_priors=self.telemetry is not None,
                                     settle_on_priors=self.telemetry is not None and self.telemetry.mode == "stills",
@@ -575,8 +575,10 @@ class MappingPipeline:
             touched |= self._anchor(step)
         if step.pose is not None:
             whole = step.keyframe and (self.cfg.mapping.keyframes or step.status == REFERENCE)
+            readable = getattr(self.source, "readable_again", None)  # a still painted as decoded: kept by reference
+            as_read = placed.image is frame.image and readable is not None and readable(frame.index)
             touched |= self._painter.paint(self.segments.mosaic(step.segment), step.segment, frame.index,
-                                           placed.image, step.pose, placed.mask, whole=whole)
+                                           placed.image, step.pose, placed.mask, whole=whole, as_read=as_read)
         self.stats.timing.add("paint", time.perf_counter() - t2)
         placed.touched = touched
         placed.pending = self._pending

@@ -189,15 +189,19 @@ class Rerenderer:
         self._thread.start()
 
     # ------------------------------------------------------------------ caller side
-    def save(self, index: int, image: np.ndarray, mask: np.ndarray | None = None) -> None:
-        """Keep the image of frame ``index`` (and its valid ``mask``) for re-rendering. The
-        arrays must not change afterwards (the caller hands them over)."""
+    def save(self, index: int, image: np.ndarray | None, mask: np.ndarray | None = None) -> None:
+        """Keep the image of frame ``index`` (and its valid ``mask``) for re-rendering; None:
+        the input reads it again (:meth:`~photomap.io.keyframestore.KeyframeStore.put_source`).
+        The arrays must not change afterwards (the caller hands them over)."""
         self.later(lambda: self._put(index, image, mask))
         self.writes += 1
 
-    def _put(self, index: int, image: np.ndarray, mask: np.ndarray | None) -> None:
+    def _put(self, index: int, image: np.ndarray | None, mask: np.ndarray | None) -> None:
         self._forget_decoded(index)  # a frame kept again is read back anew
-        self.store.put_image(index, image, mask)
+        if image is None:
+            self.store.put_source(index)
+        else:
+            self.store.put_image(index, image, mask)
 
     def later(self, task: Callable[[], None]) -> None:
         """Run ``task`` in the background thread, before any further re-render strip (in the
