@@ -212,9 +212,9 @@ def test_a_flight_keeps_to_its_opencv_threads(flights, tmp_path, monkeypatch):
     seen: set[int] = set()
     process = MappingPipeline._process
 
-    def spy(self, frame):
+    def spy(self, frame, small=None):
         seen.add(cv2.getNumThreads())
-        return process(self, frame)
+        return process(self, frame, small)
 
     monkeypatch.setattr(MappingPipeline, "_process", spy)
     spec = FlightSpec(str(flights / "f41" / "video.mp4"), "f41", str(flights / "f41" / "telemetry.tlog"))
