@@ -385,10 +385,11 @@ class Rerenderer:
         map of its own, the strips together frame by frame: each kept image is read once for all
         of them (with more than one strip, the next ones on :data:`_READ_AHEAD` threads while one is
         painted, and half of the strips painted on a second thread: after the last frame no worker
-        needs the CPU), and every scratch map gets the same paints as when rendered alone. ``cull``: each tile only from the newest frame that covers it
-        whole on (:func:`hidden_before`: the same pixels in an overwrite map; a correction late
-        in a flight that went over the same ground again and again re-renders each tile from the
-        few frames on top, not from every pass)."""
+        needs the CPU), and every scratch map gets the same paints as when rendered alone.
+        ``cull``: each tile only from the newest frame that covers it whole on
+        (:func:`hidden_before`: the same pixels in an overwrite map; a correction late in a flight
+        that went over the same ground again and again re-renders each tile from the few frames
+        on top, not from every pass)."""
         t = time.perf_counter()
         boxes = reach(np.array([f.pose for f in frames], float).reshape(-1, 3, 3),
                       np.array([f.size for f in frames], float).reshape(-1, 2))
