@@ -149,9 +149,10 @@ class AreaRows:
         return out
 
     def columns(self, band: np.ndarray | list[np.ndarray]) -> np.ndarray:
-        """The band's columns reduced to ``ow`` (:func:`area_columns`): float32 (rows, ow, C)."""
+        """The band's columns reduced to ``ow`` (:func:`area_columns`): float32 (rows, ow, C)
+        (planes merged first: one 4-channel resize takes two thirds of four 1-channel ones)."""
         if isinstance(band, list):
-            return cv2.merge([area_columns(p, self.ow, self._fixes) for p in band])
+            band = cv2.merge(band)
         return area_columns(band, self.ow, self._fixes)
 
     def add(self, y0: int, band: np.ndarray | list[np.ndarray]) -> list[np.ndarray]:
