@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import math
 import shutil
 import socket
 import subprocess
@@ -684,6 +685,61 @@ def test_the_served_track_after_a_correction_is_the_track_of_its_points_appended
     assert live.snapshot().path == truth[::8] and live.errors == 0
     line = track_geojson(live.snapshot())["features"][0]
     assert line["geometry"]["coordinates"] == [list(p) for p in truth[::8]] and line["properties"]["points"] == 6
+
+
+def test_a_refit_moving_the_served_map_less_than_half_a_pixel_keeps_the_served_tiles():
+    """A new GPS fit that moves no corner of the served map by half a map pixel keeps the
+    georeference served (its tiles stay cached: a ground station fetches nothing again); one that
+    moves a corner of the map as it has grown since, drifts on past half a pixel against the
+    served one, or is of another segment is taken."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.geo.georef import Georeference
+    from photomap.live.livemap import LiveMap, TileCache
+
+    def geo(east: float, turn_deg: float = 0.0) -> Georeference:
+        a = math.radians(turn_deg)
+        m = 0.5 * np.array([[math.cos(a), -math.sin(a)], [-math.sin(a), -math.cos(a)]])  # 0.5 m a pixel
+        return Georeference(41.1, -81.7, np.c_[m, [0.0, 0.0]], 32617, np.c_[m, [440_000.0 + east, 4_550_000.0]],
+                            0.5, turn_deg, "gps", 0.5, 10, 10)
+
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    grey = np.full((64, 64, 3), 120, np.uint8)
+    full = np.full((64, 64), 255, np.uint8)
+    for key in [(0, 0), (1, 0), (2, 1)]:
+        mosaic.set_tile(key, grey, full)
+    live = LiveMap(tile_hz=1e6)
+    live.on_frame(_tile_event(0, mosaic, {(0, 0), (1, 0), (2, 1)}))
+    cache = TileCache(64, 0.0)
+    live.on_georeference(0, served := geo(0.0))
+    snap = live.snapshot()
+    version, z = snap.geo_version, snap.max_zoom()
+    lon, lat = snap.to_lonlat(np.array([[96.0, 64.0]]))[0]
+    x, y = wm.tile_of(lat, lon, z)
+    cache.get(snap, "xyz", x, y, z)
+    # 0.1 m east (0.2 px), then a turn moving the far corner (192, 128) by 0.4 px: kept
+    for refit in (geo(0.1), geo(0.0, math.degrees(0.4 * 0.5 / 0.5 / math.hypot(192, 128)))):
+        live.on_georeference(0, refit)
+        snap = live.snapshot()
+        assert snap.geo_version == version and snap.georeference[1] is served
+    cache.get(snap, "xyz", x, y, z)
+    assert cache.renders == 1 and cache.hits == 1
+    live.on_georeference(0, geo(0.3))  # 0.6 px against the served fit: taken
+    assert live.snapshot().geo_version == version + 1
+    version = live.snapshot().geo_version
+    live.on_georeference(0, geo(0.3 + 0.2))  # 0.4 px more: kept
+    assert live.snapshot().geo_version == version
+    # a turn moving (41 * 64, 31 * 64) by a pixel moves the map's far corner by 0.07 px: kept ...
+    turned = geo(0.3, math.degrees(1.0 / math.hypot(41 * 64, 31 * 64)))
+    live.on_georeference(0, turned)
+    assert live.snapshot().geo_version == version
+    # ... until the map has grown to there
+    mosaic.set_tile((40, 30), grey, full)
+    live.on_frame(_tile_event(1, mosaic, {(40, 30)}))
+    live.on_georeference(0, turned)
+    assert live.snapshot().geo_version == version + 1 and live.snapshot().georeference[1] is turned
+    live.on_georeference(1, live.snapshot().georeference[1])  # another segment: taken
+    assert live.snapshot().georeference[0] == 1
 
 
 def test_hazards_are_served_on_the_map_the_page_shows_with_or_without_a_georeference():

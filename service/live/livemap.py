@@ -7,7 +7,10 @@ since the last copy (``touched``) at most ``tile_hz`` times a second (each a cop
 pixels, ~50 us). Each copy replaces the tile in a dictionary under a lock held for that
 assignment only, so the worker never waits on a request. The server threads read only this
 copy, never the pipeline's maps. :meth:`LiveMap.on_georeference` is told the main map's GPS fit
-(:data:`~photomap.mapping.events.GeoreferenceSink`). :meth:`LiveMap.pack` (the server's packing
+(:data:`~photomap.mapping.events.GeoreferenceSink`); a new fit that moves no corner of the served
+map by half a map pixel or more against the one served is not taken (the served tiles stay
+valid: a ground station does not fetch the whole view again for a refit it cannot see).
+:meth:`LiveMap.pack` (the server's packing
 thread) packs the oldest copies beyond a count, so that the copy of a long flight's map stays
 small.
 
@@ -226,6 +229,7 @@ class LiveMap:
         self._tile_size = 256
         self._version = 0
         self._dirty: dict[int, set[TileKey]] = {}  # segment -> tiles changed since their copy
+        self._extent: dict[int, tuple[int, int, int, int]] = {}  # segment -> tile keys' (x0, y0, x1, y1), grown
         self._readers: dict[int, TileReader] = {}  # segment -> its map (read in the worker only)
         self._last_copy = -math.inf
         self._paths: dict[int, ThinnedPath[tuple[float, float]]] = {}  # segment -> its frame centres
@@ -327,6 +331,8 @@ class LiveMap:
                         continue
                     self._version += 1
                     store[key] = _Tile(pixels, self._version)
+                    x0, y0, x1, y1 = self._extent.get(seg, (key[0], key[1], key[0], key[1]))
+                    self._extent[seg] = (min(x0, key[0]), min(y0, key[1]), max(x1, key[0]), max(y1, key[1]))
                     self._raw[(seg, key)] = None
                     self._raw.move_to_end((seg, key))
 
@@ -336,8 +342,13 @@ class LiveMap:
 
     # ------------------------------------------------------------------ writer / worker thread
     def on_georeference(self, segment: int, geo: Georeference) -> None:
-        """The pipeline's live (and final) GPS fit of the main map segment."""
+        """The pipeline's live (and final) GPS fit of the main map segment (not taken when it
+        moves the served map by less than half a map pixel: module docstring)."""
         with self._lock:
+            old, extent = self._georef, self._extent.get(int(segment))
+            if old is not None and old[0] == int(segment) and extent is not None \
+                    and _refit_moves_px(old[1], geo, extent, self._tile_size) < 0.5:
+                return
             self._georef = (int(segment), geo)
             self._geo_version += 1
             self._version += 1
@@ -399,6 +410,18 @@ class LiveMap:
             version = self._version
         # the list's first n points stay as they are: ThinnedPath appends in place and thins into a new list
         return Snapshot(*snap, points[:n], version, memo)
+
+
+def _refit_moves_px(old: Georeference, new: Georeference, extent: tuple[int, int, int, int],
+                    tile_size: int) -> float:
+    """How far (map pixels of ``old``) ``new`` moves the corners of the tiles ``extent`` (tile
+    keys x0, y0, x1, y1, inclusive) against ``old``; infinite in another CRS."""
+    if old.epsg != new.epsg:
+        return math.inf
+    x0, y0, x1, y1 = extent
+    corners = np.array([[x0, y0], [x1 + 1, y0], [x0, y1 + 1], [x1 + 1, y1 + 1]], float) * tile_size
+    moved = np.linalg.norm(new.to_crs(corners) - old.to_crs(corners), axis=1).max()
+    return float(moved) / old.metres_per_px
 
 
 # ---------------------------------------------------------------------------------- rendering
