@@ -570,6 +570,27 @@ def test_keep_alive_connections_answer_request_after_request_and_are_bounded():
         server.close()
 
 
+def test_without_keep_alive_every_answer_closes_its_connection():
+    """``map_server.keepalive_s`` 0: HTTP/1.1 answers say ``Connection: close`` and close, and no
+    thread waits for idle connections."""
+    def idle_threads() -> int:
+        return sum(t.name == "photomap-mapserver-idle" for t in threading.enumerate())
+
+    cfg = load_config().updated({"map_server": {"threads": 1, "max_connections": 1, "keepalive_s": 0}})
+    before = idle_threads()
+    server = MapServer(cfg.map_server, "127.0.0.1", 0)
+    try:
+        assert idle_threads() == before
+        for _ in range(3):  # one connection slot, freed by each answer
+            with socket.create_connection(("127.0.0.1", server.port), timeout=10) as s:
+                s.sendall(b"GET /status.json HTTP/1.1\r\nHost: a\r\n\r\n")
+                (line, headers, body), = _answers(s, "G")
+                assert line == "HTTP/1.1 200 OK" and headers["Connection"] == "close" and s.recv(1) == b""
+        assert json.loads(body)["server"]["refused"] == 0
+    finally:
+        server.close()
+
+
 def test_answers_wait_while_the_worker_maps_a_frame():
     """Live, the server's Python code gives way to the worker's frame (its gate), then answers."""
     from photomap.mapping.threads import WorkerFirst

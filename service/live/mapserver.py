@@ -249,8 +249,10 @@ class _Server(HTTPServer):
         self._slots = threading.BoundedSemaphore(max_connections)
         self._pool = ThreadPoolExecutor(threads, "photomap-mapserver")
         super().__init__(address, _Handler)
-        self._parking = _Parking(keepalive_s, self._resume, self._close)
-        self._parking.start()
+        # no keep-alive (``keepalive_s`` 0): every answer closes its connection, nothing parks
+        self._parking = _Parking(keepalive_s, self._resume, self._close) if keepalive_s > 0 else None
+        if self._parking is not None:
+            self._parking.start()
 
     def server_bind(self) -> None:
         socketserver.TCPServer.server_bind(self)  # HTTPServer's would look the name up (DNS)
@@ -259,7 +261,7 @@ class _Server(HTTPServer):
     def process_request(self, request, client_address) -> None:
         self.owner.stats["connections"] += 1
         if not self._slots.acquire(blocking=False) and not (
-                self._parking.evict_oldest() and self._slots.acquire(blocking=False)):
+                self._parking is not None and self._parking.evict_oldest() and self._slots.acquire(blocking=False)):
             self.owner.stats["refused"] += 1
             self.shutdown_request(request)
             return
@@ -277,7 +279,7 @@ class _Server(HTTPServer):
             keep = _Handler(conn, self).serve()
         except Exception:  # a client that vanishes mid-answer, a broken request
             self.owner.stats["errors"] += 1
-        if keep:
+        if keep and self._parking is not None:
             self._parking.park(conn)
         else:
             self._close(conn)
@@ -288,7 +290,7 @@ class _Server(HTTPServer):
 
     def server_close(self) -> None:
         super().server_close()
-        if hasattr(self, "_parking"):  # not when the port could not be bound
+        if getattr(self, "_parking", None) is not None:  # none without keep-alive, or when the port could not be bound
             self._parking.close()
         self._pool.shutdown(wait=False, cancel_futures=True)
 
