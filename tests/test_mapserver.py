@@ -763,6 +763,49 @@ def test_a_refit_moving_the_served_map_less_than_half_a_pixel_keeps_the_served_t
     assert live.snapshot().georeference[0] == 1
 
 
+def test_web_tiles_at_the_maps_zooms_are_warped_as_affine_and_equal_the_exact_sampling(monkeypatch):
+    """Across a tile at the map's own zooms web mercator and UTM are affine to far below a pixel,
+    so the tile is one affine warp of the map; it equals the per-pixel sampling (to 1 level where
+    the map covers the tile). A tile of hundreds of kilometres is not affine and is sampled per
+    pixel."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+    from photomap.geo.georef import Georeference, utm_forward
+    from photomap.io.xyz_tiles import tile_source_grid
+    from photomap.live import livemap
+    from photomap.live.livemap import LiveMap
+
+    a = math.radians(25.0)
+    m = 0.05 * np.array([[math.cos(a), -math.sin(a)], [-math.sin(a), -math.cos(a)]])  # 5 cm a pixel, turned
+    east, north = (float(v[0]) for v in utm_forward(np.array([41.1]), np.array([-81.7]), 32617))
+    geo = Georeference(41.1, -81.7, np.c_[m, [0.0, 0.0]], 32617, np.c_[m, [east, north]],
+                       0.05, 25.0, "gps", 0.5, 10, 10)
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    rng = np.random.default_rng(3)
+    image = cv2.GaussianBlur(rng.integers(0, 256, (512, 512, 3), dtype=np.uint8), (5, 5), 0)
+    full = np.full((64, 64), 255, np.uint8)
+    keys = {(kx, ky) for kx in range(8) for ky in range(8)}
+    for kx, ky in keys:
+        mosaic.set_tile((kx, ky), image[64 * ky:64 * ky + 64, 64 * kx:64 * kx + 64], full)
+    live = LiveMap(tile_hz=1e6)
+    live.on_frame(_tile_event(0, mosaic, keys))
+    live.on_georeference(0, geo)
+    snap = live.snapshot()
+    z = snap.max_zoom()
+    lon, lat = snap.to_lonlat(np.array([[256.0, 256.0]]))[0]
+    def grid(zoom: int) -> tuple[np.ndarray, np.ndarray]:
+        return tile_source_grid(geo.map_to_crs, geo.epsg, *wm.tile_of(lat, lon, zoom), zoom)[:2]
+
+    assert livemap._grid_affine(*grid(z)) is not None and livemap._grid_affine(*grid(3)) is None
+    x, y = wm.tile_of(lat, lon, z)
+    warped = livemap._xyz_tile(snap, x, y, z)
+    monkeypatch.setattr(livemap, "_grid_affine", lambda gx, gy: None)
+    sampled = livemap._xyz_tile(snap, x, y, z)
+    both = (warped[..., 3] == 255) & (sampled[..., 3] == 255)
+    assert both.mean() > 0.9 and (warped[..., 3] != sampled[..., 3]).mean() < 0.01
+    assert np.abs(warped.astype(int) - sampled)[both].max() <= 1
+
+
 def test_hazards_are_served_on_the_map_the_page_shows_with_or_without_a_georeference():
     """A spot of the served segment is drawn at its map pixel: in map pixels before a georeference
     (the page's pixel frame), through the map's georeference after it (on the tiles), whatever

@@ -510,14 +510,35 @@ def _xyz_tile(snap: Snapshot, x: int, y: int, z: int) -> np.ndarray | None:
     # All four channels at once, by (a, a, a, 255): the alpha stays as it is (a 3-channel product
     # of strided views took 8 times as long)
     comp = cv2.multiply(comp, _alpha4(comp), scale=1.0 / 255.0)
-    # the 256 x 256 coordinates in float32, relative to the region (< 1e-3 px off)
-    map_x = upsample_grid((lx - lx0).astype(np.float32))
-    map_y = upsample_grid((ly - ly0).astype(np.float32))
-    pre = cv2.remap(comp, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=(0, 0, 0, 0))
+    affine = _grid_affine(lx - lx0, ly - ly0)
+    if affine is not None:  # one affine warp: no per-pixel coordinates
+        pre = cv2.warpAffine(comp, affine, (wm.TILE_PX, wm.TILE_PX), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+    else:  # the 256 x 256 coordinates in float32, relative to the region (< 1e-3 px off)
+        map_x = upsample_grid((lx - lx0).astype(np.float32))
+        map_y = upsample_grid((ly - ly0).astype(np.float32))
+        pre = cv2.remap(comp, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=(0, 0, 0, 0))
     if not pre[..., 3].any():
         return None
     return cv2.divide(pre, _alpha4(pre), scale=255.0)  # colour 0 where alpha is 0; alpha as it is
+
+
+_NODES = np.linspace(0.0, wm.TILE_PX - 1.0, 17)  # tile pixel indices of tile_source_grid's nodes
+_NODE_FIT = np.linalg.pinv(np.c_[np.tile(_NODES, 17), np.repeat(_NODES, 17), np.ones(17 * 17)])
+_AFFINE_PX = 1.0 / 64  # a grid this close to affine is warped as affine (OpenCV's bilinear steps: 1/32 px)
+
+
+def _grid_affine(gx: np.ndarray, gy: np.ndarray) -> np.ndarray | None:
+    """The 2x3 affine (tile pixel index -> source pixel) of a (17, 17) grid of
+    :func:`~photomap.io.xyz_tiles.tile_source_grid` when it is within :data:`_AFFINE_PX` of one
+    at every node, else None. At the map's own zooms web mercator and UTM bend by parts per
+    million across a tile; far out (a tile of kilometres) they do not."""
+    m = np.vstack([_NODE_FIT @ gx.ravel(), _NODE_FIT @ gy.ravel()])
+    ii, jj = np.meshgrid(_NODES, _NODES)
+    off = max(np.abs(m[0, 0] * ii + m[0, 1] * jj + m[0, 2] - gx).max(),
+              np.abs(m[1, 0] * ii + m[1, 1] * jj + m[1, 2] - gy).max())
+    return m if off <= _AFFINE_PX else None
 
 
 def xyz_source_rect(snap: Snapshot, x: int, y: int, z: int) -> tuple[float, float, float, float]:
