@@ -547,7 +547,9 @@ def test_keep_alive_connections_answer_request_after_request_and_are_bounded():
             s.sendall(b"GET /status.json HTTP/1.0\r\n\r\n")  # HTTP/1.0 without keep-alive: closed after
             (line, headers, _), = _answers(s, "G")
             assert headers["Connection"] == "close" and s.recv(1) == b""
-        # two idle keep-alive connections fill max_connections, while the one thread is free
+        # the closed ones are let go (the server sees them close a moment later) ...
+        assert wait_until(lambda: server.open_connections == 0)
+        # ... then two idle keep-alive connections fill max_connections, while the one thread is free
         idle = [socket.create_connection(("127.0.0.1", server.port), timeout=10) for _ in range(2)]
         for s in idle:
             s.sendall(b"GET /status.json HTTP/1.1\r\nHost: a\r\n\r\n")

@@ -247,6 +247,8 @@ class _Server(HTTPServer):
         self.owner = owner
         self.keepalive_s = keepalive_s
         self._slots = threading.BoundedSemaphore(max_connections)
+        self._open_lock = threading.Lock()
+        self.open_connections = 0  # holding a slot (being answered or parked)
         self._pool = ThreadPoolExecutor(threads, "photomap-mapserver")
         super().__init__(address, _Handler)
         # no keep-alive (``keepalive_s`` 0): every answer closes its connection, nothing parks
@@ -265,6 +267,8 @@ class _Server(HTTPServer):
             self.owner.stats["refused"] += 1
             self.shutdown_request(request)
             return
+        with self._open_lock:
+            self.open_connections += 1
         self._resume(_Connection(request, client_address))
 
     def _resume(self, conn: _Connection) -> None:
@@ -286,6 +290,8 @@ class _Server(HTTPServer):
 
     def _close(self, conn: _Connection) -> None:
         self.shutdown_request(conn.sock)
+        with self._open_lock:
+            self.open_connections -= 1
         self._slots.release()
 
     def server_close(self) -> None:
@@ -495,6 +501,11 @@ class MapServer:
             host = socket.gethostname()
         return f"http://{host}:{self.port}/"
 
+    @property
+    def open_connections(self) -> int:
+        """Connections open right now (being answered, or idle between keep-alive requests)."""
+        return self._server.open_connections
+
     def on_frame(self, event: FrameEvent) -> None:
         self.live.on_frame(event)
 
@@ -541,7 +552,8 @@ class MapServer:
 
     def status(self) -> dict:
         out = dict(self.answer("status", status, encode=False))
-        out.update({"server": dict(self.stats), "tile_renders": self.cache.renders, "tile_hits": self.cache.hits})
+        out.update({"server": {**self.stats, "open": self.open_connections}, "tile_renders": self.cache.renders,
+                    "tile_hits": self.cache.hits})
         return out
 
     def hazard_spots(self) -> dict:
