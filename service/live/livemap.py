@@ -525,7 +525,8 @@ def _xyz_tile(snap: Snapshot, x: int, y: int, z: int) -> np.ndarray | None:
 
 
 _NODES = np.linspace(0.0, wm.TILE_PX - 1.0, 17)  # tile pixel indices of tile_source_grid's nodes
-_NODE_FIT = np.linalg.pinv(np.c_[np.tile(_NODES, 17), np.repeat(_NODES, 17), np.ones(17 * 17)])
+_NODE_XY1 = np.c_[np.tile(_NODES, 17), np.repeat(_NODES, 17), np.ones(17 * 17)]  # (i, j, 1), grid order
+_NODE_FIT = np.linalg.pinv(_NODE_XY1)
 _AFFINE_PX = 1.0 / 64  # a grid this close to affine is warped as affine (OpenCV's bilinear steps: 1/32 px)
 
 
@@ -534,11 +535,9 @@ def _grid_affine(gx: np.ndarray, gy: np.ndarray) -> np.ndarray | None:
     :func:`~photomap.io.xyz_tiles.tile_source_grid` when it is within :data:`_AFFINE_PX` of one
     at every node, else None. At the map's own zooms web mercator and UTM bend by parts per
     million across a tile; far out (a tile of kilometres) they do not."""
-    m = np.vstack([_NODE_FIT @ gx.ravel(), _NODE_FIT @ gy.ravel()])
-    ii, jj = np.meshgrid(_NODES, _NODES)
-    off = max(np.abs(m[0, 0] * ii + m[0, 1] * jj + m[0, 2] - gx).max(),
-              np.abs(m[1, 0] * ii + m[1, 1] * jj + m[1, 2] - gy).max())
-    return m if off <= _AFFINE_PX else None
+    nodes = np.c_[gx.ravel(), gy.ravel()]
+    m = _NODE_FIT @ nodes  # (3, 2): least squares
+    return m.T if np.abs(_NODE_XY1 @ m - nodes).max() <= _AFFINE_PX else None
 
 
 def xyz_source_rect(snap: Snapshot, x: int, y: int, z: int) -> tuple[float, float, float, float]:
