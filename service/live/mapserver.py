@@ -296,11 +296,11 @@ class _Server(HTTPServer):
             # a client fetching several tiles sends the next request as soon as it has an answer:
             # taken here if it comes within LINGER_S, instead of parking and resuming (two thread
             # hand-offs and selector updates: most of a cached answer's CPU)
-            while keep and self._parking is not None and _readable(conn.sock, LINGER_S):
+            while keep and _readable(conn.sock, LINGER_S):
                 keep = handler.serve()
         except Exception:  # a client that vanishes mid-answer, a broken request
             self.owner.stats["errors"] += 1
-        if keep and self._parking is not None:
+        if keep:  # (only with keepalive_s > 0: there is a parking)
             self._parking.park(conn)
         else:
             self._close(conn)
