@@ -327,10 +327,12 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
     base = rows["no server"]
     base_cpu = statistics.median(r["cpu_ms"] for r in base)
     ratios: dict[str, float] = {}
+    pass_ratios: dict[str, list[float]] = {}
     for cond in CONDITIONS:
         rs = rows[cond]
         fps = [r["fps"] for r in rs]
-        ratio = statistics.median(r["fps"] / b["fps"] for r, b in zip(rs, base))
+        pass_ratios[cond] = [r["fps"] / b["fps"] for r, b in zip(rs, base)]
+        ratio = statistics.median(pass_ratios[cond])
         ratios[cond] = ratio
         cpu = statistics.median(r["cpu_ms"] for r in rs)
         if cond == "server + client":
@@ -352,8 +354,9 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
                      f"| {latency} | {cache} |")
     noise = abs(ratios["server, no client"] - 1.0)
     drop = 1.0 - ratios["server + client"]
-    lo, hi = median_interval([r["fps"] / b["fps"] for r, b in zip(rows["server + client"], base)])
-    cpu_share = statistics.median(_own_total(r) for r in rows["server + client"]) / base_cpu
+    lo, hi = median_interval(pass_ratios["server + client"])
+    own = statistics.median(_own_total(r) for r in rows["server + client"])
+    cpu_share = own / base_cpu
     if (hi - lo) / 2 > 0.03:
         verdict = (f"not decidable by fps on this machine (the 95 % interval of the median ratio, "
                    f"{lo:.3f} .. {hi:.3f}, is wider than the 3 % to resolve: more passes or a quieter machine); "
@@ -366,7 +369,6 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
     else:
         verdict = "met" if drop <= max(noise, 0.03) else "NOT met"
     cpu_client = statistics.median(r["cpu_ms"] for r in rows["server + client"])
-    own = statistics.median(_own_total(r) for r in rows["server + client"])
     # per request, which the machine's speed moves but its load (fewer frames a second: more requests a frame) does not
     per_request = statistics.median(r["own_ms"]["answers"] * r["frames"] / max(1, r["requests"])
                                     for r in rows["server + client"])
@@ -378,7 +380,7 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
               f"the client's own (another process on the same cores, as a ground station is not): "
               f"{statistics.median(r['client_cpu_ms'] for r in rows['server + client']):.2f} ms per frame. "
               f"By the server's own thread clocks (which the others' load does not move): {own:.2f} ms per "
-              f"frame with the client, {100 * own / base_cpu:.1f} % of the mapping's CPU without a server "
+              f"frame with the client, {100 * cpu_share:.1f} % of the mapping's CPU without a server "
               f"(answering: {per_request:.2f} ms per request). "
               f"Target (no measurable slowdown: the fps ratio within the noise, or 3 %): **{verdict}**. The client (another process) asks for the status and the 3 x 3 tiles "
               f"around the vehicle at `max_zoom` {args.hz:g} times a second (up to {10 * args.hz:g} requests/s); "
