@@ -18,10 +18,11 @@ and server: the client is another process), robust to a busy machine where wall-
 not; the server's own CPU by its threads' clocks (:func:`_server_clocks`: answering, and its copy
 of the map in the worker), which other processes' load hardly moves; for the client, the
 requests answered (and failed, by reason), their median and largest latency, its own CPU, and
-the server's renders and cache hits. Target: no measurable slowdown (the client's fps ratio within the noise
-that a server with no client shows, or 3 %). Where the passes spread too widely to resolve 3 % (the
-bootstrap 95 % interval of the median ratio wider than +-3 %), the verdict says so and falls back
-on the server's own CPU as a share of the mapping's (at most 3 %).
+the server's renders and cache hits. Target: no measurable slowdown, 3 % (:func:`flat_out_verdict`):
+the bootstrap 95 % interval of the client's median fps ratio above 0.97. Where it straddles 0.97
+(this host's speed swings by more than 10 % from pass to pass, which a server with no client, doing
+nothing, shows beside it), the verdict says so and falls back on the server's own CPU as a share of
+the mapping's (at most 3 %).
 
     python -m tools.bench_mapserver [--frames 1500] [--live-frames 300] [--passes 3] [--hz 5] [--no-live] [--out FILE]
 
@@ -300,6 +301,21 @@ def median_interval(values: list[float], level: float = 0.95, rounds: int = 4000
     return medians[int((1 - level) / 2 * rounds)], medians[int((1 + level) / 2 * rounds) - 1]
 
 
+def flat_out_verdict(lo: float, hi: float, cpu_share: float, limit: float = 0.03) -> str:
+    """The flat-out target from the 95 % interval ``lo .. hi`` of the fps ratio (with the client /
+    without a server) and the server's own CPU as a share of the mapping's: met where the interval
+    lies above ``1 - limit``, not met where it lies below; where it straddles, fps cannot decide on
+    this machine, and the server's CPU share (at most ``limit``) does. On saturated cores the
+    mapping loses at least the server's CPU, so that share bounds the slowdown from below too."""
+    if lo >= 1 - limit:
+        return f"met (the fps ratio's 95 % interval lies above {1 - limit:.2f})"
+    if hi < 1 - limit:
+        return f"NOT met (the fps ratio's 95 % interval lies below {1 - limit:.2f})"
+    return (f"not decidable by fps on this machine (the fps ratio's 95 % interval, {lo:.3f} .. {hi:.3f}, "
+            f"straddles {1 - limit:.2f}: more passes or a quieter machine); by the server's own CPU, "
+            f"{100 * cpu_share:.1f} % of the mapping's: {'met' if cpu_share <= limit else 'NOT met'}")
+
+
 def _own_total(row: dict) -> float:
     return sum(row["own_ms"].values())
 
@@ -352,37 +368,26 @@ def render(args, rows: dict[str, list[dict]], took: float, loads: tuple[float, f
         lines.append(f"| {cond} | {statistics.median(fps):.1f} | {', '.join(f'{v:.1f}' for v in fps)} "
                      f"| {ratio:.3f} | {cpu:.2f} ({100 * (cpu / base_cpu - 1):+.1f} %) | {_own(rs)} | {req} "
                      f"| {latency} | {cache} |")
-    noise = abs(ratios["server, no client"] - 1.0)
-    drop = 1.0 - ratios["server + client"]
     lo, hi = median_interval(pass_ratios["server + client"])
+    null_lo, null_hi = median_interval(pass_ratios["server, no client"])
     own = statistics.median(_own_total(r) for r in rows["server + client"])
     cpu_share = own / base_cpu
-    if (hi - lo) / 2 > 0.03:
-        verdict = (f"not decidable by fps on this machine (the 95 % interval of the median ratio, "
-                   f"{lo:.3f} .. {hi:.3f}, is wider than the 3 % to resolve: more passes or a quieter machine); "
-                   f"by the server's own CPU, {100 * cpu_share:.1f} % of the mapping's: "
-                   f"{'met' if cpu_share <= 0.03 else 'NOT met'}")
-    elif noise > 0.1:
-        verdict = (f"not decidable on this machine (a server with no client, which does nothing, moved the "
-                   f"fps by {100 * noise:.0f} %: the load of other processes dominates); the CPU figure is the "
-                   f"measure that holds")
-    else:
-        verdict = "met" if drop <= max(noise, 0.03) else "NOT met"
+    verdict = flat_out_verdict(lo, hi, cpu_share)
     cpu_client = statistics.median(r["cpu_ms"] for r in rows["server + client"])
     # per request, which the machine's speed moves but its load (fewer frames a second: more requests a frame) does not
     per_request = statistics.median(r["own_ms"]["answers"] * r["frames"] / max(1, r["requests"])
                                     for r in rows["server + client"])
     lines += ["", f"Mapping fps with a client at {args.hz:g} Hz, pass by pass against the run without a server "
               f"in the same round: median ratio {ratios['server + client']:.3f} (95 % interval {lo:.3f} .. {hi:.3f}; "
-              f"a server with no client: "
-              f"{ratios['server, no client']:.3f}, the noise of this machine). The server's CPU: "
+              f"a server with no client, which does nothing: "
+              f"{ratios['server, no client']:.3f}, {null_lo:.3f} .. {null_hi:.3f}, the noise of this machine). The server's CPU: "
               f"{cpu_client - base_cpu:+.2f} ms per frame with the client ({cpu_client:.2f} against {base_cpu:.2f}); "
               f"the client's own (another process on the same cores, as a ground station is not): "
               f"{statistics.median(r['client_cpu_ms'] for r in rows['server + client']):.2f} ms per frame. "
               f"By the server's own thread clocks (which the others' load does not move): {own:.2f} ms per "
               f"frame with the client, {100 * cpu_share:.1f} % of the mapping's CPU without a server "
               f"(answering: {per_request:.2f} ms per request). "
-              f"Target (no measurable slowdown: the fps ratio within the noise, or 3 %): **{verdict}**. The client (another process) asks for the status and the 3 x 3 tiles "
+              f"Target (no measurable slowdown, 3 %): **{verdict}**. The client (another process) asks for the status and the 3 x 3 tiles "
               f"around the vehicle at `max_zoom` {args.hz:g} times a second (up to {10 * args.hz:g} requests/s); "
               f"latencies are those it saw on loopback while the mapping ran flat out."]
     live = rows.get("live")
