@@ -244,6 +244,8 @@ class MappingPipeline:
                  sinks: Sequence[FrameSink] = (), input_name: str = "",
                  telemetry: TelemetryJoin | None = None, final_outputs: Mapping[str, Callable] | None = None) -> None:
         self.source = source
+        # stills that can be read again are painted as decoded and kept by reference
+        self._readable_again: Callable[[int], bool] | None = getattr(source, "readable_again", None)
         self.cfg = cfg
         self.out_dir = Path(out_dir)
         self.sinks = tuple(sinks)
@@ -575,7 +577,7 @@ class MappingPipeline:
             touched |= self._anchor(step)
         if step.pose is not None:
             whole = step.keyframe and (self.cfg.mapping.keyframes or step.status == REFERENCE)
-            readable = getattr(self.source, "readable_again", None)  # a still painted as decoded: kept by reference
+            readable = self._readable_again
             as_read = placed.image is frame.image and readable is not None and readable(frame.index)
             touched |= self._painter.paint(self.segments.mosaic(step.segment), step.segment, frame.index,
                                            placed.image, step.pose, placed.mask, whole=whole, as_read=as_read)
