@@ -20,8 +20,8 @@ of the map in the worker), which other processes' load hardly moves; for the cli
 requests answered (and failed, by reason), their median and largest latency, its own CPU, and
 the server's renders and cache hits. Target: no measurable slowdown, 3 % (:func:`flat_out_verdict`):
 the bootstrap 95 % interval of the client's median fps ratio above 0.97. Where it straddles 0.97
-(this host's speed swings by more than 10 % from pass to pass, which a server with no client, doing
-nothing, shows beside it), the verdict says so and falls back on the server's own CPU as a share of
+(a shared machine's speed can swing by more than 10 % from pass to pass, as a server with no
+client, doing nothing, shows beside it), the verdict says so and falls back on the server's own CPU as a share of
 the mapping's (at most 3 %).
 
     python -m tools.bench_mapserver [--frames 1500] [--live-frames 300] [--passes 3] [--hz 5] [--no-live] [--out FILE]
@@ -306,7 +306,7 @@ def flat_out_verdict(lo: float, hi: float, cpu_share: float, limit: float = 0.03
     without a server) and the server's own CPU as a share of the mapping's: met where the interval
     lies above ``1 - limit``, not met where it lies below; where it straddles, fps cannot decide on
     this machine, and the server's CPU share (at most ``limit``) does. On saturated cores the
-    mapping loses at least the server's CPU, so that share bounds the slowdown from below too."""
+    mapping loses at least the server's CPU: that share is also a lower bound of the slowdown."""
     if lo >= 1 - limit:
         return f"met (the fps ratio's 95 % interval lies above {1 - limit:.2f})"
     if hi < 1 - limit:
