@@ -765,16 +765,12 @@ def test_a_refit_moving_the_served_map_less_than_half_a_pixel_keeps_the_served_t
     assert live.snapshot().georeference[0] == 1
 
 
-def test_web_tiles_at_the_maps_zooms_are_warped_as_affine_and_equal_the_exact_sampling(monkeypatch):
-    """Across a tile at the map's own zooms web mercator and UTM are affine to far below a pixel,
-    so the tile is one affine warp of the map; it equals the per-pixel sampling (to 1 level where
-    the map covers the tile). A tile of hundreds of kilometres is not affine and is sampled per
-    pixel."""
+def _georeferenced_snapshot():
+    """A live map of 8 x 8 mapped 64 px tiles of blurred noise, georeferenced at 5 cm a pixel and
+    turned 25 degrees: its snapshot and the lon, lat of the map pixel (256, 256)."""
     from photomap.config import MosaicConfig
     from photomap.core.mosaic import TiledMosaic
     from photomap.geo.georef import Georeference, utm_forward
-    from photomap.io.xyz_tiles import tile_source_grid
-    from photomap.live import livemap
     from photomap.live.livemap import LiveMap
 
     a = math.radians(25.0)
@@ -793,8 +789,21 @@ def test_web_tiles_at_the_maps_zooms_are_warped_as_affine_and_equal_the_exact_sa
     live.on_frame(_tile_event(0, mosaic, keys))
     live.on_georeference(0, geo)
     snap = live.snapshot()
+    return snap, snap.to_lonlat(np.array([[256.0, 256.0]]))[0]
+
+
+def test_web_tiles_at_the_maps_zooms_are_warped_as_affine_and_equal_the_exact_sampling(monkeypatch):
+    """Across a tile at the map's own zooms web mercator and UTM are affine to far below a pixel,
+    so the tile is one affine warp of the map; it equals the per-pixel sampling (to 1 level where
+    the map covers the tile). A tile of hundreds of kilometres is not affine and is sampled per
+    pixel."""
+    from photomap.io.xyz_tiles import tile_source_grid
+    from photomap.live import livemap
+
+    snap, (lon, lat) = _georeferenced_snapshot()
+    geo = snap.georeference[1]
     z = snap.max_zoom()
-    lon, lat = snap.to_lonlat(np.array([[256.0, 256.0]]))[0]
+
     def grid(zoom: int) -> tuple[np.ndarray, np.ndarray]:
         return tile_source_grid(geo.map_to_crs, geo.epsg, *wm.tile_of(lat, lon, zoom), zoom)[:2]
 
@@ -806,6 +815,32 @@ def test_web_tiles_at_the_maps_zooms_are_warped_as_affine_and_equal_the_exact_sa
     both = (warped[..., 3] == 255) & (sampled[..., 3] == 255)
     assert both.mean() > 0.9 and (warped[..., 3] != sampled[..., 3]).mean() < 0.01
     assert np.abs(warped.astype(int) - sampled)[both].max() <= 1
+
+
+def test_web_tiles_of_a_fully_mapped_region_skip_the_premultiplication_exactly(monkeypatch):
+    """Where every source pixel of a tile is mapped, the alpha is neither multiplied in nor
+    divided out (the region is its own premultiplied form); a tile over the map's edge has it
+    divided out of its part-covered pixels. Both equal the rendering with the two steps."""
+    from photomap.live import livemap
+
+    snap, (lon, lat) = _georeferenced_snapshot()
+    z = snap.max_zoom()
+    x0, y0, _, _ = snap.bounds_px()
+    lon0, lat0 = snap.to_lonlat(np.array([[x0 + 2.0, y0 + 2.0]]))[0]
+    calls = []
+    for name in ("multiply", "divide"):
+        real = getattr(cv2, name)
+        monkeypatch.setattr(livemap.cv2, name, lambda *a, _real=real, _name=name, **k: calls.append(_name) or _real(*a, **k))
+    tiles = {}
+    for where, (lt, ln) in {"inside": (lat, lon), "edge": (lat0, lon0)}.items():
+        calls.clear()
+        tiles[where] = livemap._xyz_tile(snap, *wm.tile_of(lt, ln, z), z)
+        tiles[where + " steps"] = list(calls)
+    assert tiles["inside"][..., 3].min() == 255 and tiles["inside steps"] == []
+    assert 0 < tiles["edge"][..., 3].mean() < 255 and tiles["edge steps"] == ["divide"]
+    monkeypatch.setattr(livemap, "_alpha_range", lambda bgra: (0, 255))  # as if part covered: both steps
+    for where, (lt, ln) in {"inside": (lat, lon), "edge": (lat0, lon0)}.items():
+        assert np.array_equal(livemap._xyz_tile(snap, *wm.tile_of(lt, ln, z), z), tiles[where])
 
 
 def test_hazards_are_served_on_the_map_the_page_shows_with_or_without_a_georeference():

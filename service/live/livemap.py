@@ -503,13 +503,17 @@ def _xyz_tile(snap: Snapshot, x: int, y: int, z: int) -> np.ndarray | None:
     if lx1 <= lx0 or ly1 <= ly0:
         return None
     comp = _compose(snap, level, lx0, ly0, lx1, ly1)
-    if not comp[..., 3].any():
+    lowest, highest = _alpha_range(comp)
+    if highest == 0:
         return None
     # premultiplied in 8 bits (OpenCV, no float copies): exact where the map is covered or empty
     # (the map's alpha is 0 or 255; the halvings' edges are within a level at 1/16 cover and up).
     # All four channels at once, by (a, a, a, 255): the alpha stays as it is (a 3-channel product
-    # of strided views took 8 times as long)
-    comp = cv2.multiply(comp, _alpha4(comp), scale=1.0 / 255.0)
+    # of strided views took 8 times as long). A region mapped in every pixel is its own
+    # premultiplied form, and a tile that comes out opaque its own division: both skipped (each
+    # an OpenCV call its thread pool takes, a map tile's most common case)
+    if lowest < 255:
+        comp = cv2.multiply(comp, _alpha4(comp), scale=1.0 / 255.0)
     affine = _grid_affine(lx - lx0, ly - ly0)
     if affine is not None:  # one affine warp: no per-pixel coordinates
         pre = cv2.warpAffine(comp, affine, (wm.TILE_PX, wm.TILE_PX), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
@@ -519,9 +523,18 @@ def _xyz_tile(snap: Snapshot, x: int, y: int, z: int) -> np.ndarray | None:
         map_y = upsample_grid((ly - ly0).astype(np.float32))
         pre = cv2.remap(comp, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                         borderValue=(0, 0, 0, 0))
-    if not pre[..., 3].any():
+    lowest, highest = _alpha_range(pre)
+    if highest == 0:
         return None
+    if lowest == 255:
+        return pre
     return cv2.divide(pre, _alpha4(pre), scale=255.0)  # colour 0 where alpha is 0; alpha as it is
+
+
+def _alpha_range(bgra: np.ndarray) -> tuple[int, int]:
+    """The lowest and highest alpha of a BGRA uint8 image."""
+    lowest, highest, _, _ = cv2.minMaxLoc(cv2.extractChannel(bgra, 3))
+    return int(lowest), int(highest)
 
 
 _NODES = np.linspace(0.0, wm.TILE_PX - 1.0, 17)  # tile pixel indices of tile_source_grid's nodes
