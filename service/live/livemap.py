@@ -272,17 +272,19 @@ class LiveMap:
             self._dirty.setdefault(seg, set()).update(event.touched)
         if posed:
             cx, cy = frame_centre(*event.frame_size)
-            x, y = np.asarray(event.pose, float) @ (cx, cy, 1.0)
+            (a, b, c), (d, e, f) = np.asarray(event.pose, float).tolist()  # in floats: a third of NumPy's time
+            x, y = a * cx + b * cy + c, d * cx + e * cy + f
             path = self._paths.get(seg)
             if path is None:
                 path = ThinnedPath(self._max_path)
                 with self._lock:
                     self._paths[seg] = path
             # no lock: the server takes the points list and then its length (see snapshot)
-            if event.corrected_path is not None:
+            # corrected_path read only after a correction (a cached property: a lock each read)
+            if event.path_after_correction is not None and event.corrected_path is not None:
                 path.rebuild(np.asarray(event.corrected_path, float)[:, :2])
             else:
-                path.append((float(x), float(y)))
+                path.append((x, y))
         sample = event.telemetry
         with self._lock:
             self._frames_in += 1
