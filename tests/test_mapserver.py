@@ -829,17 +829,20 @@ def test_web_tiles_of_a_fully_mapped_region_skip_the_premultiplication_exactly(m
     lon0, lat0 = snap.to_lonlat(np.array([[x0 + 2.0, y0 + 2.0]]))[0]
     calls = []
     for name in ("multiply", "divide"):
-        real = getattr(cv2, name)
-        monkeypatch.setattr(livemap.cv2, name, lambda *a, _real=real, _name=name, **k: calls.append(_name) or _real(*a, **k))
-    tiles = {}
-    for where, (lt, ln) in {"inside": (lat, lon), "edge": (lat0, lon0)}.items():
+        def counted(*args, _real=getattr(cv2, name), _name=name, **kwargs):
+            calls.append(_name)
+            return _real(*args, **kwargs)
+        monkeypatch.setattr(livemap.cv2, name, counted)
+    places = {"inside": (lat, lon), "edge": (lat0, lon0)}
+    tiles, steps = {}, {}
+    for where, (lt, ln) in places.items():
         calls.clear()
         tiles[where] = livemap._xyz_tile(snap, *wm.tile_of(lt, ln, z), z)
-        tiles[where + " steps"] = list(calls)
-    assert tiles["inside"][..., 3].min() == 255 and tiles["inside steps"] == []
-    assert 0 < tiles["edge"][..., 3].mean() < 255 and tiles["edge steps"] == ["divide"]
+        steps[where] = list(calls)
+    assert tiles["inside"][..., 3].min() == 255 and steps["inside"] == []
+    assert 0 < tiles["edge"][..., 3].mean() < 255 and steps["edge"] == ["divide"]
     monkeypatch.setattr(livemap, "_alpha_range", lambda bgra: (0, 255))  # as if part covered: both steps
-    for where, (lt, ln) in {"inside": (lat, lon), "edge": (lat0, lon0)}.items():
+    for where, (lt, ln) in places.items():
         assert np.array_equal(livemap._xyz_tile(snap, *wm.tile_of(lt, ln, z), z), tiles[where])
 
 
