@@ -280,8 +280,7 @@ class LiveMap:
                 with self._lock:
                     self._paths[seg] = path
             # no lock: the server takes the points list and then its length (see snapshot)
-            # corrected_path read only after a correction (a cached property: a lock each read)
-            if event.path_after_correction is not None and event.corrected_path is not None:
+            if event.corrected_path is not None:
                 path.rebuild(np.asarray(event.corrected_path, float)[:, :2])
             else:
                 path.append((x, y))

@@ -77,12 +77,18 @@ class FrameEvent:
     # model and rectified by the telemetry, as the map got it); None: the input frame's own
     view_points: Callable[[np.ndarray], np.ndarray] | None = None
 
-    @functools.cached_property
+    @property
     def corrected_path(self) -> np.ndarray | None:
         """After a pose-graph correction of ``segment``: its whole path again, (n, 3) x, y,
         confidence of each posed frame's centre in frame order (computed when first read: a
-        pass over the flight's frames that only a sink which shows the path pays for)."""
-        return None if self.path_after_correction is None else self.path_after_correction()
+        pass over the flight's frames that only a sink which shows the path pays for). None,
+        at once, for the frames without a correction (a cached property takes a lock on each
+        read in Python 3.11, and the live map and the viewer read this every frame)."""
+        return None if self.path_after_correction is None else self._corrected_path
+
+    @functools.cached_property
+    def _corrected_path(self) -> np.ndarray:
+        return self.path_after_correction()
 
 
 FrameSink = Callable[[FrameEvent], None]
