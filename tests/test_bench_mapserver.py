@@ -2,23 +2,46 @@
 
 from __future__ import annotations
 
+import math
 import random
 import statistics
 
-from tools.bench_mapserver import flat_out_verdict, median_interval
+from tools.bench_mapserver import CONDITIONS, NO_SERVER, flat_out_verdict, mean_interval, pass_order, \
+    sandwich_effects
 
 
-def test_the_interval_holds_the_median_and_narrows_with_more_passes():
+def test_the_interval_holds_the_mean_and_narrows_with_more_passes():
     rng = random.Random(1)
     few = [rng.gauss(0.98, 0.05) for _ in range(6)]
     many = few + [rng.gauss(0.98, 0.05) for _ in range(194)]
     widths = []
     for values in (few, many):
-        lo, hi = median_interval(values)
-        assert lo <= statistics.median(values) <= hi
+        lo, hi = mean_interval(values)
+        assert lo <= statistics.fmean(values) <= hi
         widths.append(hi - lo)
-    assert widths[1] < widths[0] / 2
-    assert median_interval(few) == median_interval(few)  # seeded: the same passes, the same interval
+    assert widths[1] < widths[0] / 4  # about 1 / sqrt(200 / 6)
+    assert mean_interval(few) == mean_interval(few)  # seeded: the same passes, the same interval
+
+
+def test_every_pass_with_a_server_lies_between_two_without():
+    order = pass_order(4)
+    assert len(order) == 1 + 2 * 3 * 4 and order[0] == order[-1] == NO_SERVER
+    for cond in CONDITIONS[1:]:
+        at = [i for i, c in enumerate(order) if c == cond]
+        assert len(at) == 4 and all(order[i - 1] == order[i + 1] == NO_SERVER for i in at)
+    assert order[1] != order[7]  # the order turns from round to round
+
+
+def test_the_sandwich_cancels_a_drift_of_the_machine():
+    """A machine slowing steadily by 1 % a pass: a condition costing 5 % comes out at 5 %, one
+    costing nothing at 0, where against the first pass without a server they would not."""
+    order = pass_order(3)
+    cost = {NO_SERVER: 1.0, CONDITIONS[1]: 1.0, CONDITIONS[2]: 0.95, CONDITIONS[3]: 0.95}
+    fps = [200.0 * 0.99 ** i * cost[c] for i, c in enumerate(order)]
+    effects = sandwich_effects(order, fps)
+    assert all(abs(e) < 1e-3 for e in effects[CONDITIONS[1]])
+    assert all(abs(math.exp(e) - 0.95) < 1e-3 for e in effects[CONDITIONS[2]] + effects[CONDITIONS[3]])
+    assert fps[order.index(CONDITIONS[1])] / fps[0] < 0.995  # the drift a plain ratio would report
 
 
 def test_the_verdict_follows_the_interval_and_falls_back_on_the_cpu_share():

@@ -282,12 +282,14 @@ class _HeldOpen:
 
 def test_page_renders_map_pixels_in_chromium(flight, tmp_path):
     """During a --realtime replay with telemetry, the page at / loads in headless Chromium, uses
-    /tiles/ and shows the map's pixels in the served tiles' colours."""
+    /tiles/ and shows the map's pixels in the served tiles' colours; loaded again (its cache
+    holding the tiles) while the map stands still, it shows them from 304 answers alone."""
     if _chromium() is None:
         pytest.skip("chromium is not installed (apt-get install chromium)")
     from photomap.cli.wiring import map_source
 
-    cfg = load_config().updated({"output": {"checkpoint_interval": 1.0}})
+    # a tile is rendered whenever its map changed: once the map stands still, nothing changes
+    cfg = load_config().updated({"output": {"checkpoint_interval": 1.0}, "map_server": {"min_render_interval_s": 0.0}})
     port = _free_port()
     base = f"http://127.0.0.1:{port}/"
     release = threading.Event()
@@ -297,11 +299,11 @@ def test_page_renders_map_pixels_in_chromium(flight, tmp_path):
     worker = threading.Thread(target=lambda: map_source(source, cfg, tmp_path / "run", realtime=True, telemetry=join,
                                                         map_server=str(port)))
     worker.start()
+    shot, again = tmp_path / "page.png", tmp_path / "again.png"
     try:
         st = wait_until(lambda: (s := _status(base)) and s["georeferenced"] and s["frames_in"] >= 100 and s, 60.0, 0.2)
         assert st is not None, "no georeferenced status during the replay"
         before = st["server"]["requests"]
-        shot = tmp_path / "page.png"
         proc = screenshot(base, shot, tmp_path / "profile")
         assert shot.is_file(), proc.stderr[-2000:]
         st = _status(base)
@@ -309,20 +311,31 @@ def test_page_renders_map_pixels_in_chromium(flight, tmp_path):
         z = st["max_zoom"] - 1  # the page's first zoom: about the whole map in view
         west, south, east, north = st["bounds"]
         tiles = [_decode(_get(f"{base}tiles/{z}/{x}/{y}.png")[1]) for x, y in wm.tiles_covering(south, west, north, east, z)]
+        # every frame in, the run held open: the map stands still; the page loaded once more fills
+        # its cache with the tiles as they stay, and the next load is answered 304 for every one
+        assert wait_until(lambda: (s := _status(base)) and s["frames_in"] == 160, 60.0, 0.2)
+        screenshot(base, tmp_path / "fill.png", tmp_path / "profile")
+        st = _status(base)
+        proc = screenshot(base, again, tmp_path / "profile")
+        assert again.is_file(), proc.stderr[-2000:]
+        after = _status(base)
+        asked = after["tile_renders"] + after["tile_hits"] - st["tile_renders"] - st["tile_hits"]
+        assert asked > 3 and after["server"]["not_modified"] - st["server"]["not_modified"] == asked
     finally:
         release.set()
         worker.join(timeout=120)
-    page = cv2.imread(str(shot))
-    assert page is not None and page.shape[:2] == (600, 800)
-    background = np.abs(page.astype(int) - 0x20).max(axis=2) <= 4  # the page's #202020 where no tile is
-    mapped = ~background & (page.max(axis=2) < 250)  # not the info box or a white error page
-    for bgr in ((255, 224, 0), (0, 208, 255), (48, 48, 255)):  # nor the track, footprint, vehicle
-        mapped &= np.abs(page.astype(int) - bgr).max(axis=2) > 60
-    assert mapped.mean() > 0.15, f"only {mapped.mean():.0%} of the page shows the map"
-    # the colours shown are the tiles' colours
+    # both loads show the map, in the served tiles' colours
     served = np.concatenate([t[..., :3][t[..., 3] > 0].reshape(-1, 3) for t in tiles]).mean(axis=0)
-    shown = page[mapped].reshape(-1, 3).mean(axis=0)
-    assert np.abs(served - shown).max() < 30, (served, shown)
+    for path in (shot, again):
+        page = cv2.imread(str(path))
+        assert page is not None and page.shape[:2] == (600, 800)
+        background = np.abs(page.astype(int) - 0x20).max(axis=2) <= 4  # the page's #202020 where no tile is
+        mapped = ~background & (page.max(axis=2) < 250)  # not the info box or a white error page
+        for bgr in ((255, 224, 0), (0, 208, 255), (48, 48, 255)):  # nor the track, footprint, vehicle
+            mapped &= np.abs(page.astype(int) - bgr).max(axis=2) > 60
+        assert mapped.mean() > 0.15, f"only {mapped.mean():.0%} of {path.name} shows the map"
+        shown = page[mapped].reshape(-1, 3).mean(axis=0)
+        assert np.abs(served - shown).max() < 30, (path.name, served, shown)
 
 
 def _tile_event(index: int, mosaic, touched, pose=np.array([[1.0, 0, 0], [0, 1.0, 0]])):
@@ -351,7 +364,7 @@ def test_a_painted_tile_renders_again_at_most_once_per_interval(interval):
     live.on_frame(_tile_event(0, mosaic, {(0, 0), (1, 0)}))
     cache = TileCache(16, interval)
     # pixel-frame tile (0, 0) at the pixel zoom holds map pixels 0..255: our two tiles at its top left
-    first = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))
+    first = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8).body)
     assert (first[:64, :128, 2] == 200).all() and (first[:64, :128, 3] == 255).all()
     assert (first[64:, :, 3] == 0).all() and (first[:, 128:, 3] == 0).all()
     blue = np.zeros((64, 64, 3), np.uint8)
@@ -359,7 +372,7 @@ def test_a_painted_tile_renders_again_at_most_once_per_interval(interval):
     mosaic.set_tile((1, 0), blue, full)
     mosaic.set_tile((0, 0), blue, full)  # changed in the map but not said to be touched: not copied
     live.on_frame(_tile_event(1, mosaic, {(1, 0)}))
-    again = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))
+    again = _decode(cache.get(live.snapshot(), "pixel", 0, 0, 8).body)
     if interval == 0.0:
         assert (again[:64, 64:128, 0] == 180).all() and (again[:64, 64:128, 2] == 0).all()
         assert (again[:64, :64, 2] == 200).all()
@@ -390,7 +403,7 @@ def test_a_repainted_tile_is_served_fresh_within_the_render_interval():
         live.on_frame(_tile_event(index, mosaic, {(0, 0)}))
 
     def served() -> int:
-        return int(_decode(cache.get(live.snapshot(), "pixel", 0, 0, 8))[:64, :64, 1].max())
+        return int(_decode(cache.get(live.snapshot(), "pixel", 0, 0, 8).body)[:64, :64, 1].max())
 
     paint(0, 50)
     assert served() == 50 and cache.renders == 1  # rendered at t = 100
@@ -405,6 +418,52 @@ def test_a_repainted_tile_is_served_fresh_within_the_render_interval():
     now[0] = 104.01
     assert served() == 200 and cache.renders == 3
     assert served() == 200 and cache.renders == 3  # unchanged since: no render
+
+
+def test_a_client_holding_the_tile_is_told_not_modified_until_the_map_changes_it():
+    """Conditional GETs, as a browser's or Qt's cache sends them: a tile comes with an ETag; asked
+    again with it (alone, weak, or in a list) the answer is 304 with no body while the picture is
+    the same, also after a repaint that leaves it the same; a repaint that changes it is a 200
+    with the new picture and a new tag."""
+    from photomap.config import MosaicConfig
+    from photomap.core.mosaic import TiledMosaic
+
+    cfg = load_config().updated({"map_server": {"min_render_interval_s": 0.0}})
+    server = MapServer(cfg.map_server, "127.0.0.1", 0)
+    mosaic = TiledMosaic(MosaicConfig(tile_size=64))
+    full = np.full((64, 64), 255, np.uint8)
+
+    def paint(index: int, level: int) -> None:
+        mosaic.set_tile((0, 0), np.full((64, 64, 3), level, np.uint8), full)
+        server.on_frame(_tile_event(index, mosaic, {(0, 0)}))
+        server.live.flush()
+
+    def get(tag: str | None = None) -> tuple[int, bytes, str | None, str | None]:
+        conn.request("GET", "/pixel/8/0/0.png", headers={} if tag is None else {"If-None-Match": tag})
+        r = conn.getresponse()
+        return r.status, r.read(), r.getheader("ETag"), r.getheader("Content-Length")
+
+    try:
+        conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
+        paint(0, 50)
+        code, body, tag, _ = get()
+        assert code == 200 and tag and _decode(body)[:64, :64, 1].max() == 50
+        for ask in (tag, f"W/{tag}", f'"other", {tag}', "*"):
+            code, body, again, length = get(ask)
+            assert (code, body, again, length) == (304, b"", tag, None), ask
+        assert get('"other"')[0] == 200
+        paint(1, 50)  # repainted, the same picture: the same tag
+        assert get(tag)[:3] == (304, b"", tag)
+        paint(2, 120)
+        code, body, new_tag, _ = get(tag)
+        assert code == 200 and new_tag != tag and _decode(body)[:64, :64, 1].max() == 120
+        assert get(new_tag)[0] == 304
+        conn.request("GET", "/status.json")
+        stats = json.loads(conn.getresponse().read())["server"]
+        assert stats["not_modified"] == 6 and stats["errors"] == 0
+        conn.close()
+    finally:
+        server.close()
 
 
 def test_tiles_mapped_everywhere_are_jpegs_with_a_jpeg_quality():
@@ -427,14 +486,14 @@ def test_tiles_mapped_everywhere_are_jpegs_with_a_jpeg_quality():
     live.on_frame(_tile_event(0, mosaic, touched))
     snap = live.snapshot()
     png_cache, jpeg_cache = TileCache(16, 0.0), TileCache(16, 0.0, jpeg_quality=90)
-    whole_png, whole_jpeg = png_cache.get(snap, "pixel", 0, 0, 8), jpeg_cache.get(snap, "pixel", 0, 0, 8)
+    whole_png, whole_jpeg = png_cache.get(snap, "pixel", 0, 0, 8).body, jpeg_cache.get(snap, "pixel", 0, 0, 8).body
     assert tile_type(whole_png) == "image/png" and tile_type(whole_jpeg) == "image/jpeg"
     assert len(whole_jpeg) < len(whole_png) / 3
     a = _decode(whole_png)
     b = cv2.imdecode(np.frombuffer(whole_jpeg, np.uint8), cv2.IMREAD_COLOR)
     assert b.shape == (256, 256, 3) and (a[..., 3] == 255).all()
     assert np.abs(a[..., :3].astype(int) - b).mean() < 4.0  # the same picture, JPEG's error
-    part_png, part_jpeg = png_cache.get(snap, "pixel", 0, 1, 8), jpeg_cache.get(snap, "pixel", 0, 1, 8)
+    part_png, part_jpeg = png_cache.get(snap, "pixel", 0, 1, 8).body, jpeg_cache.get(snap, "pixel", 0, 1, 8).body
     assert tile_type(part_jpeg) == "image/png" and part_jpeg == part_png
     part = _decode(part_jpeg)
     assert (part[:64, :, 3] == 255).all() and (part[64:, :, 3] == 0).all()

@@ -29,18 +29,21 @@ Both are 256 x 256 RGBA PNGs, transparent where nothing is mapped (or, with a JP
 JPEGs where every pixel is mapped: :func:`render_png`). A rendered tile is kept with
 the versions of the map tiles it was made from; it is served again while they are unchanged, and
 while younger than ``min_render_interval_s`` even when they changed (a client asking for a busy
-tile many times a second gets one render per interval).
+tile many times a second gets one render per interval). Each rendered picture has an entity tag
+(:class:`Tile`), the same for as long as the picture is: a client that has it is answered "not
+modified" (HTTP 304, no body) instead of the picture again.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import os
 import threading
 import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import cv2
 import numpy as np
@@ -600,9 +603,19 @@ def tile_type(body: bytes) -> str:
     return "image/jpeg" if body[:3] == b"\xff\xd8\xff" else "image/png"
 
 
+class Tile(NamedTuple):
+    """A served tile: its encoded picture and its entity tag (an HTTP ``ETag`` value, quoted)."""
+
+    body: bytes
+    etag: str
+
+
+EMPTY_TILE = Tile(EMPTY_PNG, '"empty"')
+
+
 @dataclass
 class _Entry:
-    png: bytes
+    tile: Tile
     deps: dict[TileKey, int]
     made: float
     rect: tuple  # the map-pixel rectangle under the tile (fixed by its key)
@@ -610,7 +623,11 @@ class _Entry:
 
 class TileCache:
     """Rendered tiles by ``(kind, geo_version, z, x, y)``, least recently used beyond
-    ``max_entries``; see the module docstring for when a tile is rendered again."""
+    ``max_entries``; see the module docstring for when a tile is rendered again.
+
+    Entity tags are this cache's (a random prefix per cache, so that a tag from another run
+    never matches) and a count of the pictures it made; a render that makes the same bytes
+    keeps the tag it had."""
 
     def __init__(self, max_entries: int = 256, min_interval_s: float = 2.0,
                  clock: Callable[[], float] = time.monotonic, jpeg_quality: int = 0) -> None:
@@ -620,12 +637,14 @@ class TileCache:
         self._max = max(1, int(max_entries))
         self._interval = float(min_interval_s)
         self._clock = clock
+        self._tag_prefix = os.urandom(4).hex()
+        self._made = itertools.count(1)
         self.renders = 0
         self.hits = 0
 
     def get(self, snap: Snapshot, kind: str, x: int, y: int, z: int,
-            pause: Callable[[], None] = lambda: None) -> bytes:
-        """The tile's PNG (``pause``: see :func:`render_png`)."""
+            pause: Callable[[], None] = lambda: None) -> Tile:
+        """The tile (``pause``: see :func:`render_png`)."""
         key = (kind, snap.geo_version if kind == "xyz" else 0, z, x, y)
         with self._lock:
             entry = self._entries.get(key)
@@ -640,15 +659,21 @@ class TileCache:
                 if key in self._entries:
                     self._entries.move_to_end(key)
                 self.hits += 1
-            return entry.png
+            return entry.tile
         png = render_png(snap, kind, x, y, z, pause, self._jpeg_quality) if deps else EMPTY_PNG
+        if png is EMPTY_PNG:
+            tile = EMPTY_TILE
+        elif entry is not None and entry.tile.body == png:
+            tile = entry.tile
+        else:
+            tile = Tile(png, f'"{self._tag_prefix}.{next(self._made)}"')
         with self._lock:
             self.renders += 1
-            self._entries[key] = _Entry(png, deps, now, rect)
+            self._entries[key] = _Entry(tile, deps, now, rect)
             self._entries.move_to_end(key)
             while len(self._entries) > self._max:
                 self._entries.popitem(last=False)
-        return png
+        return tile
 
 
 # ---------------------------------------------------------------------------------- GeoJSON

@@ -9,7 +9,10 @@ never reads the pipeline's state). It serves:
     XYZ web-mercator tiles of the georeferenced live map, 256 px RGBA, transparent where nothing
     is mapped, zoom 0 .. ``max_zoom`` (the map's resolution) and :data:`OVERZOOM` more
     (upsampled; 404 beyond, and before a georeference): the custom map URL form of
-    QGroundControl, Mission Planner, QGIS "XYZ Tiles" and Leaflet.
+    QGroundControl, Mission Planner, QGIS "XYZ Tiles" and Leaflet. Each with an ``ETag``
+    (``Cache-Control: no-cache``): a client that asks again with ``If-None-Match`` (as a
+    browser's or Qt's cache does) gets ``304 Not Modified`` and no body while the tile is the
+    picture it has.
 ``/pixel/{z}/{x}/{y}.png``
     The same in the map's own pixel frame (:mod:`photomap.live.livemap`), before a georeference.
 ``/status.json``
@@ -58,7 +61,7 @@ from typing import Callable
 from photomap.config import MapServerConfig
 from photomap.errors import ConfigError, InputError, PhotomapError
 from photomap.geo import webmercator as wm
-from photomap.live.livemap import EMPTY_PNG, PIXEL_ZOOM, LiveMap, Snapshot, TileCache, footprint_geojson, \
+from photomap.live.livemap import EMPTY_TILE, PIXEL_ZOOM, LiveMap, Snapshot, Tile, TileCache, footprint_geojson, \
     hazards_geojson, status, tile_type, track_geojson
 from photomap.live.viewer import parse_serve_address
 from photomap.mapping.events import FrameEvent
@@ -69,7 +72,7 @@ log = logging.getLogger(__name__)
 MAX_REQUEST_BYTES = 8192
 KEEPALIVE_REQUESTS = 1000  # answers on one connection before it is closed (nginx's keepalive_requests)
 LINGER_S = 0.002  # an answering thread waits this long for a keep-alive client's next request before parking it
-_FIELDS = frozenset({"connection", "content-length", "transfer-encoding", "host"})
+_FIELDS = frozenset({"connection", "content-length", "transfer-encoding", "host", "if-none-match"})
 OVERZOOM = 3  # web tiles are served this many zooms beyond the map's resolution (upsampled)
 _VERSION = re.compile(r"^HTTP/\d\.\d$")
 _PHRASES = {int(s): s.phrase for s in HTTPStatus}
@@ -114,6 +117,15 @@ def _fields(lines: list[str]) -> dict[str, str]:
         if sep and name in _FIELDS:
             out[name] = value.strip().lower()
     return out
+
+
+def _matches(if_none_match: str, etag: str) -> bool:
+    """Whether an ``If-None-Match`` value (lower-cased: tags here are) names ``etag`` (weakly, as
+    RFC 9110 compares for GET), or is ``*``."""
+    if not if_none_match:
+        return False
+    tags = {t.strip().removeprefix("w/") for t in if_none_match.split(",")}
+    return etag in tags or "*" in tags
 
 
 def _readable(sock: socket.socket, timeout: float) -> bool:
@@ -323,7 +335,8 @@ class _Handler:
     with one send.
 
     The request line is parsed and of the headers only ``Connection``, ``Content-Length``,
-    ``Transfer-Encoding`` and ``Host`` are looked at (nothing else here depends on them):
+    ``Transfer-Encoding``, ``Host`` and ``If-None-Match`` are looked at (nothing else here
+    depends on them):
     ``http.server``'s parsing of them (the email package), its buffered files and its
     header-by-header writes were most of the server's CPU per answer beside the tile renders.
     HTTP/1.1 connections stay open unless the client says ``Connection: close`` (HTTP/1.0 ones
@@ -335,6 +348,7 @@ class _Handler:
         self.requestline = ""
         self.path = ""
         self.keep = False
+        self.if_none_match = ""
 
     def serve(self) -> bool:
         """Answer the connection's requests while they are ready; True to park it for the next."""
@@ -385,6 +399,7 @@ class _Handler:
             return False
         fields = _fields(lines)
         method, self.path, version = words
+        self.if_none_match = fields.get("if-none-match", "")
         if version == "HTTP/1.1" and "host" not in fields:
             self._raw(400, b"no Host header\n", "text/plain")
             return False
@@ -405,13 +420,17 @@ class _Handler:
         except OSError:
             pass
 
-    def _send(self, code: int, body: bytes, ctype: str, head: bool, cache: str = "no-cache") -> None:
-        """The whole answer (status line, headers and, unless ``head``, the body) in one send."""
+    def _send(self, code: int, body: bytes, ctype: str, head: bool, cache: str = "no-cache",
+              etag: str | None = None) -> None:
+        """The whole answer (status line, headers and, unless ``head``, the body) in one send;
+        a 304 has no body and no length."""
         if code >= 400 and code != 404:  # an error answer closes the connection
             self.keep = False
         persist = (f"keep-alive\r\nKeep-Alive: timeout={self.server.keepalive_s:g}" if self.keep else "close")
+        length = "" if code == 304 else f"Content-Type: {ctype}\r\nContent-Length: {len(body)}\r\n"
+        tag = "" if etag is None else f"ETag: {etag}\r\n"
         text = (f"HTTP/1.1 {code} {_PHRASES.get(code, '')}\r\nServer: photomap\r\n"
-                f"Date: {formatdate(usegmt=True)}\r\nContent-Type: {ctype}\r\nContent-Length: {len(body)}\r\n"
+                f"Date: {formatdate(usegmt=True)}\r\n{length}{tag}"
                 f"Cache-Control: {cache}\r\nAccess-Control-Allow-Origin: *\r\nConnection: {persist}\r\n\r\n")
         if log.isEnabledFor(logging.DEBUG):  # one per request: not even formatted otherwise
             log.debug("map server: %s \"%s\" %d %d", self.conn.address[0], self.requestline, code, len(body))
@@ -428,11 +447,14 @@ class _Handler:
         try:
             m = _TILE_PATH.match(path)
             if m:
-                body = owner.tile(m.group(1), int(m.group(2)), int(m.group(3)), int(m.group(4)))
-                if body is None:
+                tile = owner.tile(m.group(1), int(m.group(2)), int(m.group(3)), int(m.group(4)))
+                if tile is None:
                     self._send(404, b"no such tile\n", "text/plain", head)
+                elif _matches(self.if_none_match, tile.etag):
+                    owner.stats["not_modified"] += 1
+                    self._send(304, b"", "", head=True, etag=tile.etag)
                 else:
-                    self._send(200, body, tile_type(body), head)
+                    self._send(200, tile.body, tile_type(tile.body), head, etag=tile.etag)
             elif path == "/status.json":
                 self._json(owner.status(), head)
             elif path == "/track.geojson":
@@ -475,7 +497,8 @@ class MapServer:
         self.cache = TileCache(cfg.cache_tiles, cfg.min_render_interval_s, jpeg_quality=cfg.jpeg_quality)
         self.hazards = hazards
         self.timeout_s = float(cfg.timeout_s)
-        self.stats = {"connections": 0, "requests": 0, "refused": 0, "timeouts": 0, "too_large": 0, "errors": 0}
+        self.stats = {"connections": 0, "requests": 0, "not_modified": 0, "refused": 0, "timeouts": 0,
+                      "too_large": 0, "errors": 0}
         # answers built from the live map, by name: (what they were built from, the answer)
         self._answers: dict[str, tuple[tuple, object]] = {}
         self._warned: set[str] = set()
@@ -541,8 +564,8 @@ class MapServer:
             log.warning(text)
 
     # ------------------------------------------------------------------ answers (server threads)
-    def tile(self, kind: str, z: int, x: int, y: int) -> bytes | None:
-        """A tile's PNG, or None when there is no such tile (zoom out of range, no georeference)."""
+    def tile(self, kind: str, z: int, x: int, y: int) -> Tile | None:
+        """A tile, or None when there is no such tile (zoom out of range, no georeference)."""
         snap = self.live.snapshot()
         if kind == "tiles":
             if snap.georeference is None or not 0 <= z <= min(wm.MAX_ZOOM, snap.max_zoom() + OVERZOOM):
@@ -553,7 +576,7 @@ class MapServer:
         if not 0 <= z <= PIXEL_ZOOM:
             return None
         if snap.served_segment is None:
-            return EMPTY_PNG
+            return EMPTY_TILE
         return self.cache.get(snap, "pixel", x, y, z, pause=self.pause)
 
     def answer(self, name: str, build: Callable[[Snapshot], dict], encode: bool = True):
