@@ -584,7 +584,7 @@ def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callabl
         tile = _xyz_tile(snap, x, y, z)
     elif z == PIXEL_ZOOM:  # a tile pixel per map pixel: the composed tiles themselves
         tile = _compose(snap, 0, *pixel_source_rect(x, y, z))
-        tile = tile if tile[..., 3].any() else None
+        tile = tile if _alpha_range(tile)[1] > 0 else None
     else:
         x0, y0, x1, y1 = pixel_source_rect(x, y, z)
         image, alpha = _render_fn(snap)(x0, y0, x1 - x0, y1 - y0, wm.TILE_PX / (x1 - x0))
@@ -592,7 +592,7 @@ def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callabl
     if tile is None:
         return EMPTY_PNG
     pause()
-    if jpeg_quality > 0 and tile[..., 3].min() == 255:
+    if jpeg_quality > 0 and _alpha_range(tile)[0] == 255:
         ok, buf = cv2.imencode(".jpg", tile[..., :3], [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
         return buf.tobytes() if ok else EMPTY_PNG
     return encode_png(tile)  # a third of cv2.imencode's CPU (photomap.io.pngstream)
