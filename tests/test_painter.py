@@ -233,6 +233,21 @@ def render_from_store(store, frames, params):
     return m
 
 
+def assert_footprints_covered(m: TiledMosaic, poses, size, inset: float = 3.0) -> None:
+    """No hole 3 px wide or more ``inset`` inside the footprints of frames at ``poses``."""
+    w, h = size
+    corners = np.array([[inset, inset], [w - 1 - inset, inset], [w - 1 - inset, h - 1 - inset], [inset, h - 1 - inset]])
+    quads = [corners @ np.asarray(p)[:2, :2].T + np.asarray(p)[:2, 2] for p in poses]
+    x0, y0 = np.floor(np.min([q.min(axis=0) for q in quads], axis=0)).astype(int) - 1
+    x1, y1 = np.ceil(np.max([q.max(axis=0) for q in quads], axis=0)).astype(int) + 1
+    want = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    for q in quads:
+        cv2.fillConvexPoly(want, np.rint((q - (x0, y0)) * 16).astype(np.int32), 255, cv2.LINE_8, 4)
+    _, alpha, _ = m.render(bounds=(int(x0), int(y0), int(x1 - x0), int(y1 - y0)))
+    hole = ((want > 0) & (alpha == 0)).view(np.uint8)  # slivers finer than uncovered()'s step may stay
+    assert cv2.countNonZero(cv2.erode(hole, np.ones((3, 3), np.uint8))) == 0
+
+
 def assert_same_tiles(got: TiledMosaic, want: TiledMosaic, keys) -> None:
     """Equal but for the warp's fixed-point rounding (a clipped warp starts elsewhere)."""
     for key in keys:
@@ -701,8 +716,9 @@ def test_a_map_the_camera_left_goes_to_the_tile_store_a_few_tiles_a_frame(tmp_pa
 
 @pytest.mark.parametrize("exposure,down", [("none", True), ("gain", True), ("gain", False)])
 def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure, down):
-    """``band_px``: a whole paint warps the band of tile rows ahead of the camera, and each later
-    paint one more (the rest before the next whole paint, or at the segment's end), all with
+    """``band_px``: a whole paint warps the band of tile rows ahead of the camera and its new
+    ground beyond it (no footprint is left with a hole after any paint), and each later paint
+    one band more (the rest before the next whole paint, or at the segment's end), all with
     the exposure gain fitted once: the map is the one of each whole paint at once (to the
     clipped warp's rounding). (Frames in between look for new ground as before: their maps
     are checked against the terrain in test_new_ground_map_equals_the_every_frame_map.)"""
@@ -710,11 +726,18 @@ def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure, down):
     dy = 9.0 if down else -9.0
     frames = [(np.clip(texture(120, 160, 30 + i).astype(int) * (1.0 + 0.04 * i), 0, 255).astype(np.uint8),
                pose(3 * i, 23.0 * i, 200 + dy * i), i % 5 == 0) for i in range(13)]  # exposure changes
-    maps, calls = {}, {}
+    maps, calls, bands = {}, {}, []
     for band_px in (0, 64):
         painter = Painter((160, 120), 64, min_move_px=1e9, band_px=band_px)  # no new-ground paints
         m = maps[band_px] = TiledMosaic(params)
-        calls[band_px] = [painter.paint(m, 0, i, img, p, whole=key) for i, (img, p, key) in enumerate(frames)]
+        calls[band_px] = []
+        for i, (img, p, key) in enumerate(frames):
+            real = painter._band
+            painter._band = lambda mosaic, seg: (bands.append((i, seg.bands.rects[0])), real(mosaic, seg))[1]
+            calls[band_px].append(painter.paint(m, 0, i, img, p, whole=key))
+            painter._band = real
+            if band_px:  # no frame painted (whole, even banded) leaves its new ground empty
+                assert_footprints_covered(m, [q for _, q, k in frames[:i + 1] if k], (160, 120))
         painter.end_segment(m, 0)
     banded, at_once = maps[64], maps[0]
     assert calls[64][0] == calls[0][0]  # a segment's first frame at once: its map is never empty
@@ -722,7 +745,8 @@ def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure, down):
     at_once_rows = sorted({ty for _, ty in calls[0][5]})
     ahead = at_once_rows[::-1] if down else at_once_rows
     assert len(ahead) >= 3 and not any(calls[0][6:10])
-    seen = [sorted({t for _, t in calls[64][5 + k]}, reverse=down) for k in range(len(ahead))]
+    seen = [sorted({(y + h - 1) // 64 for i, (x, y, w, h) in bands if i == 5 + k} |
+                   {y // 64 for i, (x, y, w, h) in bands if i == 5 + k}, reverse=down) for k in range(len(ahead))]
     assert ahead[0] in seen[0] and ahead[-1] not in seen[0]
     assert [ty for rows in seen for ty in rows] == ahead  # each row once, in the order of travel
     assert set(banded.tiles()) == set(at_once.tiles())

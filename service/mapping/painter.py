@@ -16,8 +16,10 @@ cost of the worker) is mostly wasted. The :class:`Painter` paints
 
 A whole paint is spread over the frames that follow it (``band_px``; the ``overwrite`` blend):
 its footprint in horizontal bands of tile height, the first at once (the end ahead of the
-camera: its new ground) and one more each time the segment is painted (the rest at once before
-the next whole paint, or when the segment ends; a segment's first frame at once).
+camera) with the frame's new ground outside it (a sideways move's, or what spills over a band's
+edge: no ground the frame maps is left empty until its band comes), and one more each time the
+segment is painted (the rest at once before the next whole paint, or when the segment ends; a
+segment's first frame at once).
 The frames in between look for new ground as before: where they find it under the keyframe,
 its band paints over it later, so the keyframe ends on top as if painted at once (to the warp's
 rounding), and no frame pays a whole keyframe's warp (16 ms for a 1080p frame on one
@@ -281,6 +283,11 @@ class Painter:
                 rects.reverse()  # moving down the map: its new ground is at the bottom, painted first
             seg.bands = _Bands(img, pose_m, mask_m, None, deque(rects))
             touched |= self._band(mosaic, seg)
+            if seg.bands is not None:  # its new ground outside that band at once too (its bands paint over it)
+                new = mosaic.uncovered(pose[:2], self.frame_size, block=self.block,
+                                       outline=None if mask is None else valid_outline(mask))
+                if new:
+                    touched |= self._add(mosaic, seg, img, pose_m, mask_m, clip=new, gain=seg.bands.gain)
         else:
             touched |= self._add(mosaic, seg, img, pose_m, mask_m, clip=clip)
         if whole:
