@@ -731,11 +731,14 @@ def test_a_keyframe_is_painted_in_bands_over_the_next_frames(exposure, down):
         painter = Painter((160, 120), 64, min_move_px=1e9, band_px=band_px)  # no new-ground paints
         m = maps[band_px] = TiledMosaic(params)
         calls[band_px] = []
+
+        def band(mosaic, seg, real=painter._band):  # the map rectangle of each band, by the frame painting it
+            bands.append((i, seg.bands.rects[0]))
+            return real(mosaic, seg)
+
+        painter._band = band
         for i, (img, p, key) in enumerate(frames):
-            real = painter._band
-            painter._band = lambda mosaic, seg: (bands.append((i, seg.bands.rects[0])), real(mosaic, seg))[1]
             calls[band_px].append(painter.paint(m, 0, i, img, p, whole=key))
-            painter._band = real
             if band_px:  # no frame painted (whole, even banded) leaves its new ground empty
                 assert_footprints_covered(m, [q for _, q, k in frames[:i + 1] if k], (160, 120))
         painter.end_segment(m, 0)
