@@ -270,8 +270,7 @@ class Painter:
                 self.stats.small_move += 1
                 return touched
             seg.last_painted = pose
-            clip = mosaic.uncovered(pose[:2], self.frame_size, block=self.block,
-                                    outline=None if mask is None else valid_outline(mask))
+            clip = self._new_ground(mosaic, pose, mask)
             if not clip:
                 self.stats.nothing_new += 1
                 return touched
@@ -284,8 +283,7 @@ class Painter:
             seg.bands = _Bands(img, pose_m, mask_m, None, deque(rects))
             touched |= self._band(mosaic, seg)
             if seg.bands is not None:  # its new ground outside that band at once too (its bands paint over it)
-                new = mosaic.uncovered(pose[:2], self.frame_size, block=self.block,
-                                       outline=None if mask is None else valid_outline(mask))
+                new = self._new_ground(mosaic, pose, mask)
                 if new:
                     touched |= self._add(mosaic, seg, img, pose_m, mask_m, clip=new, gain=seg.bands.gain)
         else:
@@ -302,6 +300,12 @@ class Painter:
         seg.tail = _Tail(index, None if kept else image, pose, None if kept else mask, kept)
         seg.last_painted = pose
         return touched
+
+    def _new_ground(self, mosaic: TiledMosaic, pose: np.ndarray, mask: np.ndarray | None) -> list:
+        """The map rectangles under the frame at ``pose`` (3x3, input px -> map px) that no frame
+        covers yet, inside its valid part (``mask``)."""
+        return mosaic.uncovered(pose[:2], self.frame_size, block=self.block,
+                                outline=None if mask is None else valid_outline(mask))
 
     def _add(self, mosaic: TiledMosaic, seg: _Segment, img: np.ndarray, pose_m: np.ndarray,
              mask_m: np.ndarray | None, clip: list | None = None, gain: np.ndarray | None = None
