@@ -27,6 +27,7 @@ from photomap.io.xyz_tiles import render_tile
 from photomap.sim.flight import latlon_to_pixel, pixel_to_latlon
 from photomap.sim.simulate import simulate_flight
 from photomap.sim.terrain import load_terrain
+from tests.tiles import tile_bgra
 from tests.waiting import wait_until
 
 T0_UNIX = None  # set from meta.yaml in the fixture
@@ -184,8 +185,8 @@ def test_xyz_tiles_are_where_the_simulator_says(flight, tmp_path):
     files = sorted((tmp_path / "xyz" / str(zmax)).glob("*/*.png"))
     assert len(files) >= 4
     # the tile with the most map in it: pixel centres -> WGS84 -> terrain, compared with the terrain
-    best = max(files, key=lambda p: int((cv2.imread(str(p), cv2.IMREAD_UNCHANGED)[..., 3] == 255).sum()))
-    tile = cv2.imread(str(best), cv2.IMREAD_UNCHANGED)
+    best = max(files, key=lambda p: int((tile_bgra(p)[..., 3] == 255).sum()))
+    tile = tile_bgra(best)
     assert tile.shape == (256, 256, 4)
     x, y = int(best.parent.name), int(best.stem)
     u = np.arange(256) + 0.5
@@ -204,7 +205,7 @@ def test_xyz_tiles_are_where_the_simulator_says(flight, tmp_path):
     assert np.abs(ours - truth)[inside].mean() < 10.0
     # TMS numbering: the same tile under the flipped row
     assert main(["export", str(run), "--tiles", str(tmp_path / "tms"), "--tms", "--zoom", str(zmax), "-q"]) == 0
-    flipped = cv2.imread(str(tmp_path / "tms" / str(zmax) / str(x) / f"{wm.tms_y(y, zmax)}.png"), cv2.IMREAD_UNCHANGED)
+    flipped = tile_bgra(tmp_path / "tms" / str(zmax) / str(x) / f"{wm.tms_y(y, zmax)}.png")
     assert np.array_equal(flipped, tile)
 
 

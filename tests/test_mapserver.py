@@ -30,6 +30,7 @@ from photomap.mapping.pipeline import MappingPipeline
 from photomap.sim.flight import latlon_to_pixel, pixel_to_latlon
 from photomap.sim.simulate import simulate_flight
 from photomap.sim.terrain import load_terrain
+from tests.tiles import tile_bgra
 from tests.waiting import wait_until
 
 W, H = 640, 480
@@ -64,9 +65,8 @@ def _status(base: str) -> dict | None:
 
 
 def _decode(png: bytes) -> np.ndarray:
-    tile = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
-    assert tile is not None, "not a PNG"
-    return tile
+    assert png.startswith(b"\x89PNG"), "not a PNG"
+    return tile_bgra(png)
 
 
 def _terrain_under(tile_xyz: tuple[int, int, int], flight: Path) -> np.ndarray:
@@ -153,7 +153,7 @@ def test_live_tile_at_the_vehicle_is_mapped_during_a_realtime_replay(flight, tmp
     info = json.loads((out / "xyz" / "tiles.json").read_text())
     assert info["zooms"][1] == samples[-1][0]["max_zoom"]
     x, y, z = samples[-1][1]
-    disk = cv2.imread(str(out / "xyz" / str(z) / str(x) / f"{y}.png"), cv2.IMREAD_UNCHANGED)
+    disk = tile_bgra(out / "xyz" / str(z) / str(x) / f"{y}.png")
     live = samples[-1][2]
     both = (disk[..., 3] > 0) & (live[..., 3] > 0)
     assert both.mean() > 0.4
@@ -468,7 +468,8 @@ def test_a_client_holding_the_tile_is_told_not_modified_until_the_map_changes_it
 
 def test_tiles_mapped_everywhere_are_jpegs_with_a_jpeg_quality():
     """map_server.jpeg_quality: a tile mapped in every pixel is a JPEG of the same picture (within
-    JPEG's error), one with empty pixels stays the PNG it was (transparent there)."""
+    JPEG's error), one with empty pixels stays the PNG it was (transparent there). Without it,
+    the first is an RGB PNG (no alpha channel), the second RGBA."""
     from photomap.config import MosaicConfig
     from photomap.core.mosaic import TiledMosaic
     from photomap.live.livemap import LiveMap, TileCache, tile_type
@@ -497,6 +498,8 @@ def test_tiles_mapped_everywhere_are_jpegs_with_a_jpeg_quality():
     assert tile_type(part_jpeg) == "image/png" and part_jpeg == part_png
     part = _decode(part_jpeg)
     assert (part[:64, :, 3] == 255).all() and (part[64:, :, 3] == 0).all()
+    raw = [cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED) for png in (whole_png, part_png)]
+    assert [image.shape[2] for image in raw] == [3, 4]
 
 
 def test_status_bounds_follow_the_map_as_it_grows():

@@ -2,9 +2,9 @@
 
 What Leaflet (``L.tileLayer('DIR/{z}/{x}/{y}.png')``), QGIS "XYZ Tiles"
 (``file:///abs/DIR/{z}/{x}/{y}.png``), QGroundControl and Mission Planner custom tile sources
-(over HTTP, e.g. ``python -m http.server`` in DIR) load. Tiles are 256 x 256 RGBA PNGs,
-transparent where the map is empty; tiles the map does not touch are not written (viewers
-show nothing there). Needs only OpenCV and numpy (no GDAL).
+(over HTTP, e.g. ``python -m http.server`` in DIR) load. Tiles are 256 x 256 PNGs: RGBA,
+transparent where the map is empty, or RGB where the map covers every pixel; tiles the map does
+not touch are not written (viewers show nothing there). Needs only OpenCV and numpy (no GDAL).
 
 Each tile pixel centre is mapped exactly (per pixel: web mercator -> WGS84 -> UTM -> source
 pixel), the source region under the tile is rendered at about the tile's resolution (area
@@ -169,7 +169,8 @@ def write_xyz_tiles(folder: str | Path, raster: MapRaster, *, zooms: tuple[int, 
         for i, (z, x, y) in enumerate(jobs):
             tile = render_tile(raster, x, y, z)
             if tile is not None:
-                buf = encode_png(np.dstack(tile))
+                bgr, alpha = tile
+                buf = encode_png(bgr if alpha.min() == 255 else np.dstack(tile))  # opaque: RGB
                 row = wm.tms_y(y, z) if tms else y
                 path = folder / str(z) / str(x) / f"{row}.png"
                 path.parent.mkdir(parents=True, exist_ok=True)

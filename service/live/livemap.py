@@ -25,8 +25,8 @@ Tiles (rendered on request, :class:`TileCache`):
   so at ``PIXEL_ZOOM`` one tile pixel is one map pixel: Leaflet ``L.CRS.Simple`` with
   ``latlng = (-y, x) / 2**PIXEL_ZOOM``.
 
-Both are 256 x 256 RGBA PNGs, transparent where nothing is mapped (or, with a JPEG quality,
-JPEGs where every pixel is mapped: :func:`render_png`). A rendered tile is kept with
+Both are 256 x 256 PNGs: RGBA, transparent where nothing is mapped, and RGB where every pixel
+is mapped (or, with a JPEG quality, JPEGs there: :func:`render_png`). A rendered tile is kept with
 the versions of the map tiles it was made from; it is served again while they are unchanged, and
 while younger than ``min_render_interval_s`` even when they changed (a client asking for a busy
 tile many times a second gets one render per interval). Each rendered picture has an entity tag
@@ -577,8 +577,10 @@ def pixel_source_rect(x: int, y: int, z: int) -> tuple[int, int, int, int]:
 def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callable[[], None] = lambda: None,
                jpeg_quality: int = 0) -> bytes:
     """The PNG of tile ``(x, y, z)``: ``kind`` ``xyz`` (georeferenced) or ``pixel``; ``pause``
-    is called between the steps (rendering, encoding). ``jpeg_quality`` 1-100: a tile mapped
-    in every pixel is a JPEG of that quality instead (:func:`tile_type` tells them apart)."""
+    is called between the steps (rendering, encoding). A tile mapped in every pixel is an RGB
+    PNG (no alpha channel to filter and compress: on a photo tile 0.67 against 0.98 ms and 140
+    against 152 KB), others RGBA with alpha 0 where nothing is mapped. ``jpeg_quality`` 1-100: a tile mapped in every pixel is a
+    JPEG of that quality instead (:func:`tile_type` tells them apart)."""
     pause()
     if kind == "xyz":
         tile = _xyz_tile(snap, x, y, z)
@@ -592,10 +594,13 @@ def render_png(snap: Snapshot, kind: str, x: int, y: int, z: int, pause: Callabl
     if tile is None:
         return EMPTY_PNG
     pause()
-    if jpeg_quality > 0 and _alpha_range(tile)[0] == 255:
-        ok, buf = cv2.imencode(".jpg", tile[..., :3], [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    if _alpha_range(tile)[0] < 255:
+        return encode_png(tile)  # a third of cv2.imencode's CPU (photomap.io.pngstream)
+    colour = cv2.cvtColor(tile, cv2.COLOR_BGRA2BGR)  # mapped in every pixel: no alpha channel
+    if jpeg_quality > 0:
+        ok, buf = cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
         return buf.tobytes() if ok else EMPTY_PNG
-    return encode_png(tile)  # a third of cv2.imencode's CPU (photomap.io.pngstream)
+    return encode_png(colour)
 
 
 def tile_type(body: bytes) -> str:

@@ -6,10 +6,10 @@
 never reads the pipeline's state). It serves:
 
 ``/tiles/{z}/{x}/{y}.png``
-    XYZ web-mercator tiles of the georeferenced live map, 256 px RGBA, transparent where nothing
-    is mapped, zoom 0 .. ``max_zoom`` (the map's resolution) and :data:`OVERZOOM` more
-    (upsampled; 404 beyond, and before a georeference): the custom map URL form of
-    QGroundControl, Mission Planner, QGIS "XYZ Tiles" and Leaflet. Each with an ``ETag``
+    XYZ web-mercator tiles of the georeferenced live map, 256 px PNG (RGBA, transparent where
+    nothing is mapped; RGB where every pixel is), zoom 0 .. ``max_zoom`` (the map's resolution)
+    and :data:`OVERZOOM` more (upsampled; 404 beyond, and before a georeference): the custom map
+    URL form of QGroundControl, Mission Planner, QGIS "XYZ Tiles" and Leaflet. Each with an ``ETag``
     (``Cache-Control: no-cache``): a client that asks again with ``If-None-Match`` (as a
     browser's or Qt's cache does) gets ``304 Not Modified`` and no body while the tile is the
     picture it has.
