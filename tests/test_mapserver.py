@@ -871,9 +871,9 @@ def test_web_tiles_at_the_maps_zooms_are_warped_as_affine_and_equal_the_exact_sa
 
     assert livemap._grid_affine(*grid(z)) is not None and livemap._grid_affine(*grid(3)) is None
     x, y = wm.tile_of(lat, lon, z)
-    warped = livemap._xyz_tile(snap, x, y, z)
+    warped, _ = livemap._xyz_tile(snap, x, y, z)
     monkeypatch.setattr(livemap, "_grid_affine", lambda gx, gy: None)
-    sampled = livemap._xyz_tile(snap, x, y, z)
+    sampled, _ = livemap._xyz_tile(snap, x, y, z)
     both = (warped[..., 3] == 255) & (sampled[..., 3] == 255)
     assert both.mean() > 0.9 and (warped[..., 3] != sampled[..., 3]).mean() < 0.01
     assert np.abs(warped.astype(int) - sampled)[both].max() <= 1
@@ -896,16 +896,16 @@ def test_web_tiles_of_a_fully_mapped_region_skip_the_premultiplication_exactly(m
             return _real(*args, **kwargs)
         monkeypatch.setattr(livemap.cv2, name, counted)
     places = {"inside": (lat, lon), "edge": (lat0, lon0)}
-    tiles, steps = {}, {}
+    tiles, opaque, steps = {}, {}, {}
     for where, (lt, ln) in places.items():
         calls.clear()
-        tiles[where] = livemap._xyz_tile(snap, *wm.tile_of(lt, ln, z), z)
+        tiles[where], opaque[where] = livemap._xyz_tile(snap, *wm.tile_of(lt, ln, z), z)
         steps[where] = list(calls)
-    assert tiles["inside"][..., 3].min() == 255 and steps["inside"] == []
-    assert 0 < tiles["edge"][..., 3].mean() < 255 and steps["edge"] == ["divide"]
+    assert tiles["inside"][..., 3].min() == 255 and steps["inside"] == [] and opaque["inside"]
+    assert 0 < tiles["edge"][..., 3].mean() < 255 and steps["edge"] == ["divide"] and not opaque["edge"]
     monkeypatch.setattr(livemap, "_alpha_range", lambda bgra: (0, 255))  # as if part covered: both steps
     for where, (lt, ln) in places.items():
-        assert np.array_equal(livemap._xyz_tile(snap, *wm.tile_of(lt, ln, z), z), tiles[where])
+        assert np.array_equal(livemap._xyz_tile(snap, *wm.tile_of(lt, ln, z), z)[0], tiles[where])
 
 
 def test_hazards_are_served_on_the_map_the_page_shows_with_or_without_a_georeference():
