@@ -16,7 +16,6 @@ from __future__ import annotations
 import atexit
 import os
 import re
-import select
 import sys
 import threading
 from collections import Counter
@@ -31,6 +30,8 @@ _FUNCTION = re.compile(r"^\w+ ")  # videoio's lines name the function first
 _REPEATED = re.compile(r"^\s*Last message repeated (\d+) times?\s*$")
 # Numbers that change from message to message (times, sizes, addresses), not parts of an address.
 _NUMBER = re.compile(r"(?<![.\d:])(?:0x[0-9a-fA-F]+|\d+\.\d+|\d{3,})(?![.\d:])")
+
+CLOSE_WAIT_S = 2.0  # seconds StderrTap.close waits for the pump to forward what is in the pipe
 
 
 def opencv_log(line: str) -> tuple[str, str] | None:
@@ -75,7 +76,6 @@ class StderrTap:
         self._lock = threading.Lock()
         self._counts: Counter = Counter()
         self._last_key: str | None = None
-        self._stop = threading.Event()
         try:
             sys.stderr.flush()
         except (AttributeError, ValueError, OSError):
@@ -96,23 +96,18 @@ class StderrTap:
 
     def _pump(self) -> None:
         pending = b""
-        while True:
-            ready, _, _ = select.select([self._read_end], [], [], 0.1)
-            if not ready:
-                if self._stop.is_set():
-                    break
-                continue
-            chunk = os.read(self._read_end, 65536)
-            if not chunk:
-                break
-            pending += chunk
-            *lines, pending = pending.split(b"\n")
-            passed = [line + b"\n" for line in lines if not self._counted(line)]
-            if passed:
-                self._write(b"".join(passed))
-        if pending and not self._counted(pending):
-            self._write(pending)
-        os.close(self._read_end)
+        try:
+            while chunk := os.read(self._read_end, 65536):  # to the pipe's end: every writer gone
+                pending += chunk
+                *lines, pending = pending.split(b"\n")
+                passed = [line + b"\n" for line in lines if not self._counted(line)]
+                if passed:
+                    self._write(b"".join(passed))
+            if pending and not self._counted(pending):
+                self._write(pending)
+        finally:  # the pump's own: nothing reads or writes them after this
+            os.close(self._read_end)
+            os.close(self._saved)
 
     def _counted(self, raw: bytes) -> bool:
         line = raw.decode("utf-8", "replace").rstrip("\r")
@@ -137,15 +132,16 @@ class StderrTap:
                 return  # the real stderr is gone: nothing to tell
 
     def close(self) -> None:
-        """Restore fd 2, pass on what is still in the pipe and end the thread."""
+        """Restore fd 2 and wait (at most :data:`CLOSE_WAIT_S`) for the pump to pass on what is
+        still in the pipe. The pump owns the pipe's read end and the saved stderr and closes both
+        at the pipe's end, so what it forwards is never cut off: a writer that still holds the
+        pipe (a child process that inherited fd 2) keeps it forwarding after the wait."""
         try:
             sys.stderr.flush()
         except (AttributeError, ValueError, OSError):
             pass
         os.dup2(self._saved, 2)  # closes the pipe's write end held by fd 2: the pump sees its end
-        self._stop.set()
-        self._thread.join(2.0)
-        os.close(self._saved)
+        self._thread.join(CLOSE_WAIT_S)
 
 
 _tap: StderrTap | None = None

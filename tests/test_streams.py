@@ -308,6 +308,36 @@ def test_native_decoder_lines_are_counted_and_everything_else_passes(tmp_path):
                          "referenced', 5x 'h264: no frame!', 1x 'opencv: Stream timeout triggered after N ms')")
 
 
+def test_the_tap_forwards_everything_written_to_it_after_release_returns(tmp_path):
+    """A writer that still holds the tap's pipe when the last hold is released (a child process
+    that inherited fd 2) writes on past release's wait: every one of its lines reaches the real
+    stderr, in order, and the pump ends with the pipe."""
+    code = (
+        "import subprocess, sys, time\n"
+        "from photomap.drivers import native_log\n"
+        "tap = native_log.acquire()\n"
+        "child = subprocess.Popen([sys.executable, '-c', 'import os, time\\n'\n"
+        "    'for i in range(40):\\n'\n"
+        "    '    os.write(2, b\"child line %d\\\\n\" % i)\\n'\n"
+        "    '    time.sleep(0.1)\\n'])\n"
+        "time.sleep(0.3)\n"
+        "t0 = time.monotonic()\n"
+        "native_log.release()\n"
+        "print(f'released after {time.monotonic() - t0:.1f} s', file=sys.stderr, flush=True)\n"
+        "child.wait()\n"
+        "tap._thread.join(5.0)\n"
+        "print(f'pump alive: {tap._thread.is_alive()}', file=sys.stderr, flush=True)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stderr.splitlines()
+    child = [line for line in lines if line.startswith("child line")]
+    assert child == [f"child line {i}" for i in range(40)], proc.stderr
+    released = float(next(line for line in lines if line.startswith("released after")).split()[2])
+    assert released <= native_log.CLOSE_WAIT_S + 1.0  # bounded: release does not wait for the child
+    assert lines[-1] == "pump alive: False", proc.stderr
+
+
 def test_decoder_message_keys():
     assert native_log.decoder_message("[mpegts @ 0x5581] PES packet size mismatch") == \
         "mpegts: PES packet size mismatch"
