@@ -45,8 +45,8 @@ def test_the_sandwich_cancels_a_drift_of_the_machine():
 
 
 def test_the_verdict_follows_the_fps_then_the_cpu_interval_and_a_lower_bound_only_fails_it():
-    assert flat_out_verdict((0.975, 1.01), (1.05, 1.2), 0.05).startswith("met (the fps")
-    assert flat_out_verdict((0.90, 0.965), (0.9, 1.0), 0.01).startswith("NOT met (the fps")
+    assert flat_out_verdict((0.975, 1.01), (1.05, 1.2), 0.05).startswith("met (the speed-relative fps")
+    assert flat_out_verdict((0.90, 0.965), (0.9, 1.0), 0.01).startswith("NOT met (the speed-relative fps")
     assert flat_out_verdict((0.9, 1.05), (0.99, 1.02), 0.05).startswith("met by CPU")
     assert flat_out_verdict((0.9, 1.05), (1.035, 1.06), 0.01).startswith("NOT met by CPU")
     assert flat_out_verdict((0.76, 1.19), (1.0, 1.05), 0.021).startswith("not shown")
