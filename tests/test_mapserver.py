@@ -655,6 +655,42 @@ def test_without_keep_alive_every_answer_closes_its_connection():
         server.close()
 
 
+def test_a_client_asking_without_pause_is_answered_within_the_cpu_share():
+    """Status asked for back to back on two connections: every answer comes (200), the answers
+    beyond the budget wait their turn, and the answering threads' CPU stays within the bucket
+    plus the share of the wall time (plus what the two answers in flight may take)."""
+    from photomap.live.cpubudget import BURST_S
+
+    share = 0.01
+    cfg = load_config().updated({"map_server": {"cpu_share": share}})
+    server = MapServer(cfg.map_server, "127.0.0.1", 0)
+    start = time.monotonic()
+    codes: list[int] = []
+
+    def ask() -> None:
+        conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+        while server.budget.waits < 3 and time.monotonic() - start < 60 and len(codes) < 20000:
+            conn.request("GET", "/status.json")
+            answer = conn.getresponse()
+            answer.read()
+            codes.append(answer.status)
+        conn.close()
+
+    try:
+        askers = [threading.Thread(target=ask) for _ in range(2)]
+        for t in askers:
+            t.start()
+        for t in askers:
+            t.join(90)
+        elapsed = time.monotonic() - start
+        assert server.budget.waits >= 3, (len(codes), server.budget.spent_s)
+        assert set(codes) == {200}
+        assert server.budget.spent_s <= share * (BURST_S + elapsed) + 0.01, (server.budget.spent_s, elapsed)
+        assert _status(f"http://127.0.0.1:{server.port}/")["server"]["budget_waits"] >= 3
+    finally:
+        server.close()
+
+
 def test_answers_wait_while_the_worker_maps_a_frame():
     """Live, the server's Python code gives way to the worker's frame (its gate), then answers."""
     from photomap.mapping.threads import WorkerFirst

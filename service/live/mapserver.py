@@ -33,7 +33,9 @@ connections are open at once (a new one beyond closes the longest idle, or itsel
 a request (line and headers) must arrive whole within ``timeout_s`` and within 8 KiB, only GET
 and HEAD are answered. A connection is kept for the next request (HTTP/1.1 keep-alive) for
 ``keepalive_s`` and :data:`KEEPALIVE_REQUESTS` answers, waiting in one selector thread, not in an
-answering thread. The mapping worker never waits for any of it.
+answering thread. The answering threads together take at most ``cpu_share`` of one core
+(:class:`~photomap.live.cpubudget.CpuBudget`, by their own clocks): however much clients ask,
+beyond it each answer waits its turn. The mapping worker never waits for any of it.
 
 The network: the server listens on ``127.0.0.1`` unless an address is given. It has no
 authentication and is read-only; whoever reaches the port sees the map.
@@ -61,6 +63,7 @@ from typing import Callable
 from photomap.config import MapServerConfig
 from photomap.errors import ConfigError, InputError, PhotomapError
 from photomap.geo import webmercator as wm
+from photomap.live.cpubudget import CpuBudget
 from photomap.live.livemap import EMPTY_TILE, PIXEL_ZOOM, LiveMap, Snapshot, Tile, TileCache, footprint_geojson, \
     hazards_geojson, status, tile_type, track_geojson
 from photomap.live.viewer import parse_serve_address
@@ -304,18 +307,28 @@ class _Server(HTTPServer):
         keep = False
         try:
             handler = _Handler(conn, self)
-            keep = handler.serve()
+            keep = self._serve(handler)
             # a client fetching several tiles sends the next request as soon as it has an answer:
             # taken here if it comes within LINGER_S, instead of parking and resuming (two thread
             # hand-offs and selector updates: most of a cached answer's CPU)
             while keep and _readable(conn.sock, LINGER_S):
-                keep = handler.serve()
+                keep = self._serve(handler)
         except Exception:  # a client that vanishes mid-answer, a broken request
             self.owner.stats["errors"] += 1
         if keep:  # (only with keepalive_s > 0: there is a parking)
             self._parking.park(conn)
         else:
             self._close(conn)
+
+    def _serve(self, handler: "_Handler") -> bool:
+        """The connection's ready requests answered within the server's CPU budget."""
+        budget = self.owner.budget
+        budget.wait()
+        t0 = time.thread_time()
+        try:
+            return handler.serve()
+        finally:
+            budget.spend(time.thread_time() - t0)
 
     def _close(self, conn: _Connection) -> None:
         with self._open_lock:  # its slot free before the client sees the end (and may connect again)
@@ -497,6 +510,9 @@ class MapServer:
         self.cache = TileCache(cfg.cache_tiles, cfg.min_render_interval_s, jpeg_quality=cfg.jpeg_quality)
         self.hazards = hazards
         self.timeout_s = float(cfg.timeout_s)
+        self._closing = threading.Event()
+        # the answering threads' CPU: at most cfg.cpu_share of a core (beyond, answers wait)
+        self.budget = CpuBudget(cfg.cpu_share, sleep=self._closing.wait)
         self.stats = {"connections": 0, "requests": 0, "not_modified": 0, "refused": 0, "timeouts": 0,
                       "too_large": 0, "errors": 0}
         # answers built from the live map, by name: (what they were built from, the answer)
@@ -518,7 +534,6 @@ class MapServer:
                                         name="photomap-mapserver-accept", daemon=True)
         self._thread.start()
         self._max_raw = int(cfg.max_raw_tiles)
-        self._closing = threading.Event()
         self._packer = threading.Thread(target=self._pack, name="photomap-mapserver-pack", daemon=True)
         self._packer.start()
 
@@ -592,7 +607,8 @@ class MapServer:
 
     def status(self) -> dict:
         out = dict(self.answer("status", status, encode=False))
-        out.update({"server": {**self.stats, "open": self.open_connections}, "tile_renders": self.cache.renders,
+        out.update({"server": {**self.stats, "open": self.open_connections, "budget_waits": self.budget.waits},
+                    "tile_renders": self.cache.renders,
                     "tile_hits": self.cache.hits})
         return out
 
