@@ -378,7 +378,7 @@ class MapServerConfig(_Section):
     cache_tiles: int = _num(256, 1, 1_000_000)
     min_render_interval_s: float = _num(2.0, 0.0, 3600.0)
     jpeg_quality: int = _num(0, 0, 100)
-    cpu_share: float = _num(0.25, 0.0, 64.0)
+    cpu_share: float = _num(0.1, 0.0, 64.0)
     write_xyz: bool = True
 
 
