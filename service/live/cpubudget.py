@@ -38,7 +38,6 @@ class CpuBudget:
         self._at = clock()
         self._lock = threading.Lock()
         self.waits = 0  # answers that waited for the budget
-        self.waited_s = 0.0
         self.spent_s = 0.0  # CPU seconds spent in all
 
     def _fill(self) -> float:  # under the lock: the tokens now
@@ -62,7 +61,6 @@ class CpuBudget:
                 if not waited:
                     self.waits += 1
                 waited = True
-                self.waited_s += owed
             if self._sleep(owed):
                 return
 
