@@ -313,9 +313,9 @@ def test_the_tap_forwards_everything_written_to_it_after_release_returns(tmp_pat
     that inherited fd 2) writes on past release's wait: every one of its lines reaches the real
     stderr, in order, and the pump ends with the pipe."""
     code = (
-        "import subprocess, sys, time\n"
+        "import subprocess, sys, threading, time\n"
         "from photomap.drivers import native_log\n"
-        "tap = native_log.acquire()\n"
+        "native_log.acquire()\n"
         "child = subprocess.Popen([sys.executable, '-c', 'import os, time\\n'\n"
         "    'for i in range(40):\\n'\n"
         "    '    os.write(2, b\"child line %d\\\\n\" % i)\\n'\n"
@@ -325,8 +325,11 @@ def test_the_tap_forwards_everything_written_to_it_after_release_returns(tmp_pat
         "native_log.release()\n"
         "print(f'released after {time.monotonic() - t0:.1f} s', file=sys.stderr, flush=True)\n"
         "child.wait()\n"
-        "tap._thread.join(5.0)\n"
-        "print(f'pump alive: {tap._thread.is_alive()}', file=sys.stderr, flush=True)\n"
+        "deadline = time.monotonic() + 5.0\n"
+        "pumps = lambda: [t for t in threading.enumerate() if t.name == 'photomap-stderr-tap']\n"
+        "while pumps() and time.monotonic() < deadline:\n"
+        "    time.sleep(0.01)\n"
+        "print(f'pump alive: {bool(pumps())}', file=sys.stderr, flush=True)\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
