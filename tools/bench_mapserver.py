@@ -29,9 +29,12 @@ own CPU, and the server's renders and cache hits. Target: no measurable slowdown
 0.97, or, where it straddles 0.97, that of the CPU ratio below 1.03.
 
     python -m tools.bench_mapserver [--frames 1500] [--passes 10] [--live-frames 300] [--live-passes 3]
-                                    [--hz 5] [--no-live] [--out FILE] [--json FILE]
+                                    [--hz 5] [--greedy-passes 3] [--no-live] [--out FILE] [--json FILE]
 
-Then (unless ``--no-live``) the live case: a flight of ``--live-frames`` frames (the same
+Then a greedy client (:class:`GreedyClient`: 4 connections asking without pause for tiles no view
+needs), with the server's CPU budget (``map_server.cpu_share``) and without, ``--greedy-passes``
+passes each between passes without a server: the mapping's fps against those. Then (unless
+``--no-live``) the live case: a flight of ``--live-frames`` frames (the same
 simulation) fed at its frame rate like a camera (``tools.bench_pipeline.PacedVideoSource``),
 without a server and with the server and the client: frames mapped and dropped, the worker's ms
 per frame.
@@ -80,6 +83,8 @@ FPS = 30.0  # of the simulated flight; the live passes feed it at this rate
 NO_SERVER, IDLE, CLIENT, NO_CACHE = "no server", "server, no client", "server + client", "server + client, no cache"
 CONDITIONS = (NO_SERVER, IDLE, CLIENT, NO_CACHE)
 CLIENTS = {CLIENT: True, NO_CACHE: False}  # the client conditions: whether the client revalidates
+GREEDY, GREEDY_FREE = "greedy client", "greedy client, no CPU budget"  # (map_server.cpu_share 0)
+GREEDY_CONNECTIONS = 4
 REFERENCE = "photomap-decode"  # the pipeline's frame reader: the same work in every pass
 log = logging.getLogger("bench_mapserver")
 
@@ -211,24 +216,66 @@ class Client(threading.Thread):
             self.stop.wait(max(0.0, due - time.monotonic()))
 
 
-def client_main(base: str, hz: float, revalidate: bool) -> int:
-    """The client process: fetches until its stdin closes, then prints what it saw (JSON)."""
-    client = Client(base, hz, revalidate)
+class GreedyClient(Client):
+    """A client asking without pause, as an overeager or hostile one does: after each status, 30
+    tiles of the 9 x 9 around the vehicle at the three zooms beyond ``max_zoom`` (upsampled:
+    tiles no view of the flight needs), each fetched whole. ``offset`` staggers the tiles of the
+    :data:`GREEDY_CONNECTIONS` clients that ask at once, each on its connection."""
+
+    def __init__(self, base: str, offset: int) -> None:
+        super().__init__(base, 1.0, revalidate=False)
+        self.offset = offset
+
+    def _tick(self) -> None:
+        body = self._get("status.json")
+        st = None if body is None else json.loads(body)
+        pos = None if st is None else st.get("position")
+        if not pos or "lat" not in pos:  # not yet georeferenced (its tiles are pixel-frame ones)
+            self.stop.wait(0.05)
+            return
+        self.last_status = st
+        for k in range(30):
+            z = st["max_zoom"] + 1 + (k + self.offset) % 3
+            cx, cy = wm.tile_of(pos["lat"], pos["lon"], z)
+            i = 7 * k + self.offset
+            if self._get(st["tiles_url"].lstrip("/").format(z=z, x=cx + i % 9 - 4, y=cy + i // 9 % 9 - 4)) is not None:
+                self.tiles += 1
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            self._tick()
+
+
+def client_main(base: str, hz: float, revalidate: bool, greedy: bool = False) -> int:
+    """The client process (``greedy``: :data:`GREEDY_CONNECTIONS` greedy clients): fetches until
+    its stdin closes, then prints what it saw (JSON)."""
+    clients = ([GreedyClient(base, k) for k in range(GREEDY_CONNECTIONS)] if greedy
+               else [Client(base, hz, revalidate)])
     print("ready", flush=True)  # imported: the pass starts now (the imports' CPU is not its)
     cpu0 = _cpu_s()
-    client.start()
+    for client in clients:
+        client.start()
     sys.stdin.read()
-    client.stop.set()
-    client.join()
-    client._close()
-    lat = sorted(client.latencies)
-    st = client.last_status or {}
-    print(json.dumps({"requests": len(lat), "failed": client.failed, "reasons": client.reasons,
-                      "tiles": client.tiles, "not_modified": client.not_modified, "client_cpu_s": _cpu_s() - cpu0,
+    for client in clients:
+        client.stop.set()
+    for client in clients:
+        client.join()
+        client._close()
+    lat = sorted(x for c in clients for x in c.latencies)
+    reasons: dict[str, int] = {}
+    for c in clients:
+        for k, v in c.reasons.items():
+            reasons[k] = reasons.get(k, 0) + v
+    st = clients[0].last_status or {}
+    server = st.get("server") or {}
+    print(json.dumps({"requests": len(lat), "failed": sum(c.failed for c in clients), "reasons": reasons,
+                      "tiles": sum(c.tiles for c in clients), "not_modified": sum(c.not_modified for c in clients),
+                      "client_cpu_s": _cpu_s() - cpu0,
                       "median_ms": 1000 * statistics.median(lat) if lat else float("nan"),
                       "max_ms": 1000 * lat[-1] if lat else float("nan"),
                       "renders": st.get("tile_renders"), "hits": st.get("tile_hits"),
-                      "server_errors": {k: v for k, v in (st.get("server") or {}).items() if k != "requests" and v}}))
+                      "budget_waits": server.get("budget_waits"),
+                      "server_errors": {k: v for k, v in server.items() if k != "requests" and v}}))
     return 0
 
 
@@ -288,14 +335,16 @@ def one_pass(flight: Path, out: Path, condition: str, hz: float, live: bool = Fa
     rate through a drop-oldest queue, as a camera is (``tools.bench_pipeline.PacedVideoSource``),
     without telemetry (the server shows the map's pixel frame)."""
     # no xyz/ at the end: an output after the mapping, not what a client costs it
-    cfg = load_config().updated({"output": {"checkpoint_interval": 2.0}, "map_server": {"write_xyz": False}})
+    served = {"write_xyz": False} | ({"cpu_share": 0.0} if condition == GREEDY_FREE else {})
+    cfg = load_config().updated({"output": {"checkpoint_interval": 2.0}, "map_server": served})
     port = _free_port()
     server = None if condition == NO_SERVER else str(port)
     client = None
-    if condition in CLIENTS:
+    if condition in CLIENTS or condition in (GREEDY, GREEDY_FREE):
+        kind = (["--greedy"] if condition in (GREEDY, GREEDY_FREE)
+                else [] if CLIENTS[condition] else ["--no-revalidate"])
         client = subprocess.Popen([sys.executable, "-m", "tools.bench_mapserver", "--client",
-                                   f"http://127.0.0.1:{port}/", "--hz", str(hz)]
-                                  + ([] if CLIENTS[condition] else ["--no-revalidate"]), cwd=REPO,
+                                   f"http://127.0.0.1:{port}/", "--hz", str(hz)] + kind, cwd=REPO,
                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         client.stdout.readline()
     seen: list[str] = []
@@ -436,14 +485,15 @@ def _ratio(effects: list[float]) -> tuple[float, float, float]:
 
 
 def render(args, order: list[str], passes: list[dict], took: float, loads: tuple[float, float],
-           live: dict | None) -> str:
+           live: dict | None, greedy: tuple[list[str], list[dict]] = ([], [])) -> str:
     rows = {c: [r for o, r in zip(order, passes) if o == c] for c in CONDITIONS}
     raw_effects = sandwich_effects(order, [r["fps"] for r in passes])
     effects = sandwich_effects(order, [r["relative_fps"] for r in passes])
     cpu_effects = sandwich_effects(order, [r["relative_cpu"] for r in passes])
     lines = ["## Map server", "",
              f"Written by `python -m tools.bench_mapserver --frames {args.frames} --live-frames {args.live_frames} "
-             f"--passes {args.passes} --live-passes {args.live_passes} --hz {args.hz:g}` on "
+             f"--passes {args.passes} --live-passes {args.live_passes} --hz {args.hz:g} "
+             f"--greedy-passes {args.greedy_passes}` on "
              f"{datetime.date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} cores, Python "
              f"{platform.python_version()}; {args.frames} frames of {SIZE[0]}x{SIZE[1]} (simulated, with "
              f"telemetry) mapped by `photomap replay` as fast as possible, {args.passes} passes per condition "
@@ -504,6 +554,25 @@ def render(args, order: list[str], passes: list[dict], took: float, loads: tuple
               f"({cpu_ratios[NO_CACHE][1]:.3f} .. {cpu_ratios[NO_CACHE][2]:.3f}), the server's own CPU "
               f"{verdicts[NO_CACHE][0]:.2f} ms per frame; against 3 %: {verdicts[NO_CACHE][1]}. Latencies are those "
               f"the client saw on loopback while the mapping ran flat out."]
+    greedy_order, greedy_rows = greedy
+    if greedy_rows:
+        effects = sandwich_effects(greedy_order, [r["relative_fps"] for r in greedy_rows])
+        lines += ["", f"A greedy client: {GREEDY_CONNECTIONS} connections of another process asking without pause "
+                  f"(after each status, 30 tiles of the 9 x 9 around the vehicle at the three zooms beyond "
+                  f"`max_zoom`, each fetched whole), with the server's CPU budget (`map_server.cpu_share` "
+                  f"{load_config().map_server.cpu_share:g} of a core) and without (`cpu_share` 0), "
+                  f"{args.greedy_passes} passes each, every one between two passes without a server "
+                  f"(the interval, of so few passes, is rough):", "",
+                  "| condition | median fps | fps in units of the machine's speed / that of the two around it: mean "
+                  "(95 % interval) | the server's own CPU ms per frame: answers + in the worker (median) "
+                  "| answers a pass (median) | answers that waited for the budget (median) |",
+                  "|---|---|---|---|---|---|"]
+        for cond in (GREEDY, GREEDY_FREE):
+            rs = [r for o, r in zip(greedy_order, greedy_rows) if o == cond]
+            lines.append(f"| {cond} | {statistics.median(r['fps'] for r in rs):.1f} "
+                         f"| {'{:.3f} ({:.3f} .. {:.3f})'.format(*_ratio(effects[cond]))} | {_own(rs)} "
+                         f"| {statistics.median(r['requests'] for r in rs):.0f} "
+                         f"| {statistics.median(r.get('budget_waits') or 0 for r in rs):.0f} |")
     if live:
         lines += ["", f"Live: {args.live_frames} frames of the same simulation fed at {FPS:g} fps through a drop-oldest queue of "
                   f"`capture.queue_size` frames, as a camera is (the server's Python code waits while the "
@@ -543,9 +612,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", metavar="FILE", help="also write every pass's measures (JSON) to FILE")
     ap.add_argument("--client", metavar="URL", help=argparse.SUPPRESS)  # internal: the client process
     ap.add_argument("--no-revalidate", dest="revalidate", action="store_false", help=argparse.SUPPRESS)
+    ap.add_argument("--greedy", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--greedy-passes", type=int, default=3,
+                    help="flat-out passes with a greedy client, with and without the CPU budget (default 3; 0: none)")
     args = ap.parse_args(argv)
     if args.client:
-        return client_main(args.client, args.hz, args.revalidate)
+        return client_main(args.client, args.hz, args.revalidate, args.greedy)
     if min(args.frames, args.live_frames) < 30 or min(args.passes, args.live_passes) < 1 or not args.hz > 0:
         print("error: --frames and --live-frames >= 30, --passes and --live-passes >= 1, --hz > 0", file=sys.stderr)
         return 2
@@ -563,6 +635,14 @@ def main(argv: list[str] | None = None) -> int:
             passes.append(row)
             log.info("pass %d of %d, %s: %.1f fps%s", i + 1, len(order), cond, row["fps"],
                      f", {row['requests']} requests" if "requests" in row else "")
+        greedy_order = ([NO_SERVER] + [GREEDY, NO_SERVER, GREEDY_FREE, NO_SERVER] * args.greedy_passes
+                        if args.greedy_passes > 0 else [])
+        greedy = []
+        for i, cond in enumerate(greedy_order):
+            row = one_pass(flight, tmp_dir / f"greedy{i}", cond, args.hz)
+            greedy.append(row)
+            log.info("greedy pass %d of %d, %s: %.1f fps%s", i + 1, len(greedy_order), cond, row["fps"],
+                     f", {row['requests']} requests" if "requests" in row else "")
         if args.live:
             if args.live_frames != args.frames:
                 log.info("simulating %d frames of %dx%d for the live passes", args.live_frames, *SIZE)
@@ -575,9 +655,11 @@ def main(argv: list[str] | None = None) -> int:
                     live[cond].append(row)
                     log.info("live pass %d, %s: %d mapped, %d dropped, %.1f worker ms/frame", k + 1, cond,
                              row["frames"], row["dropped"], row["worker_ms"])
-    body = render(args, order, passes, time.perf_counter() - start, (load0, load_average()), live)
+    body = render(args, order, passes, time.perf_counter() - start, (load0, load_average()), live,
+                  (greedy_order, greedy))
     if args.json:
-        Path(args.json).write_text(json.dumps({"order": order, "passes": passes, "live": live}, indent=1))
+        Path(args.json).write_text(json.dumps({"order": order, "passes": passes, "live": live,
+                                               "greedy_order": greedy_order, "greedy": greedy}, indent=1))
     print(body)
     if args.out != "-":
         replace_section(Path(args.out), "mapserver", body)
