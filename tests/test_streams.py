@@ -281,7 +281,14 @@ def test_a_silent_udp_port_is_one_input_error_within_the_open_timeout():
 # ------------------------------------------------------------------------- decoder messages
 
 
-def test_native_decoder_lines_are_counted_and_everything_else_passes(tmp_path):
+def _stderr_lines(code: str) -> list[str]:
+    """The stderr lines of ``code`` run in a fresh interpreter (which must exit 0)."""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stderr.splitlines()
+
+
+def test_native_decoder_lines_are_counted_and_everything_else_passes():
     """fd 2 written by native code (as FFmpeg's av_log does) through the tap, in a fresh process."""
     code = (
         "import logging, os, sys\n"
@@ -298,9 +305,7 @@ def test_native_decoder_lines_are_counted_and_everything_else_passes(tmp_path):
         "counts = native_log.release()\n"
         "logging.info('python log line after: %s', native_log.summarise(counts))\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 0, proc.stderr
-    lines = proc.stderr.splitlines()
+    lines = _stderr_lines(code)
     assert lines[0] == "INFO python log line before"
     assert "some other library line" in lines
     assert not [line for line in lines if any(n in line for n in ("@ 0x", "Last message", "WARN:0"))], lines
@@ -308,7 +313,7 @@ def test_native_decoder_lines_are_counted_and_everything_else_passes(tmp_path):
                          "referenced', 5x 'h264: no frame!', 1x 'opencv: Stream timeout triggered after N ms')")
 
 
-def test_the_tap_forwards_everything_written_to_it_after_release_returns(tmp_path):
+def test_the_tap_forwards_everything_written_to_it_after_release_returns():
     """A writer that still holds the tap's pipe when the last hold is released (a child process
     that inherited fd 2) writes on past release's wait: every one of its lines reaches the real
     stderr, in order, and the pump ends with the pipe."""
@@ -331,14 +336,12 @@ def test_the_tap_forwards_everything_written_to_it_after_release_returns(tmp_pat
         "    time.sleep(0.01)\n"
         "print(f'pump alive: {bool(pumps())}', file=sys.stderr, flush=True)\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 0, proc.stderr
-    lines = proc.stderr.splitlines()
+    lines = _stderr_lines(code)
     child = [line for line in lines if line.startswith("child line")]
-    assert child == [f"child line {i}" for i in range(40)], proc.stderr
+    assert child == [f"child line {i}" for i in range(40)], lines
     released = float(next(line for line in lines if line.startswith("released after")).split()[2])
     assert released <= native_log.CLOSE_WAIT_S + 1.0  # bounded: release does not wait for the child
-    assert lines[-1] == "pump alive: False", proc.stderr
+    assert lines[-1] == "pump alive: False", lines
 
 
 def test_decoder_message_keys():
