@@ -84,6 +84,7 @@ NO_SERVER, IDLE, CLIENT, NO_CACHE = "no server", "server, no client", "server + 
 CONDITIONS = (NO_SERVER, IDLE, CLIENT, NO_CACHE)
 CLIENTS = {CLIENT: True, NO_CACHE: False}  # the client conditions: whether the client revalidates
 GREEDY, GREEDY_FREE = "greedy client", "greedy client, no CPU budget"  # (map_server.cpu_share 0)
+GREEDIES = (GREEDY, GREEDY_FREE)
 GREEDY_CONNECTIONS = 4
 REFERENCE = "photomap-decode"  # the pipeline's frame reader: the same work in every pass
 log = logging.getLogger("bench_mapserver")
@@ -340,8 +341,8 @@ def one_pass(flight: Path, out: Path, condition: str, hz: float, live: bool = Fa
     port = _free_port()
     server = None if condition == NO_SERVER else str(port)
     client = None
-    if condition in CLIENTS or condition in (GREEDY, GREEDY_FREE):
-        kind = (["--greedy"] if condition in (GREEDY, GREEDY_FREE)
+    if condition in CLIENTS or condition in GREEDIES:
+        kind = (["--greedy"] if condition in GREEDIES
                 else [] if CLIENTS[condition] else ["--no-revalidate"])
         client = subprocess.Popen([sys.executable, "-m", "tools.bench_mapserver", "--client",
                                    f"http://127.0.0.1:{port}/", "--hz", str(hz)] + kind, cwd=REPO,
@@ -484,6 +485,11 @@ def _ratio(effects: list[float]) -> tuple[float, float, float]:
     return math.exp(statistics.fmean(effects)), math.exp(lo), math.exp(hi)
 
 
+def _shown(ratio: tuple[float, float, float]) -> str:
+    """A :func:`_ratio` as a table cell: mean (95 % interval)."""
+    return "{:.3f} ({:.3f} .. {:.3f})".format(*ratio)
+
+
 def render(args, order: list[str], passes: list[dict], took: float, loads: tuple[float, float],
            live: dict | None, greedy: tuple[list[str], list[dict]] = ([], [])) -> str:
     rows = {c: [r for o, r in zip(order, passes) if o == c] for c in CONDITIONS}
@@ -517,8 +523,7 @@ def render(args, order: list[str], passes: list[dict], took: float, loads: tuple
         cpu = statistics.median(r["cpu_ms"] for r in rs)
         req, latency, cache = _requests(rs) if cond in CLIENTS else ("-", "-", "-")
         raw, ratio, cpu_ratio = ("-", "-", "-") if cond == NO_SERVER else (
-            "{:.3f} ({:.3f} .. {:.3f})".format(*raw_ratios[cond]), "{:.3f} ({:.3f} .. {:.3f})".format(*ratios[cond]),
-            "{:.3f} ({:.3f} .. {:.3f})".format(*cpu_ratios[cond]))
+            _shown(raw_ratios[cond]), _shown(ratios[cond]), _shown(cpu_ratios[cond]))
         lines.append(f"| {cond} | {statistics.median(fps):.1f} ({min(fps):.1f} .. {max(fps):.1f}) | {raw} | {ratio} "
                      f"| {cpu:.2f} | {cpu_ratio} | {_own(rs)} | {req} | {latency} | {cache} |")
     verdicts = {}
@@ -567,10 +572,10 @@ def render(args, order: list[str], passes: list[dict], took: float, loads: tuple
                   "(95 % interval) | the server's own CPU ms per frame: answers + in the worker (median) "
                   "| answers a pass (median) | answers that waited for the budget (median) |",
                   "|---|---|---|---|---|---|"]
-        for cond in (GREEDY, GREEDY_FREE):
+        for cond in GREEDIES:
             rs = [r for o, r in zip(greedy_order, greedy_rows) if o == cond]
             lines.append(f"| {cond} | {statistics.median(r['fps'] for r in rs):.1f} "
-                         f"| {'{:.3f} ({:.3f} .. {:.3f})'.format(*_ratio(effects[cond]))} | {_own(rs)} "
+                         f"| {_shown(_ratio(effects[cond]))} | {_own(rs)} "
                          f"| {statistics.median(r['requests'] for r in rs):.0f} "
                          f"| {statistics.median(r.get('budget_waits') or 0 for r in rs):.0f} |")
     if live:
