@@ -6,8 +6,8 @@ import math
 import random
 import statistics
 
-from tools.bench_mapserver import CONDITIONS, NO_SERVER, flat_out_verdict, mean_interval, pass_order, \
-    sandwich_effects
+from tools.bench_mapserver import CONDITIONS, NO_SERVER, flat_out_verdict, mean_interval, paired_effects, \
+    pass_order, sandwich_effects
 
 
 def test_the_interval_holds_the_mean_and_narrows_with_more_passes():
@@ -43,6 +43,18 @@ def test_the_sandwich_cancels_a_drift_of_the_machine():
     assert all(abs(math.exp(e) - 0.95) < 1e-3 for e in effects[CONDITIONS[2]] + effects[CONDITIONS[3]])
     assert fps[order.index(CONDITIONS[1])] / fps[0] < 0.995  # the drift a plain ratio would report
 
+
+
+def test_a_condition_against_another_of_the_same_round_is_its_cost_beyond_that_one():
+    """A server costing 2 % with no client and 5 % with one, on a drifting machine: the client's
+    own share comes out at 0.95 / 0.98 in every round, paired with that round's pass."""
+    order = pass_order(4)
+    cost = {NO_SERVER: 1.0, CONDITIONS[1]: 0.98, CONDITIONS[2]: 0.95, CONDITIONS[3]: 0.90}
+    fps = [200.0 * 0.99 ** i * cost[c] for i, c in enumerate(order)]
+    effects = sandwich_effects(order, fps)
+    paired = paired_effects(effects, CONDITIONS[2], CONDITIONS[1])
+    assert len(paired) == 4 and all(abs(math.exp(e) - 0.95 / 0.98) < 1e-3 for e in paired)
+    assert all(abs(math.exp(e) - 0.90 / 0.95) < 1e-3 for e in paired_effects(effects, CONDITIONS[3], CONDITIONS[2]))
 
 def test_the_verdict_follows_the_fps_then_the_cpu_interval_and_a_lower_bound_only_fails_it():
     assert flat_out_verdict((0.975, 1.01), (1.05, 1.2), 0.05).startswith("met (the speed-relative fps")

@@ -421,6 +421,13 @@ def sandwich_effects(order: list[str], values: list[float]) -> dict[str, list[fl
     return out
 
 
+def paired_effects(effects: dict[str, list[float]], cond: str, against: str) -> list[float]:
+    """Per round, the log ratio of ``cond``'s pass to ``against``'s (each already relative to the
+    passes without a server around it, :func:`sandwich_effects`): ``cond`` against another
+    condition of the same round (every round holds one pass of each)."""
+    return [a - b for a, b in zip(effects[cond], effects[against])]
+
+
 def flat_out_verdict(fps: tuple[float, float], cpu: tuple[float, float], cpu_share: float,
                      limit: float = 0.03) -> str:
     """The flat-out target, from the 95 % interval of the fps ratio in units of the machine's
@@ -530,6 +537,11 @@ def render(args, order: list[str], passes: list[dict], took: float, loads: tuple
     for cond in CLIENTS:
         own = statistics.median(_own_total(r) for r in rows[cond])
         verdicts[cond] = (own, flat_out_verdict(ratios[cond][1:], cpu_ratios[cond][1:], own / base_cpu))
+    # the client's own cost: against the server without a client in the same round (the row's "without")
+    client_fps = _ratio(paired_effects(effects, CLIENT, IDLE))
+    client_cpu = _ratio(paired_effects(cpu_effects, CLIENT, IDLE))
+    answers = statistics.median(r["own_ms"]["answers"] for r in rows[CLIENT])
+    client_verdict = flat_out_verdict(client_fps[1:], client_cpu[1:], answers / base_cpu)
     per_request = statistics.median(r["own_ms"]["answers"] * r["frames"] / max(1, r["requests"]) for r in rows[CLIENT])
     own, verdict = verdicts[CLIENT]
     lines += ["", f"The client (another process on the same cores, as a ground station is not) asks for the status "
@@ -553,6 +565,11 @@ def render(args, order: list[str], passes: list[dict], took: float, loads: tuple
               f"{per_request:.2f} ms per request; work OpenCV hands to its threads is not in them); the client's "
               f"own CPU: {statistics.median(r['client_cpu_ms'] for r in rows[CLIENT]):.2f} ms per frame. "
               f"Target (no measurable slowdown, 3 %): **{verdict}**.", "",
+              f"What the client itself costs, against the server with no client of the same round (both "
+              f"relative to the passes around them; the server's copy of the map, which a server costs with "
+              f"or without a client, cancels): speed-relative fps {_shown(client_fps)}, CPU per frame "
+              f"{_shown(client_cpu)}, the answering threads {answers:.2f} ms per frame; against 3 %: "
+              f"{client_verdict}.", "",
               f"Without a cache (every tile fetched whole, {statistics.median(r['tiles'] for r in rows[NO_CACHE]):.0f} "
               f"a pass, most of them ~100 KB PNGs it already has): speed-relative fps {ratios[NO_CACHE][0]:.3f} "
               f"({ratios[NO_CACHE][1]:.3f} .. {ratios[NO_CACHE][2]:.3f}), CPU per frame {cpu_ratios[NO_CACHE][0]:.3f} "
