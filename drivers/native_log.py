@@ -9,6 +9,11 @@ line in one of those two forms is counted by its text (numbers folded) and dropp
 the last hold restores fd 2.
 
 The tap is one per process (fd 2 is): :func:`acquire` and :func:`release` count the holders.
+
+Native writers may split a line over several writes (av_log writes its "[h264 @ 0x...] " prefix
+and its message apart), so a line another thread writes to fd 2 between them would be read as part
+of a decoder line. Python's own log therefore does not go through fd 2: :func:`python_stderr` is a
+stream to the real stderr that no tap is in (photomap's log handler writes to it).
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import re
 import sys
 import threading
 from collections import Counter
+from typing import TextIO
 
 # "[h264 @ 0x55813e5c9880] non-existing PPS 0 referenced"
 _AV_LOG = re.compile(r"^\[([\w:.\-]+) @ (?:0x)?[0-9a-fA-F]+\] ?(.*)$")
@@ -32,6 +38,18 @@ _REPEATED = re.compile(r"^\s*Last message repeated (\d+) times?\s*$")
 _NUMBER = re.compile(r"(?<![.\d:])(?:0x[0-9a-fA-F]+|\d+\.\d+|\d{3,})(?![.\d:])")
 
 CLOSE_WAIT_S = 2.0  # seconds StderrTap.close waits for the pump to forward what is in the pipe
+
+
+def python_stderr() -> TextIO:
+    """A line-buffered text stream to the process's stderr that bypasses any tap (a duplicate
+    of fd 2 taken now, before a tap replaces fd 2; ``sys.stderr`` where fd 2 cannot be duplicated).
+    Call it before the first :func:`acquire`; the stream stays open for the process's life."""
+    try:
+        fd = os.dup(2)
+    except OSError:  # no stderr at all
+        return sys.stderr
+    return open(fd, "w", buffering=1, encoding=getattr(sys.stderr, "encoding", None) or "utf-8",
+                errors="backslashreplace")
 
 
 def opencv_log(line: str) -> tuple[str, str] | None:

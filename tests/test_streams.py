@@ -313,6 +313,28 @@ def test_native_decoder_lines_are_counted_and_everything_else_passes():
                          "referenced', 5x 'h264: no frame!', 1x 'opencv: Stream timeout triggered after N ms')")
 
 
+
+def test_a_log_line_written_while_a_native_line_is_half_written_is_not_taken_for_it():
+    """av_log writes a line's "[h264 @ 0x..] " prefix and its message in two writes: photomap's
+    log (``setup_logging``) does not go through the tap, so a warning another thread logs between
+    them reaches the real stderr whole, and the decoder line is still counted."""
+    code = (
+        "import logging, os\n"
+        "from photomap.cli.oplog import setup_logging\n"
+        "from photomap.drivers import native_log\n"
+        "setup_logging(logging.INFO)\n"
+        "native_log.acquire()\n"
+        "os.write(2, b'[h264 @ 0x55813e5c9880] ')\n"
+        "logging.getLogger('photomap.drivers.camera').warning('camera udp://x lost: reconnecting')\n"
+        "os.write(2, b'non-existing PPS 0 referenced\\n')\n"
+        "counts = native_log.release()\n"
+        "logging.getLogger('t').info('after: %s', native_log.summarise(counts))\n"
+    )
+    lines = _stderr_lines(code)
+    assert [line.split(" ", 1)[1] for line in lines] == [
+        "WARNING photomap.drivers.camera: camera udp://x lost: reconnecting",
+        "INFO t: after: 1 decoder message (1x 'h264: non-existing PPS 0 referenced')"], lines
+
 def test_the_tap_forwards_everything_written_to_it_after_release_returns():
     """A writer that still holds the tap's pipe when the last hold is released (a child process
     that inherited fd 2) writes on past release's wait: every one of its lines reaches the real

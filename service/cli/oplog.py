@@ -15,6 +15,7 @@ import time
 from datetime import datetime, timezone
 from typing import Any, Callable
 
+from photomap.drivers import native_log
 from photomap.mapping.events import FrameEvent
 
 STATUS_LOGGER = "photomap.status"
@@ -61,19 +62,22 @@ def setup_logging(level: int, log_format: str = "text") -> None:
     """Log records of ``level`` and above to stderr, as text (``HH:MM:SS LEVEL logger: message``)
     or JSON lines (:class:`JsonFormatter`; Python warnings are routed into the log too).
 
-    Like :func:`logging.basicConfig`, it leaves a root logger that already has handlers alone
-    (e.g. under pytest).
+    The records go to stderr past the decoder-message tap (:func:`photomap.drivers.native_log.python_stderr`),
+    so that a native line written in pieces never swallows one. Like :func:`logging.basicConfig`,
+    it leaves a root logger that already has handlers alone (e.g. under pytest).
     """
     if log_format not in LOG_FORMATS:
         raise ValueError(f"log format must be one of {LOG_FORMATS}, got {log_format!r}")
+    if logging.getLogger().handlers:
+        return
+    handler = logging.StreamHandler(native_log.python_stderr())
     if log_format == "json":
-        handler = logging.StreamHandler()  # stderr
         handler.setFormatter(JsonFormatter())
         logging.basicConfig(level=level, handlers=[handler])
         logging.captureWarnings(True)
     else:
         logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                            datefmt="%H:%M:%S")
+                            datefmt="%H:%M:%S", handlers=[handler])
 
 
 class StatusReporter:
