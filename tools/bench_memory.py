@@ -133,7 +133,7 @@ def records_growth(n: int, config: str | None, overrides: list[str]) -> dict:
         MappingPipeline(source, cfg, tmp, sinks=[on_frame], input_name="records").run()
     tracemalloc.stop()
     (ia, a), (ib, b) = snaps["a"], snaps["b"]
-    tiles = other = in_flight = 0
+    tiles = grew = freed = in_flight = 0
     by_line: dict[str, int] = {}
     for stat in b.compare_to(a, "traceback"):
         files = [f.filename for f in stat.traceback]
@@ -142,14 +142,18 @@ def records_growth(n: int, config: str | None, overrides: list[str]) -> dict:
         elif any(f.endswith("io/statestore.py") for f in files):
             in_flight += stat.size_diff  # tile copies of a checkpoint being written (<= its budget)
         elif not any(f.endswith(("sim/flight.py", "bench_pipeline.py")) for f in files):  # the source's frames
-            other += stat.size_diff
+            if stat.size_diff > 0:
+                grew += stat.size_diff
+            else:
+                freed -= stat.size_diff
             frame = next((f for f in reversed(stat.traceback) if "photomap" in f.filename or "/service/" in f.filename),
                          stat.traceback[-1])
             key = f"{Path(frame.filename).name}:{frame.lineno}"
             by_line[key] = by_line.get(key, 0) + stat.size_diff
     frames = ib - ia
     top = sorted(by_line.items(), key=lambda kv: -kv[1])[:6]
-    return {"frames": frames, "tiles_kb_per_frame": tiles / 1024 / frames, "records_kb_per_frame": other / 1024 / frames,
+    return {"frames": frames, "tiles_kb_per_frame": tiles / 1024 / frames, "grew_kb_per_frame": grew / 1024 / frames,
+            "freed_mb": freed / 2**20,
             "checkpoint_in_flight_mb": in_flight / 2**20,
             "top": [(k, round(v / 1024 / frames, 3)) for k, v in top]}
 
@@ -198,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
                          if run is run_case else run(spec["n"], spec["config"], spec["overrides"])))
         return 0
     ck = [f"output.checkpoint_interval={args.interval}"]
+    load_before = os.getloadavg()[0]
     cases = []
     if args.black:
         cases += [("black", args.black, None, ck), ("black", args.black, str(ONBOARD), ck)]
@@ -217,13 +222,16 @@ def main(argv: list[str] | None = None) -> int:
         lines += ["", f"Python heap growth from 20 % to 100 % of a {args.records}-frame flight (tracemalloc, "
                       f"onboard config): map tiles {rec['tiles_kb_per_frame']:.2f} KB/frame (bounded by "
                       f"`mosaic.max_tiles_in_memory`), a checkpoint being written {rec['checkpoint_in_flight_mb']:.1f} MB "
-                      f"(its tile copies), everything else {rec['records_kb_per_frame']:.3f} KB/frame; "
-                      "largest: " + ", ".join(f"`{k}` {v:.3f}" for k, v in rec["top"]) + " KB/frame."]
+                      f"(its tile copies); everything else: what grew {rec['grew_kb_per_frame']:.3f} KB/frame "
+                      f"(largest: " + ", ".join(f"`{k}` {v:.3f}" for k, v in rec["top"]) + " KB/frame), "
+                      f"and {rec['freed_mb']:.1f} MB held at 20 % freed by the end."]
     print("\n".join(lines))
+    loads = (load_before, os.getloadavg()[0])
     if args.out:
         from tools.report import replace_section
-        body = [f"Written by `python -m tools.bench_memory` on {datetime.date.today()}, a busy 2-core machine "
-                f"(other jobs running; timings are indicative). RSS sampled every 50 ms (psutil), each case "
+        body = [f"Written by `python -m tools.bench_memory` on {datetime.date.today()}, {os.cpu_count()} cores, "
+                f"1-minute load {loads[0]:.1f} before and {loads[1]:.1f} after (timings are indicative; "
+                f"the pipeline section measures speed). RSS sampled every 50 ms (psutil), each case "
                 f"in a fresh interpreter; *growth*: median RSS over 80-100 % of the frames minus the median "
                 f"over 10-30 %, per frame between them. Checkpoint: worker = copying the tiles changed since the last "
                 f"checkpoint, writer = PNG encoding + fsync + manifest in the background thread.", "", *lines]
